@@ -1,0 +1,4 @@
+"""Integration layer: pybullet rigid scenes, contact, coupling and rerun recording.
+
+The FEM core (``softbody``) never imports pybullet or rerun; everything that does lives here.
+"""

@@ -1,0 +1,19 @@
+"""softbody: stiffness-warped finite elements (tet4, hex8, tet10) with implicit integration.
+
+The FEM core: numpy and scipy only (pybullet and rerun live in the ``integration`` package).
+"""
+from .body import FemBody
+from .elements import ELEMENT_TYPES, ElementType, element_type
+from .errors import InvalidInputError, MeshError, SimulationDiverged, SolverError
+from .integrator import Constraints
+from .material import LinearElastic
+from .mesh import Mesh
+from .meshing import box_mesh, read_mesh, to_tet10, tube_mesh
+from .simulation import Simulation, solve_static
+
+__all__ = [
+    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Mesh",
+    "MeshError", "Simulation", "SimulationDiverged", "SolverError", "box_mesh", "element_type", "read_mesh",
+    "solve_static", "to_tet10", "tube_mesh",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,255 @@
+"""FemBody: a mesh, a material, precomputed element matrices, state and supports.
+
+Per-element arrays are batched over the E elements; k nodes per element. Element stiffness
+K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of SPEC.md.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from .assembly import BlockPattern
+from .elements import shape_gradients
+from .errors import InvalidInputError
+from .material import LinearElastic
+from .mesh import Mesh
+from .rotation import polar_rotation
+
+Motion = Callable[[float], np.ndarray]
+
+
+def strain_displacement(G: np.ndarray) -> np.ndarray:
+    """B matrices (..., 6, 3k) from shape-function gradients G (..., k, 3); Voigt order xx yy zz xy yz zx."""
+    *lead, k, _ = G.shape
+    B = np.zeros((*lead, 6, k, 3))
+    gx, gy, gz = G[..., 0], G[..., 1], G[..., 2]
+    B[..., 0, :, 0] = gx
+    B[..., 1, :, 1] = gy
+    B[..., 2, :, 2] = gz
+    B[..., 3, :, 0], B[..., 3, :, 1] = gy, gx
+    B[..., 4, :, 1], B[..., 4, :, 2] = gz, gy
+    B[..., 5, :, 0], B[..., 5, :, 2] = gz, gx
+    return B.reshape(*lead, 6, 3 * k)
+
+
+def von_mises_stress(sigma: np.ndarray) -> np.ndarray:
+    """Von Mises stress (...,) [Pa] of Voigt stresses (..., 6)."""
+    sx, sy, sz, txy, tyz, tzx = np.moveaxis(sigma, -1, 0)
+    return np.sqrt(0.5 * ((sx - sy) ** 2 + (sy - sz) ** 2 + (sz - sx) ** 2) + 3.0 * (txy**2 + tyz**2 + tzx**2))
+
+
+class FemBody:
+    """A deformable body discretised by finite elements.
+
+    mesh: :class:`Mesh`; material: :class:`LinearElastic`; warping: stiffness warping on/off;
+    damping: Rayleigh (alpha [1/s], beta [s]); mass: "consistent" or "lumped" (HRZ diagonal scaling);
+    hex_rotation: "average" (mean F of both Freudenthal inner tets) or "single" (the {0,2,5,7} tet).
+    State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
+    """
+
+    def __init__(self, mesh: Mesh, material: LinearElastic, warping: bool = True,
+                 damping: tuple[float, float] = (0.1, 0.001), mass: str = "consistent",
+                 hex_rotation: str = "average"):
+        if not isinstance(mesh, Mesh):
+            raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
+        if not isinstance(material, LinearElastic):
+            raise InvalidInputError(f"material must be a softbody.LinearElastic, got {type(material).__name__}")
+        if mass not in ("consistent", "lumped"):
+            raise InvalidInputError(f"mass must be 'consistent' or 'lumped', got {mass!r}")
+        if hex_rotation not in ("average", "single"):
+            raise InvalidInputError(f"hex_rotation must be 'average' or 'single', got {hex_rotation!r}")
+        try:
+            alpha, beta = (float(d) for d in damping)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"damping must be a pair (alpha, beta), got {damping!r}") from None
+        if not (np.isfinite([alpha, beta]).all() and alpha >= 0 and beta >= 0):
+            raise InvalidInputError(f"Rayleigh damping (alpha, beta) must be finite and >= 0, got {damping!r}")
+        self.mesh = mesh
+        self.material = material
+        self.warping = bool(warping)
+        self.damping = (alpha, beta)
+        self.mass_kind = mass
+        et = mesh.element_type
+        self.element_type = et
+        X = mesh.nodes[mesh.elements]  # (E, k, 3)
+        E, k = mesh.elements.shape
+        D = material.elasticity_matrix()
+
+        # stiffness: K_e = sum_q w_q detJ_q B_q^T D B_q
+        xi, w = et.stiffness_rule
+        G, detJ = shape_gradients(et, X, xi)
+        B = strain_displacement(G)  # (E, q, 6, 3k)
+        self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, D, B, optimize=True)
+        self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
+        self.Ke_x0 = np.einsum("eab,eb->ea", self.Ke, X.reshape(E, 3 * k))  # K_e X_e, (E, 3k)
+
+        # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
+        xim, wm = et.mass_rule
+        _, detJm = shape_gradients(et, X, xim)
+        N = et.shape(xim)
+        Me = material.density * np.einsum("eq,qa,qb->eab", detJm * wm, N, N, optimize=True)
+        self.volumes = detJm @ wm
+        if mass == "lumped":  # HRZ: diagonal scaled to the element mass; positive for every element type
+            d = np.einsum("eaa->ea", Me)
+            d *= (material.density * self.volumes / d.sum(axis=1))[:, None]
+            Me = np.einsum("ea,ab->eab", d, np.eye(k))
+        self.Me = Me
+
+        # characteristic tetrahedra for the warping rotation: Dm^-1 (E, c, 3, 3)
+        ct = et.char_tets if (et.name != "hex8" or hex_rotation == "average") else et.char_tets[:1]
+        self.char_tets = ct
+        Xc = X[:, ct]  # (E, c, 4, 3)
+        Dm = np.swapaxes(Xc[:, :, 1:] - Xc[:, :, :1], -1, -2)  # columns X2-X1, X3-X1, X4-X1
+        self.Dm_inv = np.linalg.inv(Dm)
+
+        # gradients at the element centre for strain and stress output
+        Gc, _ = shape_gradients(et, X, et.centroid[None])
+        self.Bc = strain_displacement(Gc[:, 0])  # (E, 6, 3k)
+        self.D = D
+
+        self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
+        self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
+        self.node_mass = np.bincount(mesh.elements.ravel(), weights=Me.sum(axis=2).ravel(),
+                                     minlength=mesh.n_nodes)  # row sums: consistent gravity load / g
+
+        self.rest = mesh.nodes.copy()
+        self.positions = mesh.nodes.copy()
+        self.velocities = np.zeros_like(self.positions)
+        self.fixed = np.zeros(mesh.n_nodes, dtype=bool)
+        self.fixed[~mesh.used_nodes()] = True  # unused nodes carry no mass: hold them at rest
+        self.prescribed: list[tuple[np.ndarray, Motion]] = []
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_nodes(self) -> int:
+        return self.mesh.n_nodes
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * self.mesh.n_nodes
+
+    @property
+    def total_mass(self) -> float:
+        return float(self.material.density * self.volumes.sum())
+
+    # ------------------------------------------------------------------ supports
+    def _node_ids(self, node_ids, what: str) -> np.ndarray:
+        ids = np.atleast_1d(np.asarray(node_ids))
+        if ids.dtype == bool:
+            if ids.shape != (self.n_nodes,):
+                raise InvalidInputError(f"{what}: a boolean mask needs shape ({self.n_nodes},), got {ids.shape}")
+            ids = np.flatnonzero(ids)
+        if ids.size and not np.issubdtype(ids.dtype, np.integer):
+            raise InvalidInputError(f"{what}: node ids must be integers, got dtype {ids.dtype}")
+        ids = ids.astype(np.int64)
+        bad = ids[(ids < 0) | (ids >= self.n_nodes)]
+        if bad.size:
+            raise InvalidInputError(f"{what}: node ids {bad[:10].tolist()} do not exist; valid ids are 0..{self.n_nodes - 1}")
+        return np.unique(ids)
+
+    def fix(self, node_ids) -> None:
+        """Hold nodes (ids or boolean mask) at their current positions, exactly."""
+        ids = self._node_ids(node_ids, "fix")
+        self.fixed[ids] = True
+        self.velocities[ids] = 0.0
+
+    def prescribe(self, node_ids, motion: Motion) -> None:
+        """Make nodes follow ``motion(t)`` -> (len(ids), 3) positions [m] exactly (reached at the end of each step)."""
+        ids = self._node_ids(node_ids, "prescribe")
+        if not callable(motion):
+            raise InvalidInputError("prescribe: motion must be a function of time returning (n, 3) positions")
+        p = np.asarray(motion(0.0), dtype=float)
+        if p.shape != (len(ids), 3):
+            raise InvalidInputError(f"prescribe: motion(t) must return shape ({len(ids)}, 3), got {p.shape}")
+        self.prescribed.append((ids, motion))
+
+    def constrained_targets(self, t_next: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """Nodes held by supports and the velocities (m, 3) that bring them exactly to their
+        positions at time t_next after a step h. Later prescriptions override earlier ones and fixes."""
+        target = np.full((self.n_nodes, 3), np.nan)
+        target[self.fixed] = 0.0
+        for ids, motion in self.prescribed:
+            p = np.asarray(motion(t_next), dtype=float).reshape(len(ids), 3)
+            target[ids] = (p - self.positions[ids]) / h
+        nodes = np.flatnonzero(~np.isnan(target[:, 0]))
+        return nodes, target[nodes]
+
+    # ------------------------------------------------------------------ warping
+    def rotations(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Warping rotation R_e (E, 3, 3) of each element from its characteristic tetrahedra (identity if warping is off)."""
+        E = self.mesh.n_elements
+        if not self.warping:
+            return np.broadcast_to(np.eye(3), (E, 3, 3))
+        x = self.positions if x is None else x
+        xc = x[self.mesh.elements[:, self.char_tets]]  # (E, c, 4, 3)
+        Ds = np.swapaxes(xc[:, :, 1:] - xc[:, :, :1], -1, -2)
+        F = (Ds @ self.Dm_inv).mean(axis=1)
+        return polar_rotation(F)
+
+    def local_displacements(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Unrotated element displacements R^T x_e - X_e, (E, 3k)."""
+        xe = x[self.mesh.elements]  # (E, k, 3)
+        return (xe @ R).reshape(len(xe), -1) - self.rest[self.mesh.elements].reshape(len(xe), -1)
+
+    def element_forces(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Elastic forces on each element's nodes, -R K_e (R^T x_e - X_e), shape (E, k, 3) [N]."""
+        E, k = self.mesh.elements.shape
+        fl = np.einsum("eab,eb->ea", self.Ke, self.local_displacements(x, R)).reshape(E, k, 3)
+        return -(fl @ np.swapaxes(R, 1, 2))
+
+    def elastic_forces(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Global elastic forces (N, 3) [N] at positions x (default: current), warped if warping is on."""
+        x = self.positions if x is None else np.asarray(x, dtype=float)
+        if x.shape != self.positions.shape:
+            raise InvalidInputError(f"positions must have shape {self.positions.shape}, got {x.shape}")
+        return self.scatter_nodal(self.element_forces(x, self.rotations(x)))
+
+    def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
+        """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""
+        idx = self.mesh.elements.ravel()
+        fe = fe.reshape(-1, 3)
+        return np.column_stack([np.bincount(idx, weights=fe[:, c], minlength=self.n_nodes) for c in range(3)])
+
+    def warped_blocks(self, R: np.ndarray) -> np.ndarray:
+        """Element stiffness R_e K_e R_e^T as node blocks (E, k, k, 3, 3)."""
+        E, k = self.mesh.elements.shape
+        K = self.Ke.reshape(E, k, 3, k, 3).transpose(0, 1, 3, 2, 4)  # (E, a, b, 3, 3)
+        if not self.warping:
+            return K
+        Rb = R[:, None, None]
+        return Rb @ K @ np.swapaxes(Rb, -1, -2)
+
+    def elastic_energy(self, x: np.ndarray | None = None) -> float:
+        """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""
+        x = self.positions if x is None else x
+        u = self.local_displacements(x, self.rotations(x))
+        return 0.5 * float(np.einsum("ea,eab,eb->", u, self.Ke, u, optimize=True))
+
+    def kinetic_energy(self, v: np.ndarray | None = None) -> float:
+        v = self.velocities if v is None else v
+        return 0.5 * float(np.sum(v * self.pattern.matvec(self.M_data[:, None, None] * np.eye(3), v)))
+
+    # ------------------------------------------------------------------ output
+    def strain(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Small (unrotated) strain at each element centre, Voigt (E, 6)."""
+        x = self.positions if x is None else x
+        return np.einsum("eia,ea->ei", self.Bc, self.local_displacements(x, self.rotations(x)))
+
+    def stress(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Cauchy stress (small strain, unrotated frame) at each element centre, Voigt (E, 6) [Pa]."""
+        return self.strain(x) @ self.D.T
+
+    def von_mises(self, x: np.ndarray | None = None) -> np.ndarray:
+        """Von Mises stress at each element centre (E,) [Pa]."""
+        return von_mises_stress(self.stress(x))
+
+    # ------------------------------------------------------------------ rest-state matrices
+    def stiffness_matrix(self) -> sp.csr_matrix:
+        """Rest stiffness K (3N x 3N, interleaved DOFs) as CSR."""
+        return self.pattern.to_csr(self.pattern.assemble(self.warped_blocks(np.broadcast_to(np.eye(3), (self.mesh.n_elements, 3, 3)))))
+
+    def mass_matrix(self) -> sp.csr_matrix:
+        """Mass matrix M (3N x 3N) as CSR (consistent or lumped)."""
+        return self.pattern.to_csr(self.M_data[:, None, None] * np.eye(3))

@@ -1,0 +1,131 @@
+"""Mesh: node coordinates and element connectivity of one element kind, validated on construction."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .elements import ElementType, element_type, jacobians
+from .errors import MeshError
+
+
+def _list_some(idx: np.ndarray, limit: int = 10) -> str:
+    idx = np.asarray(idx).ravel()
+    s = ", ".join(str(int(i)) for i in idx[:limit])
+    return s + (f", ... ({len(idx)} in all)" if len(idx) > limit else "")
+
+
+class Mesh:
+    """A volumetric mesh of a single element kind.
+
+    nodes: (N, 3) float rest coordinates [m]; elements: (E, k) int node indices in VTK order;
+    kind: "tet4" | "hex8" | "tet10". Raises :class:`MeshError` (a ValueError) naming the
+    offending entries for non-finite coordinates, out-of-range or repeated indices, a wrong
+    node count, and zero-volume or inverted elements.
+    """
+
+    def __init__(self, nodes: np.ndarray, elements: np.ndarray, kind: str):
+        self.element_type: ElementType = element_type(kind)
+        self.kind = self.element_type.name
+        nodes = np.array(nodes, dtype=float)
+        if nodes.ndim != 2 or nodes.shape[1] != 3:
+            raise MeshError(f"nodes must have shape (N, 3), got {nodes.shape}")
+        bad = np.flatnonzero(~np.isfinite(nodes).all(axis=1))
+        if bad.size:
+            raise MeshError(f"nodes have NaN or infinite coordinates at node indices {_list_some(bad)}")
+        elements = np.asarray(elements)
+        k = self.element_type.n_nodes
+        if elements.ndim != 2 or elements.shape[1] != k:
+            raise MeshError(f"a {kind} mesh needs elements of shape (E, {k}), got {elements.shape}")
+        if elements.shape[0] == 0:
+            raise MeshError("the mesh has no elements")
+        if not np.issubdtype(elements.dtype, np.integer):
+            if not np.all(np.isfinite(elements)) or np.any(elements != np.round(elements)):
+                raise MeshError("element node indices must be integers")
+        elements = elements.astype(np.int64)
+        out = np.flatnonzero(((elements < 0) | (elements >= len(nodes))).any(axis=1))
+        if out.size:
+            raise MeshError(f"elements {_list_some(out)} reference node indices outside [0, {len(nodes) - 1}]")
+        s = np.sort(elements, axis=1)
+        rep = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
+        if rep.size:
+            raise MeshError(f"elements {_list_some(rep)} repeat a node index")
+        self.nodes = nodes
+        self.elements = elements
+        self._check_orientation()
+
+    def _check_orientation(self) -> None:
+        et = self.element_type
+        J = jacobians(et, self.nodes[self.elements], et.check_points)
+        detJ = np.linalg.det(J)
+        scale = np.abs(detJ).max(axis=1, initial=0.0)
+        tiny = np.abs(detJ).min(axis=1) <= 1e-12 * max(scale.max(), 1e-300)
+        flat = np.flatnonzero(tiny)
+        if flat.size:
+            raise MeshError(f"elements {_list_some(flat)} have (near) zero volume")
+        inv = np.flatnonzero((detJ <= 0).any(axis=1))
+        if inv.size:
+            raise MeshError(
+                f"elements {_list_some(inv)} are inverted (negative Jacobian); "
+                f"{self.kind} node order must follow VTK with positive orientation")
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.elements)
+
+    def __repr__(self) -> str:
+        return f"Mesh(kind={self.kind!r}, nodes={self.n_nodes}, elements={self.n_elements})"
+
+    def element_volumes(self) -> np.ndarray:
+        """Rest volume of each element (E,) [m^3], by the stiffness quadrature (exact for these elements)."""
+        et = self.element_type
+        xi, w = et.mass_rule
+        detJ = np.linalg.det(jacobians(et, self.nodes[self.elements], xi))
+        return detJ @ w
+
+    def volume(self) -> float:
+        return float(self.element_volumes().sum())
+
+    def used_nodes(self) -> np.ndarray:
+        """Boolean mask (N,) of nodes referenced by at least one element."""
+        used = np.zeros(self.n_nodes, dtype=bool)
+        used[self.elements.ravel()] = True
+        return used
+
+    def boundary_faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """(element index, local face index) of every face that belongs to one element only."""
+        et = self.element_type
+        E, F = self.n_elements, len(et.faces)
+        corners = self.elements[:, et.faces[:, : et.n_face_corners]].reshape(E * F, -1)
+        key = np.sort(corners, axis=1)
+        _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        once = np.flatnonzero(counts[inverse.ravel()] == 1)
+        return once // F, once % F
+
+    def surface_triangles(self) -> np.ndarray:
+        """Boundary faces as outward-facing triangles (T, 3) of global node indices.
+
+        Quadratic (tet10) faces are split into 4 triangles, hex faces into 2.
+        """
+        e, f = self.boundary_faces()
+        tris = self.element_type.face_triangles[f]  # (B, t, 3) local indices
+        return self.elements[e[:, None, None], tris].reshape(-1, 3)
+
+    def surface_nodes(self) -> np.ndarray:
+        """Sorted indices of all nodes on the boundary surface."""
+        return np.unique(self.surface_triangles())
+
+    def translated(self, offset) -> "Mesh":
+        return Mesh(self.nodes + np.asarray(offset, dtype=float), self.elements, self.kind)
+
+    def write(self, path: str | Path, **point_data: np.ndarray) -> None:
+        """Write the mesh (and optional per-node arrays) through meshio; the format follows the suffix (.vtu, .vtk, .msh, ...)."""
+        import meshio
+
+        meshio.write(str(path), meshio.Mesh(self.nodes, [(self.element_type.meshio_name, self.elements)],
+                                            point_data=point_data or None))

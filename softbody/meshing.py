@@ -1,0 +1,143 @@
+"""Mesh builders (structured box and tube), tet4 -> tet10 refinement, and file reading through meshio."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .elements import ELEMENT_TYPES, TET10_EDGES
+from .errors import InvalidInputError, MeshError
+from .mesh import Mesh
+
+# Freudenthal 5-tet cuts of a hex cell (hex8 local node order). Cut A has the inner tet {0, 2, 5, 7},
+# cut B {1, 3, 4, 6}; alternating them in a checkerboard makes the face diagonals of neighbours match.
+_CUT_A = np.array([[1, 0, 2, 5], [3, 0, 2, 7], [4, 0, 5, 7], [6, 2, 5, 7], [0, 2, 5, 7]])
+_CUT_B = np.array([[0, 1, 3, 4], [2, 1, 3, 6], [5, 1, 4, 6], [7, 3, 4, 6], [1, 3, 4, 6]])
+
+
+def _check_cells(cells: Sequence[int], name: str = "cells") -> tuple[int, int, int]:
+    try:
+        c = tuple(int(v) for v in cells)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be three positive integers, got {cells!r}") from None
+    if len(c) != 3 or min(c) < 1 or any(float(a) != float(b) for a, b in zip(c, cells)):
+        raise InvalidInputError(f"{name} must be three positive integers, got {cells!r}")
+    return c
+
+
+def _check_kind(kind: str) -> str:
+    if kind not in ELEMENT_TYPES:
+        raise InvalidInputError(f"unknown element kind {kind!r}; valid kinds are {sorted(ELEMENT_TYPES)}")
+    return kind
+
+
+def _orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    X = nodes[tets]
+    det = np.linalg.det(np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2))
+    tets = tets.copy()
+    neg = det < 0
+    tets[neg, 1], tets[neg, 2] = tets[neg, 2], tets[neg, 1].copy()
+    return tets
+
+
+def cells_to_mesh(nodes: np.ndarray, hexes: np.ndarray, parity: np.ndarray, kind: str) -> Mesh:
+    """Build a mesh of ``kind`` from hex cells (C, 8) in VTK order.
+
+    tet4/tet10 cut every cell into 5 tets, cut A where parity is even, cut B where odd.
+    """
+    if kind == "hex8":
+        return Mesh(nodes, hexes, "hex8")
+    tets = np.where((parity % 2 == 0)[:, None, None], hexes[:, _CUT_A], hexes[:, _CUT_B]).reshape(-1, 4)
+    mesh = Mesh(nodes, _orient_tets(nodes, tets), "tet4")
+    return to_tet10(mesh) if kind == "tet10" else mesh
+
+
+def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", center=(0.0, 0.0, 0.0)) -> Mesh:
+    """Structured box of size (Lx, Ly, Lz) [m] centred at ``center`` with cells (nx, ny, nz).
+
+    hex8 uses the cells; tet4 cuts each cell into 5 tets in a checkerboard; tet10 adds mid-edge nodes.
+    """
+    _check_kind(kind)
+    nx, ny, nz = _check_cells(cells)
+    size = np.asarray(size, dtype=float)
+    if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+        raise InvalidInputError(f"size must be three positive lengths, got {size!r}")
+    axes = [np.linspace(-s / 2, s / 2, n + 1) for s, n in zip(size, (nx, ny, nz))]
+    zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]) + np.asarray(center, dtype=float)
+    nid = np.arange(len(nodes)).reshape(nz + 1, ny + 1, nx + 1)
+    k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
+    k, j, i = k.ravel(), j.ravel(), i.ravel()
+    hexes = np.stack([nid[k, j, i], nid[k, j, i + 1], nid[k, j + 1, i + 1], nid[k, j + 1, i],
+                      nid[k + 1, j, i], nid[k + 1, j, i + 1], nid[k + 1, j + 1, i + 1], nid[k + 1, j + 1, i]], axis=1)
+    return cells_to_mesh(nodes, hexes, i + j + k, kind)
+
+
+def tube_mesh(r_outer: float, r_inner: float, length: float, cells: Sequence[int], kind: str = "tet4") -> Mesh:
+    """Hollow circular tube about the z axis, z in [-length, 0] (top ring at z = 0).
+
+    cells = (n_theta, n_r, n_z); n_theta must be even (>= 4) for the tet checkerboard to close.
+    """
+    _check_kind(kind)
+    nt, nr, nz = _check_cells(cells)
+    if not (np.isfinite([r_outer, r_inner, length]).all() and 0 < r_inner < r_outer and length > 0):
+        raise InvalidInputError(
+            f"tube needs 0 < r_inner < r_outer and length > 0, got r_inner={r_inner}, r_outer={r_outer}, length={length}")
+    if nt < 4 or (kind != "hex8" and nt % 2):
+        raise InvalidInputError(f"n_theta must be >= 4 (and even for tets), got {nt}")
+    theta = 2 * np.pi * np.arange(nt) / nt
+    r = np.linspace(r_inner, r_outer, nr + 1)
+    z = np.linspace(-length, 0.0, nz + 1)
+    zz, tt, rr = np.meshgrid(z, theta, r, indexing="ij")
+    nodes = np.column_stack([(rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel(), zz.ravel()])
+    nid = np.arange(len(nodes)).reshape(nz + 1, nt, nr + 1)
+    k, t, i = np.meshgrid(np.arange(nz), np.arange(nt), np.arange(nr), indexing="ij")
+    k, t, i = k.ravel(), t.ravel(), i.ravel()
+    t1 = (t + 1) % nt
+    # local axes (r, theta, z) are right-handed, so the hex has positive Jacobian
+    hexes = np.stack([nid[k, t, i], nid[k, t, i + 1], nid[k, t1, i + 1], nid[k, t1, i],
+                      nid[k + 1, t, i], nid[k + 1, t, i + 1], nid[k + 1, t1, i + 1], nid[k + 1, t1, i]], axis=1)
+    return cells_to_mesh(nodes, hexes, i + t + k, kind)
+
+
+def to_tet10(mesh: Mesh) -> Mesh:
+    """Quadratic tets from a tet4 mesh: one new node at the midpoint of every edge, shared by its tets."""
+    if mesh.kind != "tet4":
+        raise InvalidInputError(f"to_tet10 needs a tet4 mesh, got {mesh.kind}")
+    edges = np.sort(mesh.elements[:, TET10_EDGES].reshape(-1, 2), axis=1)
+    unique, inverse = np.unique(edges, axis=0, return_inverse=True)
+    mids = 0.5 * (mesh.nodes[unique[:, 0]] + mesh.nodes[unique[:, 1]])
+    nodes = np.vstack([mesh.nodes, mids])
+    mid_ids = mesh.n_nodes + inverse.reshape(mesh.n_elements, 6)
+    return Mesh(nodes, np.hstack([mesh.elements, mid_ids]), "tet10")
+
+
+_MESHIO_KINDS = {"tetra": "tet4", "hexahedron": "hex8", "tetra10": "tet10"}
+
+
+def read_mesh(path: str | Path) -> Mesh:
+    """Read a volume mesh through meshio (VTK, VTU, Gmsh, ...). The file must hold exactly one of
+    tetra / hexahedron / tetra10 cell blocks (surface cells are ignored)."""
+    import meshio
+
+    path = Path(path)
+    if not path.exists():
+        raise InvalidInputError(f"mesh file {str(path)!r} does not exist")
+    try:
+        m = meshio.read(str(path))
+    except Exception as exc:  # meshio raises many types
+        raise MeshError(f"meshio could not read {str(path)!r}: {exc}") from exc
+    blocks: dict[str, list[np.ndarray]] = {}
+    for cb in m.cells:
+        if cb.type in _MESHIO_KINDS:
+            blocks.setdefault(_MESHIO_KINDS[cb.type], []).append(cb.data)
+    if len(blocks) != 1:
+        found = sorted({cb.type for cb in m.cells})
+        raise MeshError(f"{str(path)!r} must hold exactly one volume cell type out of "
+                        f"{sorted(_MESHIO_KINDS)}; it has {found}")
+    kind, data = next(iter(blocks.items()))
+    pts = np.asarray(m.points, dtype=float)
+    if pts.shape[1] == 2:
+        raise MeshError(f"{str(path)!r} has 2-D points; a volume mesh needs 3-D coordinates")
+    return Mesh(pts, np.vstack(data), kind)

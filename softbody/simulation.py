@@ -1,0 +1,157 @@
+"""Simulation: bodies, time, step and run; and the static solve."""
+from __future__ import annotations
+
+import math
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from .body import FemBody
+from .errors import InvalidInputError, SimulationDiverged
+from .integrator import Constraints, LinearSystem, step_system, support_constraints
+from .linsolve import SpdSolver
+
+# A hook (body, system, supports, t_next) -> velocities (N, 3); the integration layer uses it for contact.
+VelocitySolver = Callable[[FemBody, LinearSystem, Constraints, float], np.ndarray]
+
+
+def _gravity(gravity) -> np.ndarray:
+    g = np.asarray(gravity, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise InvalidInputError(f"gravity must be three finite numbers [m/s^2], got {gravity!r}")
+    return g
+
+
+def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
+    """The body's cached SPD solver (one symbolic analysis per body and backend)."""
+    cache = body.__dict__.setdefault("_solvers", {})
+    if backend not in cache:
+        p = body.pattern
+        cache[backend] = SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend)
+    return cache[backend]
+
+
+class Simulation:
+    """Steps one or more soft bodies with backward Euler.
+
+    bodies: a FemBody or a list of them; dt: step [s] > 0; gravity [m/s^2]; solver: linear solver
+    backend ("auto", "pardiso", "superlu"); max_energy: optional bound [J] on each body's kinetic plus
+    elastic energy, above which a step raises SimulationDiverged.
+    """
+
+    def __init__(self, bodies: FemBody | Sequence[FemBody], dt: float, gravity=(0.0, 0.0, -9.81),
+                 solver: str = "auto", max_energy: float | None = None):
+        bodies = [bodies] if isinstance(bodies, FemBody) else list(bodies)
+        for b in bodies:
+            if not isinstance(b, FemBody):
+                raise InvalidInputError(f"bodies must be FemBody instances, got {type(b).__name__}")
+        dt = float(dt)
+        if not math.isfinite(dt) or dt <= 0:
+            raise InvalidInputError(f"time step dt must be a finite number > 0 [s], got {dt!r}")
+        self.bodies = bodies
+        self.dt = dt
+        self.gravity = _gravity(gravity)
+        self.solver_backend = solver
+        self.max_energy = max_energy
+        self.t = 0.0
+        self.steps = 0
+        self.velocity_solver: VelocitySolver | None = None
+        self.external_forces: dict[int, np.ndarray] = {}  # id(body) -> (N, 3) extra loads [N]
+        for b in bodies:
+            body_solver(b, solver)  # fail early on a bad backend
+
+    def _step_body(self, body: FemBody, t_next: float) -> tuple[np.ndarray, np.ndarray]:
+        h = self.dt
+        f_ext = body.node_mass[:, None] * self.gravity
+        extra = self.external_forces.get(id(body))
+        if extra is not None:
+            f_ext = f_ext + extra
+        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend))
+        supports = support_constraints(body, t_next, h)
+        if self.velocity_solver is not None:
+            v = self.velocity_solver(body, system, supports, t_next)
+        else:
+            v, _ = system.solve(supports)
+        x = body.positions + h * v
+        return x, v
+
+    def step(self) -> None:
+        """Advance every body by dt. On divergence raises SimulationDiverged and leaves the state untouched."""
+        t_next = self.t + self.dt
+        new = [self._step_body(b, t_next) for b in self.bodies]
+        for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
+            self._check(i, b, x, v)
+        for b, (x, v) in zip(self.bodies, new):
+            b.positions, b.velocities = x, v
+        self.t = t_next
+        self.steps += 1
+
+    def _check(self, i: int, body: FemBody, x: np.ndarray, v: np.ndarray) -> None:
+        bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))
+        worst = None
+        if bad.any():
+            node = int(np.flatnonzero(bad)[0])
+            worst = int(np.flatnonzero((body.mesh.elements == node).any(axis=1))[0])
+            msg = f"non-finite positions or velocities (first at node {node})"
+        elif self.max_energy is not None:
+            energy = body.kinetic_energy(v) + body.elastic_energy(x)
+            if energy <= self.max_energy:
+                return
+            u = body.local_displacements(x, body.rotations(x))
+            worst = int(np.argmax(np.abs(u).max(axis=1)))
+            msg = f"energy {energy:.3e} J exceeds the bound {self.max_energy:.3e} J"
+        else:
+            return
+        raise SimulationDiverged(
+            f"body {i} diverged at step {self.steps + 1} (t = {self.t + self.dt:.6g} s): {msg}; "
+            f"worst element {worst}. State kept at t = {self.t:.6g} s; try a smaller dt or more damping.",
+            step=self.steps + 1, time=self.t + self.dt, element=worst)
+
+    def run(self, duration: float, callback: Callable[["Simulation"], object] | None = None,
+            progress: bool = False) -> None:
+        """Step for ``duration`` seconds (rounded to whole steps), calling ``callback(sim)`` after each step.
+
+        progress=True shows a progress bar (tqdm).
+        """
+        duration = float(duration)
+        if not math.isfinite(duration) or duration < 0:
+            raise InvalidInputError(f"duration must be a finite number >= 0 [s], got {duration!r}")
+        n = int(round(duration / self.dt))
+        steps: Iterable[int] = range(n)
+        if progress:
+            from tqdm import tqdm
+
+            steps = tqdm(steps, desc="simulating", unit="step")
+        for _ in steps:
+            self.step()
+            if callback is not None:
+                callback(self)
+
+
+def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
+                 forces: np.ndarray | None = None) -> np.ndarray:
+    """Small-strain static equilibrium K u = f_gravity (+ forces) with the body's supports.
+
+    Fixed nodes get u = 0, prescribed nodes u = motion(0) - rest. Returns u (N, 3) [m].
+    Raises InvalidInputError when the supports do not remove the rigid-body modes.
+    """
+    g = _gravity(gravity)
+    f = body.node_mass[:, None] * g
+    if forces is not None:
+        f = f + np.asarray(forces, dtype=float).reshape(f.shape)
+    eye = np.broadcast_to(np.eye(3), (body.mesh.n_elements, 3, 3))
+    K = body.pattern.assemble(body.warped_blocks(eye))
+    nodes, _ = body.constrained_targets(0.0, 1.0)
+    u_c = np.zeros((len(nodes), 3))
+    for ids, motion in body.prescribed:
+        sel = np.searchsorted(nodes, ids)
+        u_c[sel] = np.asarray(motion(0.0), float).reshape(-1, 3) - body.rest[ids]
+    if not body.mesh.used_nodes()[nodes].any():
+        raise InvalidInputError("solve_static needs supports: fix or prescribe nodes to remove the rigid-body modes")
+    system = LinearSystem(body, K, f, body_solver(body, solver))
+    try:
+        u, _ = system.solve(Constraints.full(nodes, u_c))
+    except Exception as exc:
+        raise InvalidInputError(
+            f"static problem is singular ({exc}); the supports must remove all rigid-body modes") from exc
+    return u
