@@ -128,4 +128,5 @@ class Mesh:
         import meshio
 
         meshio.write(str(path), meshio.Mesh(self.nodes, [(self.element_type.meshio_name, self.elements)],
-                                            point_data=point_data or None))
+                                            point_data=point_data or None),
+                     file_format="gmsh" if Path(path).suffix.lower() == ".msh" else None)  # meshio's default for .msh is ANSYS
