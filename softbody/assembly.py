@@ -16,7 +16,8 @@ class BlockPattern:
 
     n_nodes: N. Blocks are stored in block-CSR order: ``indptr`` (N+1,), ``indices`` (nnzb,).
     ``scatter`` (E, k, k) maps element block (a, b) of element e to its global block index.
-    ``diag`` (N,) is the block index of each node's diagonal block.
+    ``diag`` (N,) is the block index of each node's diagonal block. ``scatter_dof`` (E*3k*3k,) maps the
+    entries of element matrices in their natural (E, 3k, 3k) layout to ``block_data.reshape(-1)``.
     Upper CSR (for the solver): ``up_indptr``, ``up_indices`` and ``up_gather`` (nnz_up,), the index of
     each upper-triangular scalar entry in ``block_data.reshape(-1)`` (blocks flattened row-major 3x3).
     ``up_row``/``up_col`` give each scalar entry's dof, ``up_diag`` (3N,) the position of each diagonal entry.
@@ -26,6 +27,7 @@ class BlockPattern:
     indptr: np.ndarray
     indices: np.ndarray
     scatter: np.ndarray
+    scatter_dof: np.ndarray
     diag: np.ndarray
     block_row: np.ndarray
     up_indptr: np.ndarray
@@ -55,6 +57,10 @@ class BlockPattern:
         indptr = np.cumsum(indptr)
         scatter = inv[: E * k * k].reshape(E, k, k)
         diag = inv[E * k * k:]
+        # scalar entry (e, 3a+i, 3b+j) -> 9 * block(e, a, b) + 3 i + j
+        sd = 9 * scatter[:, :, None, :, None] + (3 * np.arange(3))[None, None, :, None, None] \
+            + np.arange(3)[None, None, None, None, :]
+        scatter_dof = sd.reshape(-1)
         # scalar entries of every block, row-major within the 3x3 block
         nnzb = len(ukey)
         a, b = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
@@ -69,17 +75,13 @@ class BlockPattern:
         np.add.at(up_indptr, srow + 1, 1)
         up_indptr = np.cumsum(up_indptr)
         up_diag = np.flatnonzero(srow == scol)
-        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, diag, brow.astype(np.int64),
+        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, scatter_dof, diag, brow.astype(np.int64),
                    up_indptr, scol.astype(np.int64), flat, srow, scol, up_diag)
 
-    def assemble(self, element_blocks: np.ndarray) -> np.ndarray:
-        """Sum element blocks (E, k, k, 3, 3) into block data (nnzb, 3, 3)."""
-        out = np.empty((self.nnzb, 9))
-        w = element_blocks.reshape(-1, 9)
-        idx = self.scatter.ravel()
-        for c in range(9):
-            out[:, c] = np.bincount(idx, weights=w[:, c], minlength=self.nnzb)
-        return out.reshape(-1, 3, 3)
+    def assemble(self, element_matrices: np.ndarray) -> np.ndarray:
+        """Sum element matrices (E, 3k, 3k) (interleaved dofs) into block data (nnzb, 3, 3)."""
+        return np.bincount(self.scatter_dof, weights=element_matrices.reshape(-1),
+                           minlength=9 * self.nnzb).reshape(-1, 3, 3)
 
     def assemble_scalar(self, element_values: np.ndarray) -> np.ndarray:
         """Sum scalar element blocks (E, k, k) (a multiple of I3 per block) into (nnzb,)."""

@@ -111,6 +111,7 @@ class FemBody:
 
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
+        self.M_blocks = self.M_data[:, None, None] * np.eye(3)  # (nnzb, 3, 3)
         self.node_mass = np.bincount(mesh.elements.ravel(), weights=Me.sum(axis=2).ravel(),
                                      minlength=mesh.n_nodes)  # row sums: consistent gravity load / g
 
@@ -212,14 +213,15 @@ class FemBody:
         fe = fe.reshape(-1, 3)
         return np.column_stack([np.bincount(idx, weights=fe[:, c], minlength=self.n_nodes) for c in range(3)])
 
-    def warped_blocks(self, R: np.ndarray) -> np.ndarray:
-        """Element stiffness R_e K_e R_e^T as node blocks (E, k, k, 3, 3)."""
-        E, k = self.mesh.elements.shape
-        K = self.Ke.reshape(E, k, 3, k, 3).transpose(0, 1, 3, 2, 4)  # (E, a, b, 3, 3)
-        if not self.warping:
-            return K
-        Rb = R[:, None, None]
-        return Rb @ K @ np.swapaxes(Rb, -1, -2)
+    def warped_stiffness(self, R: np.ndarray | None) -> np.ndarray:
+        """Element stiffness matrices R_e K_e R_e^T (E, 3k, 3k), R_e block-diagonal; K_e when R is None."""
+        if R is None or not self.warping:
+            return self.Ke
+        E, n, _ = self.Ke.shape
+        Rb = np.zeros((E, n, n))  # block-diagonal R: dense batched matmuls beat many 3x3 products
+        for a in range(n // 3):
+            Rb[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = R
+        return Rb @ self.Ke @ np.swapaxes(Rb, 1, 2)
 
     def elastic_energy(self, x: np.ndarray | None = None) -> float:
         """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""
@@ -229,7 +231,7 @@ class FemBody:
 
     def kinetic_energy(self, v: np.ndarray | None = None) -> float:
         v = self.velocities if v is None else v
-        return 0.5 * float(np.sum(v * self.pattern.matvec(self.M_data[:, None, None] * np.eye(3), v)))
+        return 0.5 * float(np.sum(v * self.pattern.matvec(self.M_blocks, v)))
 
     # ------------------------------------------------------------------ output
     def strain(self, x: np.ndarray | None = None) -> np.ndarray:
@@ -248,8 +250,8 @@ class FemBody:
     # ------------------------------------------------------------------ rest-state matrices
     def stiffness_matrix(self) -> sp.csr_matrix:
         """Rest stiffness K (3N x 3N, interleaved DOFs) as CSR."""
-        return self.pattern.to_csr(self.pattern.assemble(self.warped_blocks(np.broadcast_to(np.eye(3), (self.mesh.n_elements, 3, 3)))))
+        return self.pattern.to_csr(self.pattern.assemble(self.Ke))
 
     def mass_matrix(self) -> sp.csr_matrix:
         """Mass matrix M (3N x 3N) as CSR (consistent or lumped)."""
-        return self.pattern.to_csr(self.M_data[:, None, None] * np.eye(3))
+        return self.pattern.to_csr(self.M_blocks)

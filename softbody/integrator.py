@@ -72,15 +72,18 @@ class LinearSystem:
     solver: SpdSolver
     stats: dict = field(default_factory=dict)
 
-    def solve(self, cons: Constraints) -> tuple[np.ndarray, np.ndarray]:
-        """Solve A y = b with the constrained components of y fixed to their values.
+    def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
+              reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Solve A y = b (+ extra_rhs, (N, 3) global) with the constrained components of y fixed to their values.
 
         Returns y (N, 3) in global coordinates and the constraint reactions r = A y - b (N, 3)
-        expressed in each constrained node's local frame (zero elsewhere).
+        expressed in each constrained node's local frame (zero elsewhere). For a step system,
+        r / h is the constraint force [N]. reuse=True keeps the last factorisation: valid when only
+        extra_rhs or the constrained values changed since the previous call, not the constrained set.
         """
         pat = self.body.pattern
         N = pat.n_nodes
-        A, b = self.A, self.b
+        A, b = self.A, self.b if extra_rhs is None else self.b + extra_rhs
         T = None
         if cons.frames is not None and len(cons):
             T = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
@@ -109,13 +112,14 @@ class LinearSystem:
             rhs[mflat] = scale * value.ravel()[mflat]
         else:
             rhs = b.ravel()
-        self.solver.factorize(data)
+        if not reuse:
+            self.solver.factorize(data)
+            self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
         y = self.solver.solve(rhs).reshape(N, 3)
         y[mask] = value[mask]  # exact, not up to round-off
         reaction = np.where(mask, pat.matvec(A, y) - b, 0.0)
         if T is not None:
             y = np.einsum("nij,nj->ni", T, y)
-        self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
         return y, reaction
 
 
@@ -124,9 +128,9 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver) -
     alpha, beta = body.damping
     x, v = body.positions, body.velocities
     R = body.rotations(x)
-    K = body.pattern.assemble(body.warped_blocks(R))
+    K = body.pattern.assemble(body.warped_stiffness(R))
     f_el = body.scatter_nodal(body.element_forces(x, R))
-    M = body.M_data[:, None, None] * np.eye(3)
+    M = body.M_blocks
     A = (1.0 + h * alpha) * M + (h * beta + h * h) * K
     b = body.pattern.matvec(M, v) + h * (f_el + f_ext)
     return LinearSystem(body, A, b, solver)

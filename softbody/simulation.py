@@ -139,8 +139,7 @@ def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
     f = body.node_mass[:, None] * g
     if forces is not None:
         f = f + np.asarray(forces, dtype=float).reshape(f.shape)
-    eye = np.broadcast_to(np.eye(3), (body.mesh.n_elements, 3, 3))
-    K = body.pattern.assemble(body.warped_blocks(eye))
+    K = body.pattern.assemble(body.Ke)
     nodes, _ = body.constrained_targets(0.0, 1.0)
     u_c = np.zeros((len(nodes), 3))
     for ids, motion in body.prescribed:
