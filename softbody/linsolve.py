@@ -54,6 +54,7 @@ class SpdSolver:
         self._factor = None
         if self.backend == "pardiso":
             self._ps = PyPardisoSolver(mtype=2)
+            os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)  # else every solver re-globs sys.prefix (~0.5 s)
             self._ia = self.indptr + 1  # Fortran indexing, built once
             self._ja = self.indices + 1
             self._matrix = sp.csr_matrix((np.ones(len(self.indices)), self.indices, self.indptr), shape=(n, n))
