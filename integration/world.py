@@ -229,6 +229,9 @@ class World:
 
     def _detect(self, i: int, body: FemBody) -> NodeContacts | None:
         surface, tris = self._surface[id(body)]
+        surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
+        if not len(surface):
+            return None
         x = body.positions
         xs = x[surface]
         speed = float(np.sqrt((body.velocities[surface] ** 2).sum(axis=1).max(initial=0.0)))
@@ -357,6 +360,7 @@ class World:
         worst = 0.0
         for i, body in enumerate(self.bodies):
             surface, _ = self._surface[id(body)]
+            surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():
                 c = self.detector.node_contacts(i, body.positions, surface, rb, 1e-3)
                 if len(c):

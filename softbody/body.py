@@ -166,6 +166,13 @@ class FemBody:
             raise InvalidInputError(f"prescribe: motion(t) must return shape ({len(ids)}, 3), got {p.shape}")
         self.prescribed.append((ids, motion))
 
+    def supported(self) -> np.ndarray:
+        """Boolean mask (N,) of nodes held by fix() or prescribe()."""
+        mask = self.fixed.copy()
+        for ids, _ in self.prescribed:
+            mask[ids] = True
+        return mask
+
     def constrained_targets(self, t_next: float, h: float) -> tuple[np.ndarray, np.ndarray]:
         """Nodes held by supports and the velocities (m, 3) that bring them exactly to their
         positions at time t_next after a step h. Later prescriptions override earlier ones and fixes."""

@@ -1,0 +1,123 @@
+"""The canonical scenes of SPEC.md section 5, built on a World.
+
+Each builder returns a :class:`Scene`: the world, its soft body, the monitored node and axis,
+the default duration, and metadata (scene name, element kind, cells) for logs and studies.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from softbody import FemBody, LinearElastic, box_mesh, tube_mesh
+from softbody.errors import InvalidInputError
+
+from .world import World
+
+E_DEFAULT, NU_DEFAULT, RHO_DEFAULT = 5.0e5, 0.33, 1000.0
+DAMPING = (0.1, 0.001)
+
+
+@dataclass
+class Scene:
+    """A ready-to-run scene: ``world`` holds ``body``; ``monitor`` is the node whose coordinate ``axis``
+    (0, 1, 2) is the scene's reported trajectory; ``duration`` [s] is the default run length."""
+
+    name: str
+    world: World
+    body: FemBody
+    monitor: int
+    axis: int
+    duration: float
+    meta: dict = field(default_factory=dict)
+
+    def monitored(self) -> float:
+        return float(self.body.positions[self.monitor, self.axis])
+
+    def run(self, duration: float | None = None, callback=None, progress: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Run the scene; returns the times (n,) and the monitored coordinate (n,) after each step."""
+        ts, xs = [self.world.t], [self.monitored()]
+
+        def cb(world):
+            ts.append(world.t)
+            xs.append(self.monitored())
+            if callback is not None:
+                callback(world)
+
+        self.world.run(self.duration if duration is None else duration, cb, progress=progress)
+        return np.array(ts), np.array(xs)
+
+
+def _nearest(nodes: np.ndarray, point) -> int:
+    return int(np.argmin(np.linalg.norm(nodes - np.asarray(point, float), axis=1)))
+
+
+def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt: float = 0.01,
+                    E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
+                    friction: float = 0.0, warping: bool = True, solver: str = "auto") -> Scene:
+    """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
+    Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35)."""
+    mesh = box_mesh((1.0, 1.0, 0.25), cells, element, center=(0.0, 0.0, 0.35 + 0.125))
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    world = World(dt=dt, solver=solver)
+    world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
+    world.add_soft(body, friction=friction)
+    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2, 3.0,
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+
+
+def platform_x(t: float) -> float:
+    """Half-sawtooth of the hanging tube's platform [m]: 0 until 0.5 s, up to 0.5 m at 1.0 s, back to 0 at 1.5 s."""
+    if t <= 0.5 or t >= 1.5:
+        return 0.0
+    return (t - 0.5) if t <= 1.0 else (1.5 - t)
+
+
+def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: float = 0.01,
+                 E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
+                 warping: bool = True, solver: str = "auto") -> Scene:
+    """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
+    moves along x with the half-sawtooth of SPEC.md. Monitored: x of the outer bottom node at +x."""
+    mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    world = World(dt=dt, solver=solver)
+    platform = world.add_box((0.15, 0.15, 0.01), position=(0, 0, 0.01), name="platform",
+                             motion=lambda t: (platform_x(t), 0.0, 0.01))
+    world.add_soft(body)
+    top = np.flatnonzero(np.isclose(mesh.nodes[:, 2], 0.0))
+    world.attach(body, top, platform)
+    return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, 4.0,
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+
+
+def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: float = 0.01,
+               E: float = 5.0e7, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
+               warping: bool = True, solver: str = "auto") -> Scene:
+    """A 1.0 x 0.1 x 0.1 m beam along x, nodes at x = 0 fixed, sagging under gravity (no rigid bodies,
+    so no pybullet work). Monitored: z of the node at the tip centre (1, 0, 0), or the nearest."""
+    mesh = box_mesh((1.0, 0.1, 0.1), cells, element, center=(0.5, 0.0, 0.0))
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
+    world = World(dt=dt, solver=solver)
+    world.add_soft(body)
+    return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, 2.0,
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+
+
+SCENES: dict[str, Callable[..., Scene]] = {
+    "sheet-on-sphere": sheet_on_sphere,
+    "hanging-tube": hanging_tube,
+    "cantilever": cantilever,
+}
+
+
+def register_scene(name: str, builder: Callable[..., Scene]) -> None:
+    """Make a scene builder available to the ``softbody`` command line under ``name``."""
+    SCENES[name] = builder
+
+
+def build_scene(name: str, **options) -> Scene:
+    if name not in SCENES:
+        raise InvalidInputError(f"unknown scene {name!r}; available: {sorted(SCENES)}")
+    return SCENES[name](**{k: v for k, v in options.items() if v is not None})
