@@ -116,6 +116,8 @@ class World:
             raise InvalidInputError(f"friction must be >= 0, got {friction!r}")
         bid = p.createMultiBody(mass, col, basePosition=_vec3(position, "position"),
                                 baseOrientation=_quat(orientation), physicsClientId=self.client)
+        if mass > 0:  # pybullet damps velocities by default (0.04); physical bodies keep their momentum
+            p.changeDynamics(bid, -1, linearDamping=0.0, angularDamping=0.0, physicsClientId=self.client)
         body = RigidBody(bid, self.client, shape, params, mass, motion, name or f"{shape}{bid}",
                          friction, concave, tm)
         if motion is not None:

@@ -74,6 +74,21 @@ def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", ce
     return cells_to_mesh(nodes, hexes, i + j + k, kind)
 
 
+def ball_mesh(radius: float, cells: int, kind: str = "tet4", center=(0.0, 0.0, 0.0)) -> Mesh:
+    """A ball of ``radius`` [m]: a cube grid of cells^3 cells mapped onto the sphere (smooth cube-to-ball map)."""
+    _check_kind(kind)
+    if not (np.isfinite(radius) and radius > 0):
+        raise InvalidInputError(f"radius must be > 0, got {radius!r}")
+    n = _check_cells((cells, cells, cells))[0]
+    cube = box_mesh((2.0, 2.0, 2.0), (n, n, n), "hex8" if kind == "hex8" else "tet4")
+    x, y, z = cube.nodes.T
+    mapped = np.column_stack([x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
+                              y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
+                              z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3)])
+    mesh = Mesh(radius * mapped + np.asarray(center, dtype=float), cube.elements, cube.kind)
+    return to_tet10(mesh) if kind == "tet10" else mesh
+
+
 def tube_mesh(r_outer: float, r_inner: float, length: float, cells: Sequence[int], kind: str = "tet4") -> Mesh:
     """Hollow circular tube about the z axis, z in [-length, 0] (top ring at z = 0).
 

@@ -1,0 +1,204 @@
+"""Rigid scenes through pybullet: contact, friction, coupling, attachments (issue 3).
+
+Every expectation is physical: free-fall time to first contact, the resting height set by the
+sphere's radius, Coulomb's law on an incline, momentum conservation, exact attachment.
+"""
+import math
+
+import numpy as np
+import pybullet as p
+import pytest
+
+import softbody as sb
+from integration.scenes import hanging_tube, platform_x, sheet_on_sphere
+from integration.world import World
+from softbody.errors import InvalidInputError
+
+COARSE = {"tet4": (4, 4, 2), "hex8": (4, 4, 2), "tet10": (2, 2, 1)}
+
+
+def active_contacts(world) -> int:
+    return sum(int(r.active.sum()) for _, r in world.contact_results.values())
+
+
+@pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
+def test_sheet_on_sphere(kind):
+    scene = sheet_on_sphere(kind, COARSE[kind])
+    body, world = scene.body, scene.world
+    top = int(np.argmin(np.linalg.norm(body.rest - [0, 0, 0.35], axis=1)))
+    assert np.allclose(body.rest[top], [0, 0, 0.35])
+    first, worst = None, 0.0
+
+    def check(w):
+        nonlocal first, worst
+        if first is None and active_contacts(w):
+            first = w.t
+        worst = max(worst, w.max_penetration())
+
+    scene.run(3.0, check)
+    t_hit = math.sqrt(2 * 0.05 / 9.81)
+    assert abs(first - t_hit) <= world.dt + 1e-9, (first, t_hit)
+    assert worst < 1e-3
+    assert abs(body.positions[top, 2] - 0.3) < 2e-3
+    assert abs(body.velocities[top]).max() < 0.05  # come to rest on the sphere's top
+    corners = np.flatnonzero(np.isclose(np.abs(body.rest[:, 0]), 0.5) & np.isclose(np.abs(body.rest[:, 1]), 0.5)
+                             & np.isclose(body.rest[:, 2], 0.35))
+    assert len(corners) == 4
+    assert np.all(body.positions[corners, 2] < body.positions[top, 2] - 0.02)  # the sheet drapes
+
+
+def _block_on_plane(mu, tilt_deg=0.0, kind="hex8", damping=(0.0, 0.001)):
+    th = math.radians(tilt_deg)
+    Ry = np.array([[math.cos(th), 0, math.sin(th)], [0, 1, 0], [-math.sin(th), 0, math.cos(th)]])
+    m = sb.box_mesh((0.2, 0.2, 0.1), (2, 2, 1), kind, center=(0, 0, 0.05 + 1e-4))
+    m = sb.Mesh(m.nodes @ Ry.T, m.elements, kind)
+    body = sb.FemBody(m, sb.LinearElastic(1e6, 0.3, 1000), damping=damping)
+    world = World(dt=0.01)
+    world.add_plane(normal=Ry @ [0, 0, 1.0])
+    world.add_soft(body, friction=mu)
+    return world, body, Ry @ [1.0, 0, 0]
+
+
+def test_incline_sticks_with_enough_friction():
+    world, body, downhill = _block_on_plane(0.5, 20)  # tan 20 = 0.36 < 0.5
+    world.run(0.2)  # settle onto the plane
+    c0 = body.positions.mean(axis=0)
+    world.run(2.0)
+    creep = abs((body.positions.mean(axis=0) - c0) @ downhill)
+    assert creep < 1e-3
+
+
+@pytest.mark.parametrize("kind", ["hex8", "tet10"])
+def test_incline_slides_with_coulomb_acceleration(kind):
+    world, body, downhill = _block_on_plane(0.1, 20, kind)
+    xs = []
+    world.run(1.5, lambda w: xs.append(body.positions.mean(axis=0) @ downhill))
+    t = world.dt * np.arange(1, len(xs) + 1)
+    accel = 2 * np.polyfit(t[30:], xs[30:], 2)[0]
+    expected = 9.81 * (math.sin(math.radians(20)) - 0.1 * math.cos(math.radians(20)))
+    assert abs(accel - expected) < 0.1 * expected
+
+
+def test_thrown_block_leaves_the_floor_and_lands():
+    world, body, _ = _block_on_plane(0.3)
+    world.run(0.1)
+    assert active_contacts(world) > 0
+    body.velocities[:] = [0.0, 0.0, 2.0]
+    airborne, lowest = [], []
+
+    def cb(w):
+        airborne.append(active_contacts(w) == 0)
+        lowest.append(body.positions[:, 2].min())
+
+    world.run(0.6, cb)
+    assert all(airborne[:5])  # separates at once: no sticking to the floor
+    assert max(lowest) > 0.15  # its lowest point rose ~ v^2 / 2g = 0.2 m
+    world.run(1.0)
+    assert active_contacts(world) > 0 and world.max_penetration() < 1e-3
+
+
+@pytest.mark.parametrize("kind", ["tet4", "tet10"])
+def test_two_way_coupling_conserves_momentum(kind):
+    ball = sb.ball_mesh(0.1, 3, kind, center=(-0.3, 0, 0))
+    body = sb.FemBody(ball, sb.LinearElastic(2e5, 0.3, 1000), damping=(0.0, 0.002))
+    world = World(dt=0.005, gravity=(0, 0, 0))
+    box = world.add_box((0.1, 0.1, 0.1), position=(0.05, 0, 0), mass=body.total_mass)
+    world.add_soft(body)
+    body.velocities[:] = [2.0, 0, 0]
+
+    def momentum():
+        return body.node_mass @ body.velocities + box.mass * box.velocity()[0]
+
+    p0 = momentum()
+    world.run(0.4)
+    v_box = box.velocity()[0]
+    assert v_box[0] > 0.5  # the box was pushed
+    assert np.linalg.norm(momentum() - p0) < 0.01 * np.linalg.norm(p0)
+
+
+def test_box_corner_pressed_into_slab_does_not_penetrate():
+    m = sb.box_mesh((0.4, 0.4, 0.1), (6, 6, 2), "tet4", center=(0, 0, 0.05))
+    body = sb.FemBody(m, sb.LinearElastic(1e5, 0.3, 1000))
+    body.fix(np.flatnonzero(np.isclose(m.nodes[:, 2], 0)))
+    world = World(dt=0.01)
+    q = p.getQuaternionFromEuler([math.radians(45), math.atan(1 / math.sqrt(2)), 0])  # a vertex points down
+    reach = 0.05 * math.sqrt(3)
+    box = world.add_box((0.05, 0.05, 0.05), motion=lambda t: ((0.013, 0.021, 0.11 + reach - 0.04 * min(t, 1.0)), q))
+    world.add_soft(body)
+    tris = world._surface[id(body)][1]
+    worst = []
+    world.run(1.3, lambda w: worst.append(min(w.detector.vertex_contacts(0, body.positions, tris, box, 0.05)[3],
+                                              default=1.0)))
+    assert box.surface_vertices()[:, 2].min() < 0.075  # pressed 2.5 cm below the rest surface
+    assert min(worst) > -1e-3
+
+
+def test_hanging_tube_follows_platform_and_swings():
+    scene = hanging_tube("hex8", (8, 1, 4))
+    body, world = scene.body, scene.world
+    top = np.flatnonzero(np.isclose(body.rest[:, 2], 0.0))
+    err = []
+    scene_x = []
+
+    def cb(w):
+        err.append(np.abs(body.positions[top, 0] - body.rest[top, 0] - platform_x(w.t)).max())
+        err.append(np.abs(body.positions[top, 1:] - body.rest[top, 1:]).max())
+        scene_x.append(scene.monitored())
+
+    scene.run(3.0, cb)
+    assert max(err) < 1e-12
+    x = np.array(scene_x) - 0.1
+    t = world.dt * np.arange(1, len(x) + 1)
+    assert abs(x[t <= 0.5]).max() < 1e-3  # still hanging before the platform moves
+    # lags: while the platform moves out, the free end first stays behind (inertia) ...
+    assert x[np.isclose(t, 0.75)][0] < 0.5 * platform_x(0.75)
+    assert t[np.argmax(x)] > 1.0  # its largest excursion comes after the platform's
+    late = x[t >= 1.6]
+    assert late.max() > 0.05 and late.min() < -0.05  # swings on both sides after the platform stopped
+
+
+def test_bad_input_is_rejected_clearly(tmp_path):
+    world = World()
+    body = world.add_soft(sb.FemBody(sb.box_mesh((1, 1, 1), (1, 1, 1), "hex8"), sb.LinearElastic(1e5, 0.3, 1000)))
+    with pytest.raises(InvalidInputError, match="unknown rigid body id 42"):
+        world.rigid(42)
+    with pytest.raises(InvalidInputError, match="unknown rigid body id 42"):
+        world.attach(body, [0], 42)
+    sphere = world.add_sphere(0.1)
+    with pytest.raises(InvalidInputError, match=r"node ids \[99\] do not exist"):
+        world.attach(body, [0, 99], sphere)
+    with pytest.raises(InvalidInputError, match="friction"):
+        world.add_soft(sb.FemBody(sb.box_mesh((1, 1, 1), (1, 1, 1), "hex8"), sb.LinearElastic(1e5, 0.3, 1000)),
+                       friction=-0.5)
+    with pytest.raises(InvalidInputError, match="friction"):
+        world.add_box((1, 1, 1), friction=-1.0)
+    with pytest.raises(InvalidInputError, match="radius"):
+        world.add_sphere(-1.0)
+    with pytest.raises(InvalidInputError, match="does not exist"):
+        world.add_mesh(tmp_path / "missing.obj")
+    bad = tmp_path / "garbage.stl"
+    bad.write_bytes(b"\x00\x01 definitely not a mesh")
+    with pytest.raises(InvalidInputError, match="garbage.stl"):
+        world.add_mesh(bad)
+    world.close()
+
+
+def test_mesh_obstacle_from_trimesh_holds_a_block():
+    import trimesh
+
+    world = World(dt=0.01)
+    world.add_mesh(trimesh.creation.box((1.0, 1.0, 0.2)), position=(0, 0, -0.1))  # top face at z = 0
+    m = sb.box_mesh((0.2, 0.2, 0.1), (2, 2, 1), "tet4", center=(0, 0, 0.06))
+    body = world.add_soft(sb.FemBody(m, sb.LinearElastic(1e6, 0.3, 1000)))
+    world.run(0.6)
+    assert world.max_penetration() < 1e-3
+    assert abs(body.positions[:, 2].min()) < 2e-3  # resting on the mesh's top face (pybullet margin ~1 mm)
+
+
+def test_scene_without_rigid_bodies_does_no_collision_work():
+    world = World()
+    m = sb.box_mesh((1, 0.1, 0.1), (4, 1, 1), "hex8", center=(0.5, 0, 0))
+    body = world.add_soft(sb.FemBody(m, sb.LinearElastic(5e7, 0.3, 1000)))
+    body.fix(np.flatnonzero(np.isclose(m.nodes[:, 0], 0)))
+    world.run(0.05)
+    assert world.detector.last_candidates == 0 and len(world.contacts) == 0
