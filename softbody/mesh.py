@@ -45,7 +45,7 @@ class Mesh:
         elements = elements.astype(np.int64)
         out = np.flatnonzero(((elements < 0) | (elements >= len(nodes))).any(axis=1))
         if out.size:
-            raise MeshError(f"elements {_list_some(out)} reference node indices outside [0, {len(nodes) - 1}]")
+            raise MeshError(f"elements {_list_some(out)} reference node indices {_list_some(np.unique(elements[out][(elements[out] < 0) | (elements[out] >= len(nodes))]))} outside [0, {len(nodes) - 1}]")
         s = np.sort(elements, axis=1)
         rep = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
         if rep.size:
