@@ -108,11 +108,15 @@ class _RotationMemo:
     def __init__(self, body: FemBody):
         self.body = body
         self.original = body.rotations
+        self.prev = body.__dict__.get("rotations")  # another recorder's memo on the same body, if any
+        self.active = True
         self.x: np.ndarray | None = None
         self.R: np.ndarray | None = None
         body.rotations = self  # instance attribute shadows the method
 
     def __call__(self, x: np.ndarray | None = None) -> np.ndarray:
+        if not self.active:
+            return self.original(x)
         x = self.body.positions if x is None else x
         if self.x is not None and x.shape == self.x.shape and np.array_equal(x, self.x):
             return self.R
@@ -123,8 +127,15 @@ class _RotationMemo:
         return R
 
     def remove(self) -> None:
-        if self.body.__dict__.get("rotations") is self:
-            del self.body.__dict__["rotations"]
+        """Deactivate; drop every inactive memo from the top of the body's chain (recorders may close in any order)."""
+        self.active = False
+        top = self.body.__dict__.get("rotations")
+        while isinstance(top, _RotationMemo) and not top.active:
+            top = top.prev
+        if top is None:
+            self.body.__dict__.pop("rotations", None)
+        else:
+            self.body.rotations = top
 
 
 class _SoftChannel:
@@ -202,7 +213,7 @@ class Recorder:
         if every < 1:
             raise InvalidInputError(f"every must be a positive integer, got {every!r}")
         self.every = every
-        self.content = set(content)
+        self.content = {content} if isinstance(content, str) else set(content)
         unknown = self.content - set(CONTENT)
         if unknown:
             raise InvalidInputError(f"unknown content {sorted(unknown)}; choose from {CONTENT}")

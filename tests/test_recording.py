@@ -14,6 +14,7 @@ import pytest
 rr = pytest.importorskip("rerun")
 from rerun.chunk import RrdReader  # noqa: E402
 
+import softbody  # noqa: E402
 from integration.recording import Recorder, default_path  # noqa: E402
 from integration.scenes import hanging_tube, sheet_on_sphere  # noqa: E402
 
@@ -229,3 +230,55 @@ def test_default_path_is_descriptive(tmp_path):
         pass
     assert rec.path.parent == tmp_path / "logs" and rec.path.exists()
     assert rec.path.name.startswith("sheet-on-sphere_tet4_2x2x1_")
+
+
+def test_bare_simulation_and_overlapping_recorders(tmp_path):
+    """A softbody.Simulation (no World) recorded twice at once; recorders closed in either order."""
+    mesh = softbody.box_mesh((1.0, 0.1, 0.1), (4, 1, 1), "tet4", center=(0.5, 0, 0))
+    body = softbody.FemBody(mesh, softbody.LinearElastic(5e6, 0.3, 1000.0))
+    body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
+    sim = softbody.Simulation(body, 0.01)
+    r1 = Recorder.attach(sim, path=tmp_path / "a.rrd", monitor=[int(np.argmax(mesh.nodes[:, 0]))])
+    r2 = Recorder.attach(sim, path=tmp_path / "b.rrd", every=2, color_by="displacement")
+
+    def both(s):
+        r1(s)
+        r2(s)
+
+    sim.run(0.1, both)
+    r1.close()  # the older recorder first: its rotation memo must not outlive it
+    sim.run(0.02, r2)
+    r2.close()
+    assert "rotations" not in body.__dict__
+    for r, frames in ((r1, 11), (r2, 7)):
+        verify(r.path)
+        data, _ = read(r.path)
+        assert len(data["/world/soft/body0"]["sim_time"]) == frames
+        assert not any(e.startswith(("/world/rigid", "/world/contacts", "/plots/contacts")) for e in data)
+    ke, ee = data["/plots/energy"]["Scalars:scalars"][-1]
+    assert ke == pytest.approx(body.kinetic_energy(), rel=1e-9) and ee == pytest.approx(body.elastic_energy(), rel=1e-9)
+
+
+SCRIPT = """
+import sys
+from integration.recording import Recorder
+from integration.scenes import sheet_on_sphere
+scene = sheet_on_sphere("tet4", (2, 2, 1))
+rec = Recorder.attach(scene, path=sys.argv[1], batch=1000)  # nothing sent before exit
+def callback(world):
+    rec(world)
+    if world.sim.steps == 6:
+        raise RuntimeError("uncaught fault, no context manager")
+scene.run(1.0, callback)
+"""
+
+
+def test_uncaught_exception_without_context_manager(tmp_path):
+    """The process dies of an uncaught exception; atexit still completes the recording."""
+    path = tmp_path / "crash.rrd"
+    out = subprocess.run([sys.executable, "-c", SCRIPT, str(path)], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode != 0 and "uncaught fault" in out.stderr
+    verify(path)
+    data, _ = read(path)
+    assert len(data["/world/soft/body0"]["sim_time"]) == 7
