@@ -34,7 +34,7 @@ import time
 import uuid
 from datetime import datetime
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable
 
 import numpy as np
 import rerun as rr
