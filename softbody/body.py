@@ -40,6 +40,21 @@ def von_mises_stress(sigma: np.ndarray) -> np.ndarray:
     return np.sqrt(0.5 * ((sx - sy) ** 2 + (sy - sz) ** 2 + (sz - sx) ** 2) + 3.0 * (txy**2 + tyz**2 + tzx**2))
 
 
+def _motion_positions(ids: np.ndarray, motion: Motion, t: float) -> np.ndarray:
+    """motion(t) checked: (len(ids), 3) finite positions, else InvalidInputError naming the value and t."""
+    try:
+        p = np.asarray(motion(t), dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"prescribe: motion(t) must return ({len(ids)}, 3) positions; at t = {t:g} s: {exc}") from None
+    if p.shape != (len(ids), 3):
+        raise InvalidInputError(f"prescribe: motion(t) must return shape ({len(ids)}, 3), got {p.shape} at t = {t:g} s")
+    bad = np.flatnonzero(~np.isfinite(p).all(axis=1))
+    if bad.size:
+        raise InvalidInputError(f"prescribe: motion(t) returned non-finite positions {p[bad[:3]].tolist()} "
+                                f"for nodes {ids[bad[:10]].tolist()} at t = {t:g} s; positions must be finite")
+    return p
+
+
 class FemBody:
     """A deformable body discretised by finite elements.
 
@@ -161,9 +176,7 @@ class FemBody:
         ids = self._node_ids(node_ids, "prescribe")
         if not callable(motion):
             raise InvalidInputError("prescribe: motion must be a function of time returning (n, 3) positions")
-        p = np.asarray(motion(0.0), dtype=float)
-        if p.shape != (len(ids), 3):
-            raise InvalidInputError(f"prescribe: motion(t) must return shape ({len(ids)}, 3), got {p.shape}")
+        _motion_positions(ids, motion, 0.0)
         self.prescribed.append((ids, motion))
 
     def supported(self) -> np.ndarray:
@@ -179,7 +192,7 @@ class FemBody:
         target = np.full((self.n_nodes, 3), np.nan)
         target[self.fixed] = 0.0
         for ids, motion in self.prescribed:
-            p = np.asarray(motion(t_next), dtype=float).reshape(len(ids), 3)
+            p = _motion_positions(ids, motion, t_next)
             target[ids] = (p - self.positions[ids]) / h
         nodes = np.flatnonzero(~np.isnan(target[:, 0]))
         return nodes, target[nodes]
