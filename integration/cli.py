@@ -1,4 +1,4 @@
-"""The ``softbody`` command line: run canonical scenes (study, recommend and bench build on it)."""
+"""The ``softbody`` command line: run canonical scenes, convergence studies of them, and recommendations."""
 from __future__ import annotations
 
 import argparse
@@ -96,15 +96,106 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     return scene
 
 
+def _length(text: str) -> float:
+    """A length in metres, or with a unit suffix: 0.002, 2mm, 0.2cm, 0.002m."""
+    t = text.strip().lower()
+    for suffix, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
+        if t.endswith(suffix):
+            return scale * _positive_float(t[: -len(suffix)])
+    return _positive_float(t)
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = -1
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return v
+
+
+def add_study_arguments(parser: argparse.ArgumentParser) -> None:
+    """Flags of ``softbody study`` (``recommend`` uses them when it has to make the study)."""
+    parser.add_argument("--elements", nargs="+", choices=sorted(ELEMENT_TYPES), default=None,
+                        help="element types to study (default: all three); the reference always runs")
+    parser.add_argument("--ladder", default="full", help="resolution ladder: full (default) or small")
+    parser.add_argument("--quick", action="store_true", help="the small ladder with its short duration (= --ladder small)")
+    parser.add_argument("--duration", type=_positive_float, default=None,
+                        help="simulated time [s] of every run (default: the ladder's, else the scene's)")
+    parser.add_argument("--dt", type=_positive_float, default=0.01, help="time step [s] (default 0.01)")
+    parser.add_argument("--method", choices=("direct", "iterative"), default="direct",
+                        help="linear solve per step: direct (default; bit-reproducible, as the paper) or iterative")
+    parser.add_argument("--workers", type=_nonnegative_int, default=None,
+                        help="local worker processes (default: one per core; 0: in this process)")
+    parser.add_argument("--cluster", default=None, metavar="ADDRESS",
+                        help="run on a Dask distributed scheduler, e.g. tcp://host:8786 (workers need softbody)")
+    parser.add_argument("--force", action="store_true", help="rerun cached runs")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _study(args: argparse.Namespace, out):
+    from .study import run_study
+
+    ladder = "small" if args.quick else args.ladder
+    return run_study(args.scene, out, elements=args.elements, ladder=ladder, duration=args.duration, dt=args.dt,
+                     method=args.method, workers=args.workers, cluster=args.cluster, force=args.force,
+                     progress=not args.no_progress)
+
+
+def study_command(args: argparse.Namespace) -> None:
+    out = args.out or f"studies/{args.scene}"
+    study = _study(args, out)
+    cached = len(study.runs) + 1 - len(study.executed)
+    print((study.out / "table.md").read_text())
+    print(f"# {len(study.executed)} runs made, {cached} from the cache; written to {study.out}/: results.csv, "
+          f"table.md, trajectories/, trajectories.png, time_vs_nodes.png, pareto.png")
+
+
+def recommend_command(args: argparse.Namespace) -> None:
+    from pathlib import Path
+
+    from .study import recommend
+
+    out = Path(args.study or f"studies/{args.scene}")
+    if not (out / "results.csv").exists():
+        print(f"# no study at {out}: running it first (softbody study {args.scene} --out {out})", file=sys.stderr)
+        _study(args, out)
+    rec = recommend(out, args.tolerance, scene=args.scene)
+    c = rec.choice
+    print(f"# {args.scene}: cheapest configuration within {1e3 * args.tolerance:g} mm of the reference "
+          f"(RMS of the monitored trajectory), from the study at {out}")
+    print(rec.table())
+    print(f"\nrecommended: --element {c['element']} --cells {c['cells'].replace('x', ' ')}  "
+          f"({c['median_ms_per_step']:.1f} ms/step, error {1e3 * c['error_m']:.3f} mm)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="softbody", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run a canonical scene and print the monitored node")
     add_scene_arguments(run)
+    study = sub.add_parser("study", help="convergence study: the resolution ladder per element type, "
+                                         "with cost, error, CSV, table and plots")
+    study.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
+    study.add_argument("--out", default=None, metavar="DIR", help="study directory (default: studies/SCENE)")
+    add_study_arguments(study)
+    rec = sub.add_parser("recommend", help="the cheapest element type and resolution within a tolerance, "
+                                           "from a (cached) study")
+    rec.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
+    rec.add_argument("--tolerance", type=_length, required=True, metavar="TOL",
+                     help="largest RMS error of the monitored trajectory against the reference [m] (or 2mm, 0.5cm)")
+    rec.add_argument("--study", default=None, metavar="DIR",
+                     help="study directory (default: studies/SCENE; made first if it has no results.csv)")
+    add_study_arguments(rec)
     args = parser.parse_args(argv)
     try:
         if args.command == "run":
             run_scene(args, args.scene)
+        elif args.command == "study":
+            study_command(args)
+        elif args.command == "recommend":
+            recommend_command(args)
     except InvalidInputError as exc:
         parser.exit(2, f"softbody: error: {exc}\n")
     except KeyboardInterrupt:

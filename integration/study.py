@@ -1,0 +1,740 @@
+"""Convergence studies: the speed/accuracy trade of element type and resolution, measured.
+
+A *study* runs one scene at every rung of a resolution *ladder* for each element type, plus one
+*reference* run finer than every rung, and reports for each run its size (elements, nodes, DOFs),
+its cost (median ms per step, peak memory) and its error: the RMS difference [m] of the monitored
+coordinate against the reference over the common time grid (:func:`rms_error`).
+
+Runs are independent, pure functions of their inputs (:func:`run_configuration`), so they go to an
+executor: local worker processes by default, or a Dask distributed cluster (``cluster=ADDRESS``)
+through the same ``concurrent.futures`` interface. Workers pin BLAS / MKL / OpenMP to one thread,
+so a trajectory is bit-identical wherever it ran.
+
+Layout of a study directory (every file is rewritten from the cached runs on each call)::
+
+    DIR/trajectories/<element>_<nx>x<ny>x<nz>.npz   one run: times, values, meta (the cache)
+    DIR/results.csv                                 one row per run (reference included, role column)
+    DIR/table.md                                    the same as a markdown table, with the metric
+    DIR/trajectories.png                            monitored coordinate per resolution, per element
+    DIR/time_vs_nodes.png                           median ms per step against nodes (log-log)
+    DIR/pareto.png                                  error against ms per step, with the Pareto front
+
+:func:`recommend` reads a study and returns the cheapest configuration within a tolerance.
+"""
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import csv
+import gc
+import json
+import math
+import os
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator, Sequence
+
+import numpy as np
+
+from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
+
+FORMAT = 1  # version of the cached run files; bump to invalidate old caches
+ELEMENTS = ("tet4", "hex8", "tet10")
+THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+METHODS = ("direct", "iterative")
+CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
+               "dt_s", "method", "median_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status")
+
+Cells = tuple[int, int, int]
+
+
+# ---------------------------------------------------------------------------------------- ladders
+@dataclass(frozen=True)
+class Ladder:
+    """Resolutions to run, per element type, and the reference run the errors are measured against.
+
+    rungs: element -> cells, coarse to fine; reference: (element, cells), finer than every rung;
+    duration: simulated time [s] (None: the scene's default).
+    """
+
+    rungs: dict[str, tuple[Cells, ...]]
+    reference: tuple[str, Cells]
+    duration: float | None = None
+    note: str = ""
+
+
+LADDERS: dict[str, dict[str, Ladder]] = {
+    "sheet-on-sphere": {
+        # SPEC.md section 5: exactly the paper's element and node counts (Fig. 9, 10).
+        "full": Ladder(
+            {"tet4": ((4, 4, 2), (8, 8, 3), (16, 16, 4), (20, 20, 5), (24, 24, 6), (26, 26, 7)),
+             "hex8": ((4, 4, 2), (8, 8, 3), (12, 12, 4), (16, 16, 4), (18, 18, 5), (20, 20, 5)),
+             "tet10": ((2, 2, 1), (4, 4, 1), (6, 6, 2), (8, 8, 2), (9, 9, 2))},
+            ("tet10", (12, 12, 3)), None, "the paper's ladders (SPEC.md section 5)"),
+        "small": Ladder(
+            {"tet4": ((4, 4, 2), (8, 8, 3)), "hex8": ((4, 4, 2), (8, 8, 3)), "tet10": ((2, 2, 1), (4, 4, 1))},
+            ("tet10", (6, 6, 2)), 0.5, "coarse rungs, 0.5 s (tests, CI)"),
+    },
+    "hanging-tube": {
+        # cells are (n_theta, n_r, n_z). tet4 and hex8 use two radial cells and reproduce the paper's
+        # element counts of Fig. 8 (hex8 48, 160, 280, 432, 616; tet4 5x those and 1200, 1920); tet10 uses
+        # one radial cell as the paper's counts imply, with n_theta even (checkerboard cut around the tube).
+        "full": Ladder(
+            {"tet4": ((6, 2, 4), (8, 2, 10), (10, 2, 14), (12, 2, 18), (12, 2, 20), (14, 2, 22), (16, 2, 24)),
+             "hex8": ((6, 2, 4), (8, 2, 10), (10, 2, 14), (12, 2, 18), (14, 2, 22)),
+             "tet10": ((6, 1, 1), (10, 1, 2), (8, 1, 4), (10, 1, 5))},
+            ("tet10", (16, 2, 10)), None, "element counts of the paper's Fig. 8 (n_theta, n_r, n_z)"),
+        "small": Ladder(
+            {"tet4": ((6, 2, 4), (8, 2, 10)), "hex8": ((6, 2, 4), (8, 2, 10)), "tet10": ((6, 1, 1), (10, 1, 2))},
+            ("tet10", (10, 1, 5)), 1.0, "coarse rungs, 1.0 s (tests, CI)"),
+    },
+    "cantilever": {
+        # tet4 and hex8 keep ny, nz even so that the monitored tip centre (1, 0, 0) is a node at every rung
+        # (tet10 has it as a mid-edge node with one cell through the section).
+        "full": Ladder(
+            {"tet4": ((4, 2, 2), (8, 2, 2), (16, 2, 2), (24, 4, 4), (32, 4, 4), (48, 6, 6)),
+             "hex8": ((4, 2, 2), (8, 2, 2), (16, 2, 2), (24, 4, 4), (32, 4, 4)),
+             "tet10": ((2, 1, 1), (4, 1, 1), (8, 1, 1), (12, 2, 2), (16, 2, 2))},
+            ("tet10", (24, 3, 3)), None, "halving the cell size along the beam, then through the section"),
+        "small": Ladder(
+            {"tet4": ((4, 2, 2), (8, 2, 2), (16, 2, 2)), "hex8": ((4, 2, 2), (8, 2, 2), (16, 2, 2)),
+             "tet10": ((2, 1, 1), (4, 1, 1), (8, 1, 1))},
+            ("tet10", (16, 2, 2)), 0.3, "coarse rungs, 0.3 s: about one period of the first bending mode"),
+    },
+}
+
+
+def register_ladder(scene: str, name: str, ladder: Ladder) -> None:
+    """Make ``softbody study SCENE --ladder NAME`` available (e.g. for a scene added by register_scene)."""
+    LADDERS.setdefault(scene, {})[name] = ladder
+
+
+def get_ladder(scene: str, name: str = "full") -> Ladder:
+    if scene not in LADDERS:
+        raise InvalidInputError(f"no resolution ladder for scene {scene!r}; scenes with ladders: {sorted(LADDERS)} "
+                                f"(add one with integration.study.register_ladder)")
+    if name not in LADDERS[scene]:
+        raise InvalidInputError(f"no ladder {name!r} for scene {scene!r}; available: {sorted(LADDERS[scene])}")
+    return LADDERS[scene][name]
+
+
+def cells_text(cells: Sequence[int]) -> str:
+    return "x".join(str(int(c)) for c in cells)
+
+
+def parse_cells(text: str) -> Cells:
+    parts = tuple(int(c) for c in str(text).split("x"))
+    if len(parts) != 3:
+        raise InvalidInputError(f"cells must look like NXxNYxNZ, got {text!r}")
+    return parts  # type: ignore[return-value]
+
+
+# ---------------------------------------------------------------------------------------- one run
+@dataclass
+class RunResult:
+    """One configuration run. ``times`` (n,) [s] and ``values`` (n,) [m] are the monitored coordinate
+    after each step (the first entry is t = 0); sizes are of the mesh; ``dofs`` counts the free DOFs
+    (3 per node not fixed or attached); ``median_ms_per_step`` is the median over steps of the World's
+    per-phase timings (collision + soft step + rigid); ``peak_mem_mb`` is the peak increase of the
+    process's resident memory while building and running the scene [MiB]. ``status`` is "ok" or the
+    reason the run stopped early (its trajectory is then partial)."""
+
+    scene: str
+    element: str
+    cells: Cells
+    duration: float
+    dt: float
+    method: str
+    times: np.ndarray
+    values: np.ndarray
+    elements: int
+    nodes: int
+    dofs: int
+    steps: int
+    median_ms_per_step: float
+    peak_mem_mb: float
+    wall_s: float
+    status: str = "ok"
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def key(self) -> str:
+        return f"{self.element}_{cells_text(self.cells)}"
+
+    def summary(self) -> dict:
+        d = asdict(self)
+        d.pop("times"), d.pop("values")
+        d["cells"] = list(self.cells)
+        return d
+
+    def save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.stem + ".tmp.npz")
+        np.savez(tmp, times=self.times, values=self.values,
+                 meta=np.array(json.dumps({"format": FORMAT, **self.summary()})))
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: Path) -> "RunResult":
+        with np.load(path, allow_pickle=False) as f:
+            meta = json.loads(str(f["meta"]))
+            times, values = f["times"].copy(), f["values"].copy()
+        if meta.pop("format", None) != FORMAT:
+            raise ValueError(f"{path}: cached run of another format")
+        meta["cells"] = tuple(meta["cells"])
+        return cls(times=times, values=values, **meta)
+
+
+def pin_threads(n: int = 1) -> None:
+    """Pin BLAS, MKL (PARDISO) and OpenMP to ``n`` threads in this process, for reproducible results.
+
+    Environment variables act on libraries loaded later (and on child processes); MKL is also set at run
+    time through softbody.linsolve.set_threads."""
+    for var in THREAD_ENV:
+        os.environ[var] = str(n)
+    from softbody import linsolve
+
+    linsolve.set_threads(n)
+
+
+def _rss_bytes() -> int:
+    """Current resident set size of this process [bytes]."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, AttributeError):  # no /proc: fall back to the lifetime peak
+        import resource
+        import sys
+
+        r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        return int(r if sys.platform == "darwin" else r * 1024)
+
+
+def _release_memory() -> None:
+    gc.collect()
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+
+
+class _PeakRss:
+    """Context manager sampling the RSS every ``interval`` s in a thread; ``.increase`` [bytes] is the
+    peak over the block minus the RSS at its start (after a garbage collection and malloc_trim)."""
+
+    def __init__(self, interval: float = 0.005):
+        self.interval = interval
+        self.increase = 0
+
+    def __enter__(self) -> "_PeakRss":
+        _release_memory()
+        self.base = self.peak = _rss_bytes()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def _sample(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.peak = max(self.peak, _rss_bytes())
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, _rss_bytes())
+        self.increase = self.peak - self.base
+
+
+_WARM: set[str] = set()
+
+
+def _warm_up(scene: str) -> None:
+    """Load the libraries a run of ``scene`` touches (MKL, pybullet, lazily imported modules) once per
+    process, so that neither the first run's memory nor its time pays for them."""
+    if scene in _WARM:
+        return
+    from .scenes import build_scene
+
+    for ladder in LADDERS.get(scene, {}).values():
+        for element, rungs in ladder.rungs.items():
+            s = build_scene(scene, element=element, cells=rungs[0])
+            try:
+                s.world.run(2 * s.world.dt)
+            finally:
+                s.world.close()
+        break
+    _WARM.add(scene)
+
+
+def run_configuration(scene: str, element: str, cells: Sequence[int], duration: float | None = None,
+                      dt: float = 0.01, method: str = "direct", threads: int | None = 1) -> RunResult:
+    """Build ``scene`` with ``element`` and ``cells``, run it for ``duration`` [s] (default: the scene's)
+    with step ``dt`` [s], and return its monitored trajectory, sizes, cost and peak memory.
+
+    method: the step's linear solve, "direct" (factorise every step, as the paper does) or "iterative"
+    (the Simulation's preconditioned CG). A pure function of its arguments, for worker processes: with
+    "direct", the same inputs give bit-identical trajectories in any process, local or remote;
+    "iterative" refactorises its preconditioner on a measured-time cost model, so its trajectories vary
+    at the level of its tolerance (about 1e-9 m in the canonical scenes). ``threads`` pins BLAS / MKL /
+    OpenMP for the process (None leaves them as they are)."""
+    from .scenes import build_scene
+
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    if threads is not None:
+        pin_threads(threads)
+    cells = tuple(int(c) for c in cells)
+    _warm_up(scene)
+    wall = time.perf_counter()
+    steps_ms: list[float] = []
+    status = "ok"
+    with _PeakRss() as mem:
+        sc = build_scene(scene, element=element, cells=cells, dt=dt)
+        try:
+            sim = sc.world.sim
+            if hasattr(sim, "method"):
+                sim.method = method
+            elif method != "direct":
+                raise InvalidInputError(f"this softbody's Simulation has no {method!r} method")
+            body = sc.body
+            duration = float(sc.duration if duration is None else duration)
+            ts, xs = [sc.world.t], [sc.monitored()]
+
+            def callback(world) -> None:
+                steps_ms.append(1e3 * sum(world.timings.values()))
+                ts.append(world.t)
+                xs.append(sc.monitored())
+
+            try:
+                sc.world.run(duration, callback)
+            except (SimulationDiverged, SolverError) as exc:
+                status = f"{type(exc).__name__}: {exc}"
+            result = RunResult(
+                scene=scene, element=element, cells=cells, duration=duration, dt=float(sc.world.dt), method=method,
+                times=np.array(ts), values=np.array(xs), elements=int(body.mesh.n_elements),
+                nodes=int(body.mesh.n_nodes), dofs=int(3 * (~body.supported()).sum()), steps=len(steps_ms),
+                median_ms_per_step=float(np.median(steps_ms)) if steps_ms else math.nan,
+                peak_mem_mb=0.0, wall_s=0.0, status=status,
+                meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
+                      "monitor_rest": [float(v) for v in body.rest[sc.monitor]]})
+        finally:
+            sc.world.close()
+    result.peak_mem_mb = mem.increase / 2**20
+    result.wall_s = time.perf_counter() - wall
+    return result
+
+
+# ---------------------------------------------------------------------------------------- metric
+def rms_error(times: np.ndarray, values: np.ndarray, ref_times: np.ndarray, ref_values: np.ndarray) -> float:
+    """RMS difference [m] of a trajectory against the reference, over the run's samples within the
+    reference's time span (the reference is linearly interpolated; with the same dt the grids coincide
+    and no interpolation happens)."""
+    times, values = np.asarray(times, float), np.asarray(values, float)
+    inside = (times >= ref_times[0] - 1e-9) & (times <= ref_times[-1] + 1e-9)
+    if not inside.any():
+        raise InvalidInputError("the run and the reference share no time span")
+    ref = np.interp(times[inside], ref_times, ref_values)
+    return float(np.sqrt(np.mean((values[inside] - ref) ** 2)))
+
+
+# ---------------------------------------------------------------------------------------- executors
+@contextlib.contextmanager
+def _environ(**values: str) -> Iterator[None]:
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+class _InProcessExecutor(cf.Executor):
+    """Runs each submitted call at once in this process (``workers=0``)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> cf.Future:
+        fut: cf.Future = cf.Future()
+        try:
+            fut.set_result(fn(*args, **kwargs))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
+            fut.set_exception(exc)
+        return fut
+
+
+def _init_worker() -> None:
+    pin_threads(1)
+
+
+@contextlib.contextmanager
+def open_executor(workers: int | None = None, cluster=None) -> Iterator[cf.Executor]:
+    """A ``concurrent.futures.Executor`` running study runs.
+
+    cluster None: ``workers`` local processes (default: every core), started fresh (spawn) with one
+    BLAS / MKL / OpenMP thread each; a script calling this needs the ``if __name__ == "__main__":``
+    guard of multiprocessing. ``workers=0``: run in this process, one run at a time (pins its threads). cluster an address (``tcp://host:8786``) or a
+    ``distributed.Client``: the Dask cluster's workers, through ``Client.get_executor``; they need
+    softbody installed. Either way, results come back as futures of :class:`RunResult`."""
+    if cluster is None and workers == 0:
+        yield _InProcessExecutor()
+        return
+    if cluster is None:
+        import multiprocessing
+
+        n = workers or os.cpu_count() or 1
+        # glibc returns freed memory at once, so that the RSS of a reused worker measures the next run
+        env = {var: "1" for var in THREAD_ENV} | {"MALLOC_TRIM_THRESHOLD_": "65536",
+                                                  "MALLOC_MMAP_THRESHOLD_": "65536"}
+        with _environ(**env):
+            ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_init_worker)
+            try:
+                yield ex
+            finally:
+                ex.shutdown(wait=True, cancel_futures=True)
+        return
+    try:
+        from distributed import Client
+    except ImportError as exc:  # pragma: no cover - the dependency is declared
+        raise InvalidInputError('--cluster needs Dask distributed: pip install "dask[distributed]"') from exc
+    client = cluster if isinstance(cluster, Client) else Client(cluster)
+    try:
+        ex = client.get_executor(pure=False)
+        try:
+            yield ex
+        finally:
+            ex.shutdown(wait=True)
+    finally:
+        if client is not cluster:
+            client.close()
+
+
+# ---------------------------------------------------------------------------------------- the study
+@dataclass
+class Study:
+    """The runs of a study (ladder rungs and reference), with their errors; see :func:`run_study`."""
+
+    scene: str
+    out: Path
+    runs: list[RunResult]
+    reference: RunResult
+    errors: dict[str, float]
+    executed: list[str] = field(default_factory=list)  # keys run by this call (the rest came from the cache)
+
+    def rows(self) -> list[dict]:
+        rows = []
+        for r in self.runs + [self.reference]:
+            role = "reference" if r is self.reference else "ladder"
+            rows.append({
+                "scene": self.scene, "role": role, "element": r.element, "cells": cells_text(r.cells),
+                "elements": r.elements, "nodes": r.nodes, "dofs": r.dofs, "steps": r.steps,
+                "duration_s": r.duration, "dt_s": r.dt, "method": r.method, "median_ms_per_step": round(r.median_ms_per_step, 4),
+                "peak_mem_mb": round(r.peak_mem_mb, 2), "wall_s": round(r.wall_s, 3),
+                "error_m": "" if role == "reference" else f"{self.errors[r.key]:.6e}", "status": r.status})
+        return rows
+
+    def run(self, element: str, cells: Sequence[int]) -> RunResult:
+        key = f"{element}_{cells_text(cells)}"
+        for r in self.runs + [self.reference]:
+            if r.key == key:
+                return r
+        raise KeyError(key)
+
+
+def _default_duration(scene: str, lad: Ladder) -> float:
+    from .scenes import build_scene
+
+    element, rungs = next(iter(lad.rungs.items()))
+    sc = build_scene(scene, element=element, cells=rungs[0])
+    sc.world.close()
+    return float(sc.duration)
+
+
+def _expected_cost(spec: tuple[str, Cells]) -> float:
+    """Rough relative cost of a run (for submitting the longest first): nodes^1.3."""
+    element, (a, b, c) = spec
+    nodes = {"tet4": (a + 1) * (b + 1) * (c + 1), "hex8": (a + 1) * (b + 1) * (c + 1),
+             "tet10": (2 * a + 1) * (2 * b + 1) * (2 * c + 1) - a * b * c}[element]
+    return nodes ** 1.3
+
+
+def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None, ladder: str | Ladder = "full",
+              duration: float | None = None, dt: float = 0.01, method: str = "direct",
+              workers: int | None = None, cluster=None,
+              force: bool = False, progress: bool = True, plots: bool = True) -> Study:
+    """Run (or load from ``out``'s cache) the ladder of ``scene`` for ``elements`` and its reference, then
+    write results.csv, table.md and the plots to ``out``. ``duration`` overrides the ladder's; ``method``
+    is the linear solve (see :func:`run_configuration`); ``force``
+    reruns cached runs; ``workers`` / ``cluster`` choose where runs go (see :func:`open_executor`)."""
+    from .scenes import SCENES
+
+    if scene not in SCENES:
+        raise InvalidInputError(f"unknown scene {scene!r}; available: {sorted(SCENES)}")
+    lad = ladder if isinstance(ladder, Ladder) else get_ladder(scene, ladder)
+    elements = list(ELEMENTS if elements is None else elements)
+    bad = [e for e in elements if e not in lad.rungs]
+    if bad or not elements:
+        raise InvalidInputError(f"elements {bad or elements} not in the ladder; valid: {sorted(lad.rungs)}")
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+        raise InvalidInputError(f"dt must be a finite number > 0 [s], got {dt!r}")
+    if duration is None:
+        duration = lad.duration if lad.duration is not None else _default_duration(scene, lad)
+    duration = float(duration)
+    if not (math.isfinite(duration) and duration > 0):
+        raise InvalidInputError(f"duration must be a finite number > 0 [s], got {duration!r}")
+    out = Path(out)
+    specs: list[tuple[str, Cells]] = [(e, tuple(c)) for e in elements for c in lad.rungs[e]]
+    ref_spec = (lad.reference[0], tuple(lad.reference[1]))
+    todo = specs + ([ref_spec] if ref_spec not in specs else [])
+
+    results: dict[tuple[str, Cells], RunResult] = {}
+    pending = []
+    for spec in todo:
+        path = out / "trajectories" / f"{spec[0]}_{cells_text(spec[1])}.npz"
+        cached = None
+        if path.exists() and not force:
+            with contextlib.suppress(Exception):
+                cached = RunResult.load(path)
+            if cached is not None and (cached.scene != scene or cached.duration != duration or cached.dt != dt
+                                       or cached.method != method or cached.status != "ok"):
+                cached = None
+        if cached is None:
+            pending.append(spec)
+        else:
+            results[spec] = cached
+
+    executed = []
+    if pending:
+        pending.sort(key=_expected_cost, reverse=True)  # longest first: the pool ends together
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(pending), desc=f"study {scene}", unit="run")
+        with open_executor(workers, cluster) as ex:
+            futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method): (e, c) for e, c in pending}
+            for fut in cf.as_completed(futures):
+                spec = futures[fut]
+                res = fut.result()
+                res.save(out / "trajectories" / f"{res.key}.npz")
+                results[spec] = res
+                executed.append(res.key)
+                if bar is not None:
+                    bar.set_postfix_str(f"{res.key} {res.median_ms_per_step:.1f} ms/step", refresh=False)
+                    bar.update()
+        if bar is not None:
+            bar.close()
+
+    reference = results[ref_spec]
+    if reference.status != "ok":
+        raise SolverError(f"the reference run {reference.key} failed: {reference.status}")
+    runs = [results[s] for s in specs]
+    errors = {r.key: (rms_error(r.times, r.values, reference.times, reference.values) if r.status == "ok"
+                      else math.inf) for r in runs}
+    study = Study(scene, out, runs, reference, errors, executed)
+    write_results(study, lad)
+    if plots:
+        write_plots(study)
+    return study
+
+
+# ---------------------------------------------------------------------------------------- outputs
+def write_results(study: Study, ladder: Ladder | None = None) -> None:
+    out = study.out
+    out.mkdir(parents=True, exist_ok=True)
+    rows = study.rows()
+    with open(out / "results.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    ref = study.reference
+    axis = ref.meta.get("axis", "?")
+    lines = [f"# Study: {study.scene}", "",
+             f"Monitored: {axis} of node {ref.meta.get('monitor')} (rest {ref.meta.get('monitor_rest')}), "
+             f"{ref.duration:g} s at dt = {ref.dt:g} s, {ref.method} linear solves.",
+             f"Reference: {ref.element} cells {cells_text(ref.cells)} ({ref.elements} elements, {ref.nodes} nodes).",
+             "Error: RMS difference of the monitored coordinate against the reference over the common time "
+             "grid, in metres (shown in mm).",
+             "Cost: median wall-clock ms per step of the World (collision + soft step + rigid); memory: peak "
+             "increase of the worker's resident memory during the run.", ""]
+    if ladder is not None and ladder.note:
+        lines += [f"Ladder: {ladder.note}.", ""]
+    lines += ["| element | cells | elements | nodes | DOFs | ms/step | peak MiB | error [mm] |",
+              "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for row in rows:
+        err = "reference" if row["role"] == "reference" else f"{1e3 * float(row['error_m']):.3f}"
+        if row["status"] != "ok":
+            err += f" ({row['status']})"
+        lines.append(f"| {row['element']} | {row['cells']} | {row['elements']} | {row['nodes']} | {row['dofs']} | "
+                     f"{row['median_ms_per_step']:.1f} | {row['peak_mem_mb']:.1f} | {err} |")
+    (out / "table.md").write_text("\n".join(lines) + "\n")
+
+
+COLORS = {"tet4": "tab:blue", "hex8": "tab:orange", "tet10": "tab:green"}
+MARKERS = {"tet4": "o", "hex8": "s", "tet10": "^"}
+
+
+def _figure(w: float, h: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # no pyplot: no global backend change
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w, h), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
+    """Indices of the points (cost, error) not dominated by another (cheaper and no worse, or no dearer
+    and better), sorted by cost."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], math.inf
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def write_plots(study: Study) -> list[Path]:
+    """trajectories.png (Figures 8 / 9 of the paper), time_vs_nodes.png (Figure 10), pareto.png."""
+    import matplotlib.cm as cm
+
+    out, ref = study.out, study.reference
+    axis = ref.meta.get("axis", "?")
+    elements = [e for e in ELEMENTS if any(r.element == e for r in study.runs)]
+    paths = []
+
+    fig = _figure(4.2 * len(elements), 3.8)
+    axes = fig.subplots(1, len(elements), sharey=True, squeeze=False)[0]
+    for ax, e in zip(axes, elements):
+        runs = sorted((r for r in study.runs if r.element == e), key=lambda r: r.nodes)
+        for k, r in enumerate(runs):
+            c = cm.viridis(k / max(1, len(runs) - 1) * 0.9)
+            ax.plot(r.times, r.values, color=c, lw=1.2, label=f"{cells_text(r.cells)} ({r.elements}, {r.nodes})")
+        ax.plot(ref.times, ref.values, "k--", lw=1.0,
+                label=f"reference {ref.element} {cells_text(ref.cells)} ({ref.elements}, {ref.nodes})")
+        ax.set_title(f"{e}")
+        ax.set_xlabel("time [s]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, title="cells (#elements, #nodes)", title_fontsize=7)
+    axes[0].set_ylabel(f"monitored {axis} [m]")
+    fig.suptitle(f"{study.scene}: monitored node per resolution")
+    paths.append(out / "trajectories.png")
+    fig.savefig(paths[-1])
+
+    fig = _figure(5.5, 4.2)
+    ax = fig.subplots()
+    for e in elements:
+        runs = sorted((r for r in study.runs if r.element == e), key=lambda r: r.nodes)
+        ax.loglog([r.nodes for r in runs], [r.median_ms_per_step for r in runs], marker=MARKERS[e],
+                  color=COLORS[e], label=e)
+    ax.set_xlabel("nodes")
+    ax.set_ylabel("median ms per step")
+    ax.set_title(f"{study.scene}: cost per step against nodes")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    paths.append(out / "time_vs_nodes.png")
+    fig.savefig(paths[-1])
+
+    fig = _figure(5.5, 4.2)
+    ax = fig.subplots()
+    ok = [r for r in study.runs if math.isfinite(study.errors[r.key]) and study.errors[r.key] > 0]
+    for e in elements:
+        runs = sorted((r for r in ok if r.element == e), key=lambda r: r.nodes)
+        ax.loglog([r.median_ms_per_step for r in runs], [1e3 * study.errors[r.key] for r in runs],
+                  marker=MARKERS[e], color=COLORS[e], label=e, lw=0.8)
+        for r in runs:
+            ax.annotate(cells_text(r.cells), (r.median_ms_per_step, 1e3 * study.errors[r.key]), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points")
+    if ok:
+        pts = [(r.median_ms_per_step, study.errors[r.key]) for r in ok]
+        front = pareto_front(pts)
+        ax.step([pts[i][0] for i in front], [1e3 * pts[i][1] for i in front], where="post", color="k",
+                lw=1.5, alpha=0.35, label="Pareto front")
+    ax.set_xlabel("median ms per step")
+    ax.set_ylabel(f"RMS error of {axis} vs reference [mm]")
+    ax.set_title(f"{study.scene}: error against cost")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    paths.append(out / "pareto.png")
+    fig.savefig(paths[-1])
+    return paths
+
+
+# ---------------------------------------------------------------------------------------- reading back
+def read_results(study_dir: str | Path) -> list[dict]:
+    """The rows of DIR/results.csv, numbers converted (error_m is NaN for the reference)."""
+    path = Path(study_dir) / "results.csv"
+    if not path.exists():
+        raise InvalidInputError(f"no study at {study_dir}: {path} does not exist (run `softbody study` first)")
+    rows = []
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            for k in ("elements", "nodes", "dofs", "steps"):
+                row[k] = int(row[k])
+            for k in ("duration_s", "dt_s", "median_ms_per_step", "peak_mem_mb", "wall_s"):
+                row[k] = float(row[k])
+            row["error_m"] = float(row["error_m"]) if row["error_m"] else math.nan
+            rows.append(row)
+    return rows
+
+
+def load_trajectory(study_dir: str | Path, element: str, cells: Sequence[int]) -> RunResult:
+    return RunResult.load(Path(study_dir) / "trajectories" / f"{element}_{cells_text(cells)}.npz")
+
+
+@dataclass
+class Recommendation:
+    """The cheapest ladder configuration within ``tolerance`` [m] and every candidate, cheapest first."""
+
+    scene: str
+    tolerance: float
+    candidates: list[dict]
+    choice: dict | None
+
+    def table(self) -> str:
+        lines = [f"| rank | element | cells | nodes | ms/step | peak MiB | error [mm] | within {1e3 * self.tolerance:g} mm |",
+                 "|---:|---|---|---:|---:|---:|---:|---|"]
+        for i, row in enumerate(self.candidates, 1):
+            ok = row["error_m"] <= self.tolerance
+            mark = " **<- recommended**" if row is self.choice else ""
+            lines.append(f"| {i} | {row['element']} | {row['cells']} | {row['nodes']} | {row['median_ms_per_step']:.1f} "
+                         f"| {row['peak_mem_mb']:.1f} | {1e3 * row['error_m']:.3f} | {'yes' if ok else 'no'}{mark} |")
+        return "\n".join(lines)
+
+
+class NoConfigurationWithinTolerance(InvalidInputError):
+    """No configuration of the study has an error within the requested tolerance."""
+
+    def __init__(self, message: str, recommendation: Recommendation):
+        super().__init__(message)
+        self.recommendation = recommendation
+
+
+def recommend(study_dir: str | Path, tolerance: float, scene: str | None = None) -> Recommendation:
+    """The cheapest configuration (lowest median ms per step) of a study whose error is <= ``tolerance``
+    [m]. Raises :class:`NoConfigurationWithinTolerance` (with the table) if none qualifies."""
+    tolerance = float(tolerance)
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        raise InvalidInputError(f"tolerance must be a finite length > 0 [m], got {tolerance!r}")
+    rows = read_results(study_dir)
+    scenes = {r["scene"] for r in rows}
+    if scene is not None and scenes != {scene}:
+        raise InvalidInputError(f"the study at {study_dir} is of {sorted(scenes)}, not {scene!r}")
+    candidates = sorted((r for r in rows if r["role"] == "ladder" and r["status"] == "ok"),
+                        key=lambda r: (r["median_ms_per_step"], r["error_m"]))
+    within = [r for r in candidates if r["error_m"] <= tolerance]
+    rec = Recommendation(rows[0]["scene"], tolerance, candidates, within[0] if within else None)
+    if rec.choice is None:
+        best = min(candidates, key=lambda r: r["error_m"]) if candidates else None
+        hint = (f"; the most accurate is {best['element']} {best['cells']} at {1e3 * best['error_m']:.3f} mm "
+                f"(refine the ladder or loosen the tolerance)" if best else "")
+        raise NoConfigurationWithinTolerance(
+            f"no configuration of the study at {study_dir} is within {1e3 * tolerance:g} mm{hint}\n{rec.table()}", rec)
+    return rec
