@@ -95,49 +95,6 @@ def _bodies_of(target) -> list[FemBody]:
     return list(getattr(target, "bodies", []))
 
 
-class _RotationMemo:
-    """Remembers a body's last warping rotations, keyed by an exact copy of the positions.
-
-    The recorder needs R(x_{n+1}) for the stress and elastic energy of frame n+1; the next step
-    computes the same R(x_{n+1}) again at its start. With this memo on the body the polar
-    decompositions are done once per step instead of twice. It returns exactly what
-    ``FemBody.rotations`` returns for the same positions (the result is read-only, so a caller that
-    writes into it fails loudly instead of corrupting the memo), and it is removed on close.
-    """
-
-    def __init__(self, body: FemBody):
-        self.body = body
-        self.original = body.rotations
-        self.prev = body.__dict__.get("rotations")  # another recorder's memo on the same body, if any
-        self.active = True
-        self.x: np.ndarray | None = None
-        self.R: np.ndarray | None = None
-        body.rotations = self  # instance attribute shadows the method
-
-    def __call__(self, x: np.ndarray | None = None) -> np.ndarray:
-        if not self.active:
-            return self.original(x)
-        x = self.body.positions if x is None else x
-        if self.x is not None and x.shape == self.x.shape and np.array_equal(x, self.x):
-            return self.R
-        R = self.original(x)
-        if isinstance(R, np.ndarray) and R.flags.writeable:
-            R.flags.writeable = False
-        self.x, self.R = np.array(x, dtype=float, copy=True), R
-        return R
-
-    def remove(self) -> None:
-        """Deactivate; drop every inactive memo from the top of the body's chain (recorders may close in any order)."""
-        self.active = False
-        top = self.body.__dict__.get("rotations")
-        while isinstance(top, _RotationMemo) and not top.active:
-            top = top.prev
-        if top is None:
-            self.body.__dict__.pop("rotations", None)
-        else:
-            self.body.rotations = top
-
-
 class _SoftChannel:
     """Per soft body: the surface vertices, the triangle indices into them, the nodal averaging."""
 
@@ -189,8 +146,6 @@ class Recorder:
     ``force_scale`` [m/N]). plane_size [m]: edge of the square drawn for infinite planes.
     batch: frames buffered before they are sent; flush_seconds: also send when the oldest buffered
     frame is older than this (so a viewer following the file stays current).
-    reuse_rotations: share the warping rotations between the recorder and the next step (see
-    :class:`_RotationMemo`); off, the recorder computes its own.
     """
 
     def __init__(self, target, path: str | Path | None = None, *, every: int = 1,
@@ -198,7 +153,7 @@ class Recorder:
                  color_range: tuple[float, float] | None = None, colormap: str = "viridis",
                  monitor=None, scene=None, contact_arrows: str = "normal", arrow_length: float = 0.05,
                  force_scale: float = 0.01, plane_size: float = 4.0, batch: int = 50,
-                 flush_seconds: float = 1.0, reuse_rotations: bool = True, blueprint: bool = True,
+                 flush_seconds: float = 1.0, blueprint: bool = True,
                  application_id: str = "softbody", directory: str | Path = "logs"):
         if hasattr(target, "world") and hasattr(target, "body") and hasattr(target, "monitor"):
             scene = target if scene is None else scene
@@ -242,10 +197,6 @@ class Recorder:
         bodies = _bodies_of(target)
         need_stress = "colors" in self.content and color_by == "von_mises"
         self._soft = [_SoftChannel(i, b, need_stress) for i, b in enumerate(bodies)]
-        self._need_rotations = need_stress or "diagnostics" in self.content
-        self._memos: list[_RotationMemo] = []
-        if reuse_rotations and self._need_rotations:
-            self._memos = [_RotationMemo(b) for b in bodies if b.warping]
         self._lut = _colormap(colormap) if "colors" in self.content else None
         self._monitor = self._resolve_monitor(monitor, scene, bodies) if "monitor" in self.content else []
         self._moving = []  # rigid bodies whose pose changes (dynamic or kinematic)
@@ -291,8 +242,6 @@ class Recorder:
             return
         self.closed = True
         atexit.unregister(self.close)
-        for memo in self._memos:
-            memo.remove()
         try:
             self._flush()
         finally:
@@ -492,8 +441,7 @@ class Recorder:
         if "diagnostics" in content:
             f["plots/energy"] = (kinetic, elastic)
             if self.is_world:
-                # world.timings holds the phases of the last step; "solve" is nested inside "soft_step"
-                step = sum(v for k, v in target.timings.items() if k != "solve")
+                step = target.timings.get("total", 0.0)
                 active = sum(int(np.count_nonzero(r.active)) for _, r in target.contact_results.values())
                 f["plots/contacts"] = (active, len(target.contacts))
             else:  # a bare Simulation: wall time since the recorder last returned

@@ -76,7 +76,9 @@ class World:
         self.contact_solver = ContactSolver()
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}
-        self.timings: dict[str, float] = defaultdict(float)  # seconds spent in the last step, by phase
+        # seconds spent in the last step, by phase (disjoint): collision, fem (rotations, forces,
+        # assembly), solve (linear solves and the contact loop), rigid (pybullet); "total" is their sum
+        self.timings: dict[str, float] = defaultdict(float)
         self._surface: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.sim.velocity_solver = self._solve_velocities
@@ -313,7 +315,7 @@ class World:
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         self.sim.step()
-        self.timings["soft_step"] = time.perf_counter() - tic
+        self.timings["fem"] = time.perf_counter() - tic - self.timings["solve"]
         tic = time.perf_counter()
         if self.rigids:
             self._apply_reactions()
@@ -323,6 +325,7 @@ class World:
                     pos, orn = rb.scripted_pose(self.t)
                     p.resetBasePositionAndOrientation(rb.id, pos.tolist(), orn.tolist(), physicsClientId=self.client)
         self.timings["rigid"] = time.perf_counter() - tic
+        self.timings["total"] = sum(self.timings.values())
 
     def _apply_reactions(self) -> None:
         """Equal and opposite contact forces on dynamic rigid bodies (force at the centre + torque)."""

@@ -127,6 +127,10 @@ class FemBody:
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
         self.M_blocks = self.M_data[:, None, None] * np.eye(3)  # (nnzb, 3, 3)
+        n = mesh.n_nodes
+        self._mass_csr = sp.csr_matrix((self.M_data, self.pattern.indices, self.pattern.indptr), shape=(n, n))
+        Ek = mesh.elements.size  # (N, E*k) 0/1 matrix summing element-node entries into nodes
+        self._scatter = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.arange(Ek))), shape=(n, Ek))
         self.node_mass = np.bincount(mesh.elements.ravel(), weights=Me.sum(axis=2).ravel(),
                                      minlength=mesh.n_nodes)  # row sums: consistent gravity load / g
 
@@ -199,15 +203,25 @@ class FemBody:
 
     # ------------------------------------------------------------------ warping
     def rotations(self, x: np.ndarray | None = None) -> np.ndarray:
-        """Warping rotation R_e (E, 3, 3) of each element from its characteristic tetrahedra (identity if warping is off)."""
+        """Warping rotation R_e (E, 3, 3) of each element from its characteristic tetrahedra (identity if warping is off).
+
+        The last result is remembered, keyed by an exact copy of the positions, so that a recorder or
+        a stress query between steps and the next step's start share one polar decomposition. The
+        returned array is read-only.
+        """
         E = self.mesh.n_elements
         if not self.warping:
             return np.broadcast_to(np.eye(3), (E, 3, 3))
         x = self.positions if x is None else x
+        key = self.__dict__.get("_rotation_key")
+        if key is not None and key.shape == x.shape and np.array_equal(key, x):
+            return self._rotation_value
         xc = x[self.mesh.elements[:, self.char_tets]]  # (E, c, 4, 3)
         Ds = np.swapaxes(xc[:, :, 1:] - xc[:, :, :1], -1, -2)
-        F = (Ds @ self.Dm_inv).mean(axis=1)
-        return polar_rotation(F)
+        R = polar_rotation((Ds @ self.Dm_inv).mean(axis=1))
+        R.flags.writeable = False
+        self._rotation_key, self._rotation_value = np.array(x, dtype=float), R
+        return R
 
     def local_displacements(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Unrotated element displacements R^T x_e - X_e, (E, 3k)."""
@@ -216,9 +230,29 @@ class FemBody:
 
     def element_forces(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Elastic forces on each element's nodes, -R K_e (R^T x_e - X_e), shape (E, k, 3) [N]."""
+        return -self._rotated_product(self.local_displacements(x, R), R)
+
+    def _rotated_product(self, local: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """R_e K_e local_e for local (E, 3k); returns (E, k, 3)."""
         E, k = self.mesh.elements.shape
-        fl = np.einsum("eab,eb->ea", self.Ke, self.local_displacements(x, R)).reshape(E, k, 3)
-        return -(fl @ np.swapaxes(R, 1, 2))
+        fl = (self.Ke @ local[:, :, None]).reshape(E, k, 3)
+        return fl @ np.swapaxes(R, 1, 2)
+
+    def stiffness_product(self, y: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Matrix-free K' y = sum_e R_e K_e R_e^T y_e for y (N, 3); returns (N, 3)."""
+        E, k = self.mesh.elements.shape
+        local = (y[self.mesh.elements] @ R).reshape(E, 3 * k)
+        return self.scatter_nodal(self._rotated_product(local, R))
+
+    def mass_product(self, y: np.ndarray) -> np.ndarray:
+        """M y for y (N, 3); returns (N, 3)."""
+        return self._mass_csr @ y
+
+    def node_rotations(self, R: np.ndarray) -> np.ndarray:
+        """Per-node rotation (N, 3, 3): polar factor of the sum of the adjacent elements' R_e."""
+        E, k = self.mesh.elements.shape
+        S = self._scatter @ np.repeat(R.reshape(E, 1, 9), k, axis=1).reshape(E * k, 9)
+        return polar_rotation(S.reshape(-1, 3, 3))
 
     def elastic_forces(self, x: np.ndarray | None = None) -> np.ndarray:
         """Global elastic forces (N, 3) [N] at positions x (default: current), warped if warping is on."""
@@ -229,9 +263,7 @@ class FemBody:
 
     def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
         """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""
-        idx = self.mesh.elements.ravel()
-        fe = fe.reshape(-1, 3)
-        return np.column_stack([np.bincount(idx, weights=fe[:, c], minlength=self.n_nodes) for c in range(3)])
+        return self._scatter @ fe.reshape(-1, 3)
 
     def warped_stiffness(self, R: np.ndarray | None) -> np.ndarray:
         """Element stiffness matrices R_e K_e R_e^T (E, 3k, 3k), R_e block-diagonal; K_e when R is None."""
@@ -247,11 +279,11 @@ class FemBody:
         """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""
         x = self.positions if x is None else x
         u = self.local_displacements(x, self.rotations(x))
-        return 0.5 * float(np.einsum("ea,eab,eb->", u, self.Ke, u, optimize=True))
+        return 0.5 * float(np.sum(u * (self.Ke @ u[:, :, None])[:, :, 0]))
 
     def kinetic_energy(self, v: np.ndarray | None = None) -> float:
         v = self.velocities if v is None else v
-        return 0.5 * float(np.sum(v * self.pattern.matvec(self.M_blocks, v)))
+        return 0.5 * float(np.sum(v * self.mass_product(v)))
 
     # ------------------------------------------------------------------ output
     def strain(self, x: np.ndarray | None = None) -> np.ndarray:

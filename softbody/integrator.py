@@ -2,15 +2,20 @@
 
 Data flows one way through a step:
 
-    positions -> rotations R_e -> K' = sum R K R^T, f_el = -sum R K (R^T x - X)
-    -> A = (1 + h alpha) M + (h beta + h^2) K',  b = M v + h (f_el + f_ext)
-    -> constraints (supports; contacts from the integration layer) -> solve A v' = b
-    -> x' = x + h v'
+    positions -> rotations R_e -> f_el = -sum R K (R^T x - X),  A = (1 + h alpha) M + (h beta + h^2) K'
+    -> b = M v + h (f_el + f_ext) -> constraints (supports; contacts from the integration layer)
+    -> solve A v' = b -> x' = x + h v'
 
 Constraints are per-node velocity conditions in a node frame T (columns = local axes): the
 components picked by a mask are set exactly (a fixed node: all three, identity frame; a contact:
-the normal component). They are applied by eliminating those rows and columns inside the fixed
-sparsity pattern, so the symbolic factorisation is computed once for the body's lifetime.
+the normal component). They are eliminated inside the fixed sparsity pattern (rows and columns
+zeroed, a scaled identity on the diagonal), so the symbolic factorisation runs once per body.
+
+Two ways to solve, same answer to the stated tolerance:
+- ``DirectSystem``: assemble K' and factorise A every solve (the reference);
+- ``IterativeSystem``: A is applied matrix-free (element products, no assembly), and conjugate
+  gradients on the free components are preconditioned by the last factorised system matrix,
+  conjugated with per-node rotations; it refactorises only when the iterations grow.
 """
 from __future__ import annotations
 
@@ -19,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .body import FemBody
+from .errors import SolverError
 from .linsolve import SpdSolver
 
 
@@ -47,24 +53,70 @@ class Constraints:
     def __len__(self) -> int:
         return len(self.nodes)
 
+    def dense(self, n_nodes: int) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """Per-node arrays: frames (N, 3, 3) or None if all identity, mask (N, 3), value (N, 3)."""
+        T = None
+        if self.frames is not None and len(self):
+            T = np.broadcast_to(np.eye(3), (n_nodes, 3, 3)).copy()
+            T[self.nodes] = self.frames
+        mask = np.zeros((n_nodes, 3), dtype=bool)
+        value = np.zeros((n_nodes, 3))
+        mask[self.nodes] = self.mask
+        value[self.nodes] = np.where(self.mask, self.value, 0.0)
+        return T, mask, value
+
 
 def merge(first: Constraints, second: Constraints) -> Constraints:
     """Union of two constraint sets; for a node in both, ``first`` wins."""
     keep = ~np.isin(second.nodes, first.nodes)
     if not keep.any():
         return first
-    eye = lambda c: c.frames if c.frames is not None else np.broadcast_to(np.eye(3), (len(c), 3, 3))
     frames = None
     if first.frames is not None or second.frames is not None:
+        eye = lambda c: c.frames if c.frames is not None else np.broadcast_to(np.eye(3), (len(c), 3, 3))
         frames = np.concatenate([eye(first), eye(second)[keep]])
     return Constraints(np.concatenate([first.nodes, second.nodes[keep]]),
                        np.concatenate([first.mask, second.mask[keep]]),
                        np.concatenate([first.value, second.value[keep]]), frames)
 
 
+def to_local(T: np.ndarray | None, x: np.ndarray) -> np.ndarray:
+    """T^T x per node (frames None: identity)."""
+    return x if T is None else np.einsum("nji,nj->ni", T, x)
+
+
+def to_global(T: np.ndarray | None, y: np.ndarray) -> np.ndarray:
+    return y if T is None else np.einsum("nij,nj->ni", T, y)
+
+
+def factorize_constrained(body: FemBody, A: np.ndarray, T: np.ndarray | None, mask: np.ndarray,
+                          solver: SpdSolver) -> tuple[np.ndarray, float]:
+    """Factorise T^T A T with the masked components eliminated (identity * scale on the diagonal).
+
+    A: block data (nnzb, 3, 3). Returns the rotated block data (for products) and the scale.
+    """
+    pat = body.pattern
+    if T is not None:
+        A = A.copy()
+        rotated = np.zeros(pat.n_nodes, dtype=bool)
+        rotated[np.flatnonzero((T != np.eye(3)).any(axis=(1, 2)))] = True
+        rows, cols = rotated[pat.block_row], rotated[pat.indices]
+        A[rows] = np.swapaxes(T[pat.block_row[rows]], 1, 2) @ A[rows]
+        A[cols] = A[cols] @ T[pat.indices[cols]]
+    data = pat.upper_data(A)
+    scale = float(np.mean(data[pat.up_diag]))
+    mflat = mask.ravel()
+    if mflat.any():
+        data = data.copy()
+        data[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
+        data[pat.up_diag[mflat]] = scale
+    solver.factorize(data)
+    return A, scale
+
+
 @dataclass
-class LinearSystem:
-    """A (block data, nnzb x 3 x 3) and right-hand side b (N, 3) of one body, solvable under constraints."""
+class DirectSystem:
+    """Assembled A (block data) and b (N, 3); every solve factorises (unless reuse) and solves exactly."""
 
     body: FemBody
     A: np.ndarray
@@ -74,66 +126,165 @@ class LinearSystem:
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Solve A y = b (+ extra_rhs, (N, 3) global) with the constrained components of y fixed to their values.
+        """Solve A y = b (+ extra_rhs, (N, 3)) with the constrained components of y fixed to their values.
 
         Returns y (N, 3) in global coordinates and the constraint reactions r = A y - b (N, 3)
-        expressed in each constrained node's local frame (zero elsewhere). For a step system,
-        r / h is the constraint force [N]. reuse=True keeps the last factorisation: valid when only
-        extra_rhs or the constrained values changed since the previous call, not the constrained set.
+        in each constrained node's local frame (zero elsewhere); for a step system r / h is the
+        constraint force [N]. reuse=True keeps the last factorisation: valid when only extra_rhs
+        or the constrained values changed since the previous call, not the constrained set.
         """
         pat = self.body.pattern
-        N = pat.n_nodes
-        A, b = self.A, self.b if extra_rhs is None else self.b + extra_rhs
-        T = None
-        if cons.frames is not None and len(cons):
-            T = np.broadcast_to(np.eye(3), (N, 3, 3)).copy()
-            T[cons.nodes] = cons.frames
-            rotated = np.zeros(N, dtype=bool)
-            rotated[cons.nodes] = True
-            A = A.copy()
-            rows = rotated[pat.block_row]
-            cols = rotated[pat.indices]
-            A[rows] = np.swapaxes(T[pat.block_row[rows]], 1, 2) @ A[rows]
-            A[cols] = A[cols] @ T[pat.indices[cols]]
-            b = np.einsum("nji,nj->ni", T, b)
-        mask = np.zeros((N, 3), dtype=bool)
-        value = np.zeros((N, 3))
-        mask[cons.nodes] = cons.mask
-        value[cons.nodes] = np.where(cons.mask, cons.value, 0.0)
-        data = pat.upper_data(A)
-        mflat = mask.ravel()
-        if mflat.any():
-            rhs = b - pat.matvec(A, value)
-            scale = float(np.mean(data[pat.up_diag]))
-            data = data.copy()
-            data[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
-            data[pat.up_diag[mflat]] = scale
-            rhs = rhs.ravel()
-            rhs[mflat] = scale * value.ravel()[mflat]
-        else:
-            rhs = b.ravel()
-        if not reuse:
-            self.solver.factorize(data)
+        T, mask, value = cons.dense(pat.n_nodes)
+        b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        if not reuse or getattr(self, "_rotated", None) is None:
+            self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
-        y = self.solver.solve(rhs).reshape(N, 3)
+        A, scale = self._rotated, self._scale
+        rhs = b - pat.matvec(A, value)
+        rhs[mask] = scale * value[mask]
+        y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
         y[mask] = value[mask]  # exact, not up to round-off
         reaction = np.where(mask, pat.matvec(A, y) - b, 0.0)
-        if T is not None:
-            y = np.einsum("nij,nj->ni", T, y)
-        return y, reaction
+        return to_global(T, y), reaction
 
 
-def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver) -> LinearSystem:
-    """Assemble the backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state."""
+@dataclass
+class IterativeSettings:
+    """tol: relative residual of the free components (||r|| <= tol ||b||); max_iter per solve.
+
+    The preconditioner is refactorised for the next solve when a solve needed more than
+    ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
+    and at once when CG fails to converge. One refactorisation (assembly + single-precision factor)
+    costs about as much as 4-6 iterations (matrix-free product + single-precision solve).
+    """
+
+    tol: float = 1e-6
+    max_iter: int = 200
+    refactor_after: int = 5
+
+
+@dataclass
+class Preconditioner:
+    """The last factorised system (per body): its frames, node rotations and solver, and costs [s]."""
+
+    solver: SpdSolver
+    T: np.ndarray | None
+    Q: np.ndarray | None
+    stale: bool = True
+    factorizations: int = 0
+    iterations: int = 0
+
+
+class IterativeSystem:
+    """Matrix-free A = c_m M + c_k K'(R) and b (N, 3), solved by projected preconditioned CG."""
+
+    def __init__(self, body: FemBody, R: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
+                 x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings):
+        self.body, self.R, self.c_m, self.c_k, self.b = body, R, c_m, c_k, b
+        self.x0 = x0
+        self.pre = pre
+        self.settings = settings
+        self.Q = body.node_rotations(R) if body.warping else None
+        self.stats: dict = {"iterations": 0, "factorizations": 0}
+
+    def apply(self, y: np.ndarray) -> np.ndarray:
+        return self.c_m * self.body.mass_product(y) + self.c_k * self.body.stiffness_product(y, self.R)
+
+    def assemble(self) -> np.ndarray:
+        """Block data of A (only for refactorisation)."""
+        K = self.body.pattern.assemble(self.body.warped_stiffness(self.R))
+        return self.c_m * self.body.M_blocks + self.c_k * K
+
+    def _refactor(self, T: np.ndarray | None, mask: np.ndarray) -> None:
+        factorize_constrained(self.body, self.assemble(), T, mask, self.pre.solver)
+        self.pre.T, self.pre.Q = T, self.Q
+        self.pre.stale = False
+        self.pre.factorizations += 1
+        self.stats["factorizations"] += 1
+
+    def _precondition(self, r_global: np.ndarray) -> np.ndarray:
+        pre = self.pre
+        Qrel = None
+        if self.Q is not None and pre.Q is not None:
+            Qrel = self.Q @ np.swapaxes(pre.Q, 1, 2)  # rotation of each node since the factorisation
+            r_global = to_local(Qrel, r_global)
+        z = to_global(pre.T, pre.solver.solve(to_local(pre.T, r_global).ravel()).reshape(-1, 3))
+        return z if Qrel is None else to_global(Qrel, z)
+
+    def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
+              reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Same contract as DirectSystem.solve (``reuse`` is implied: the preconditioner is kept)."""
+        T, mask, value = cons.dense(self.body.n_nodes)
+        b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        A = lambda y: to_local(T, self.apply(to_global(T, y)))
+        free = ~mask
+        if self.pre.stale:
+            self._refactor(T, mask)
+        y = to_local(T, self.x0)
+        y[mask] = value[mask]
+        atol = self.settings.tol * (np.linalg.norm(b[free]) + 1e-300)
+        y, its, ok = self._pcg(A, b, y, free, T, atol)
+        if not ok:  # the preconditioner is too far off: refactorise now and finish from y
+            self._refactor(T, mask)
+            y, its, ok = self._pcg(A, b, y, free, T, atol)
+            if not ok:
+                raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
+                                  "iterations with a fresh factorisation (is the system positive definite?)")
+        self.pre.stale = its > self.settings.refactor_after
+        self.pre.iterations += its
+        self.stats["iterations"] += its
+        self.x0 = to_global(T, y)  # warm start for the next solve of this step (active-set loops)
+        reaction = np.where(mask, A(y) - b, 0.0)
+        return self.x0, reaction
+
+    def _pcg(self, A, b, y, free, T, atol):
+        r = np.where(free, b - A(y), 0.0)
+        if np.linalg.norm(r) <= atol:
+            return y, 0, True
+        z = np.where(free, to_local(T, self._precondition(to_global(T, r))), 0.0)
+        d = z
+        rz = float(np.sum(r * z))
+        for it in range(1, self.settings.max_iter + 1):
+            Ad = np.where(free, A(d), 0.0)
+            dAd = float(np.sum(d * Ad))
+            if not dAd > 0:
+                return y, it, False
+            a = rz / dAd
+            y = y + a * d
+            r = r - a * Ad
+            if np.linalg.norm(r) <= atol:
+                return y, it, True
+            z = np.where(free, to_local(T, self._precondition(to_global(T, r))), 0.0)
+            rz_new = float(np.sum(r * z))
+            d = z + (rz_new / rz) * d
+            rz = rz_new
+        return y, self.settings.max_iter, False
+
+
+LinearSystem = DirectSystem | IterativeSystem
+
+
+def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
+                settings: IterativeSettings | None = None) -> LinearSystem:
+    """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
+
+    method "direct" assembles and factorises; "iterative" is matrix-free PCG (see module doc).
+    """
     alpha, beta = body.damping
     x, v = body.positions, body.velocities
     R = body.rotations(x)
-    K = body.pattern.assemble(body.warped_stiffness(R))
     f_el = body.scatter_nodal(body.element_forces(x, R))
-    M = body.M_blocks
-    A = (1.0 + h * alpha) * M + (h * beta + h * h) * K
-    b = body.pattern.matvec(M, v) + h * (f_el + f_ext)
-    return LinearSystem(body, A, b, solver)
+    c_m, c_k = 1.0 + h * alpha, h * beta + h * h
+    b = body.mass_product(v) + h * (f_el + f_ext)
+    if method == "direct":
+        K = body.pattern.assemble(body.warped_stiffness(R))
+        return DirectSystem(body, c_m * body.M_blocks + c_k * K, b, solver)
+    pre = body.__dict__.get("_preconditioner")
+    if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
+        p = body.pattern
+        pre = body.__dict__["_preconditioner"] = Preconditioner(
+            SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
+    return IterativeSystem(body, R, c_m, c_k, b, v, pre, settings or IterativeSettings())
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -41,12 +41,17 @@ class SpdSolver:
     the first call only. ``solve(b)`` takes b of shape (n,) or (n, m).
     """
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto"):
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto",
+                 precision: str = "double"):
         if backend not in BACKENDS:
             raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
         if backend == "pardiso" and not HAVE_PARDISO:
             raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
         self.backend = "pardiso" if backend == "auto" and HAVE_PARDISO else ("superlu" if backend == "auto" else backend)
+        if precision not in ("double", "single"):
+            raise InvalidInputError(f"precision must be 'double' or 'single', got {precision!r}")
+        self.precision = precision
+        self.dtype = np.float64 if precision == "double" else np.float32
         self.n = int(n)
         self.indptr = np.asarray(indptr, dtype=np.int32)
         self.indices = np.asarray(indices, dtype=np.int32)
@@ -54,6 +59,8 @@ class SpdSolver:
         self._factor = None
         if self.backend == "pardiso":
             self._ps = PyPardisoSolver(mtype=2)
+            if precision == "single":  # non-default iparm: METIS ordering, single-precision factor and solve
+                self._ps.iparm[0], self._ps.iparm[1], self._ps.iparm[27] = 1, 2, 1
             os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)  # else every solver re-globs sys.prefix (~0.5 s)
             self._ia = self.indptr + 1  # Fortran indexing, built once
             self._ja = self.indices + 1
@@ -63,10 +70,12 @@ class SpdSolver:
         import ctypes
 
         ps = self._ps
+        data = np.ascontiguousarray(data, dtype=self.dtype)
+        b = np.asfortranarray(b, dtype=self.dtype)
         x = np.zeros_like(b)
         err = ctypes.c_int32(0)
         i32 = ctypes.POINTER(ctypes.c_int32)
-        f64 = ctypes.POINTER(ctypes.c_double)
+        f64 = ctypes.c_void_p
         ps._mkl_pardiso(ps.pt.ctypes.data_as(ctypes.POINTER(ps._pt_type[0])),
                         ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(1)),
                         ctypes.byref(ctypes.c_int32(2)), ctypes.byref(ctypes.c_int32(phase)),
@@ -79,7 +88,7 @@ class SpdSolver:
         if err.value != 0:
             raise SolverError(f"PARDISO phase {phase} failed with error {err.value}"
                               + (" (matrix not positive definite)" if err.value == -4 else ""))
-        return x
+        return x.astype(np.float64, copy=False)
 
     def analyse(self, data: np.ndarray) -> None:
         """Symbolic analysis (fill-reducing ordering); called automatically on first factorisation."""
@@ -95,13 +104,13 @@ class SpdSolver:
         if not self._analysed:
             self.analyse(data)
         if self.backend == "pardiso":
-            self._data = data
-            self._pardiso(22, data, np.zeros(self.n))
+            self._data = np.ascontiguousarray(data, dtype=self.dtype)  # kept for the solve phase
+            self._pardiso(22, self._data, np.zeros(self.n))
         else:
             U = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
             A = (U + sp.triu(U, 1).T).tocsc()
             try:
-                self._factor = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                self._factor = spla.splu(A.astype(self.dtype), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                          options=dict(SymmetricMode=True))
             except RuntimeError as exc:
                 raise SolverError(f"SuperLU factorisation failed: {exc}") from exc
@@ -110,7 +119,7 @@ class SpdSolver:
         b = np.asarray(b, dtype=float)
         if self.backend == "pardiso":
             return self._pardiso(33, self._data, np.asfortranarray(b))
-        return self._factor.solve(b)
+        return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
 
     def __del__(self):  # release MKL's memory for this factorisation
         if getattr(self, "backend", None) == "pardiso" and self._analysed:

@@ -8,11 +8,15 @@ import numpy as np
 
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged
-from .integrator import Constraints, LinearSystem, step_system, support_constraints
+from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
 from .linsolve import SpdSolver
 
 # A hook (body, system, supports, t_next) -> velocities (N, 3); the integration layer uses it for contact.
 VelocitySolver = Callable[[FemBody, LinearSystem, Constraints, float], np.ndarray]
+
+
+METHODS = ("auto", "direct", "iterative")
+ITERATIVE_MIN_DOFS = 6000  # below this a direct factorisation per step is as cheap (benchmarks/)
 
 
 def _gravity(gravity) -> np.ndarray:
@@ -40,7 +44,8 @@ class Simulation:
     """
 
     def __init__(self, bodies: FemBody | Sequence[FemBody], dt: float, gravity=(0.0, 0.0, -9.81),
-                 solver: str = "auto", max_energy: float | None = None):
+                 solver: str = "auto", max_energy: float | None = None, method: str = "auto",
+                 tol: float = 1e-6):
         bodies = [bodies] if isinstance(bodies, FemBody) else list(bodies)
         for b in bodies:
             if not isinstance(b, FemBody):
@@ -52,6 +57,12 @@ class Simulation:
         self.dt = dt
         self.gravity = _gravity(gravity)
         self.solver_backend = solver
+        if method not in METHODS:
+            raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+        if not (isinstance(tol, (int, float)) and 0 < tol < 1):
+            raise InvalidInputError(f"tol must be a number in (0, 1), got {tol!r}")
+        self.method = method
+        self.settings = IterativeSettings(tol=float(tol))
         self.max_energy = max_energy
         self.t = 0.0
         self.steps = 0
@@ -66,7 +77,10 @@ class Simulation:
         extra = self.external_forces.get(id(body))
         if extra is not None:
             f_ext = f_ext + extra
-        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend))
+        method = self.method
+        if method == "auto":
+            method = "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
+        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend), method, self.settings)
         supports = support_constraints(body, t_next, h)
         if self.velocity_solver is not None:
             v = self.velocity_solver(body, system, supports, t_next)
@@ -147,7 +161,7 @@ def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
         u_c[sel] = np.asarray(motion(0.0), float).reshape(-1, 3) - body.rest[ids]
     if not body.mesh.used_nodes()[nodes].any():
         raise InvalidInputError("solve_static needs supports: fix or prescribe nodes to remove the rigid-body modes")
-    system = LinearSystem(body, K, f, body_solver(body, solver))
+    system = DirectSystem(body, K, f, body_solver(body, solver))
     try:
         u, _ = system.solve(Constraints.full(nodes, u_c))
     except Exception as exc:

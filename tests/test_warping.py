@@ -145,3 +145,23 @@ def test_free_spinning_body_keeps_its_shape(kind):
     # body does not rotate but inflates along it (x = X + t omega x X), so the same check fails badly
     _, dev_plain, _, _ = spin(False, 50)
     assert dev_plain.max() > 0.5 * L
+
+
+def test_rotation_memo_is_exact_and_read_only():
+    """rotations() remembers its last result for identical positions, recomputes for any change."""
+    import softbody as sb
+
+    body = sb.FemBody(sb.box_mesh((1, 1, 0.5), (2, 2, 1), "tet4"), sb.LinearElastic(1e5, 0.3, 1000))
+    fresh = sb.FemBody(body.mesh, body.material)
+    x = body.rest + 0.01 * np.random.default_rng(0).standard_normal(body.rest.shape)
+    R1 = body.rotations(x)
+    assert body.rotations(x.copy()) is R1
+    np.testing.assert_array_equal(R1, fresh.rotations(x))
+    y = x.copy()
+    y[0, 0] += 1e-9
+    assert body.rotations(y) is not R1
+    np.testing.assert_array_equal(body.rotations(y), fresh.rotations(y))
+    x[1, 1] += 1e-3  # mutating the caller's array must not fool the memo
+    np.testing.assert_array_equal(body.rotations(x), fresh.rotations(x))
+    with pytest.raises(ValueError):
+        body.rotations(y)[0, 0, 0] = 1.0
