@@ -76,8 +76,9 @@ class World:
         self.contact_solver = ContactSolver()
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}
-        # seconds spent in the last step, by phase (disjoint): collision, fem (rotations, forces,
-        # assembly), solve (linear solves and the contact loop), rigid (pybullet); "total" is their sum
+        # seconds spent in the last step, by disjoint phase: collision (queries), the core's rotations,
+        # forces, assembly, factorize, solve (linear algebra), contact (the contact loop's own work),
+        # other (rest of the FEM step), rigid (pybullet); "total" is their sum
         self.timings: dict[str, float] = defaultdict(float)
         self._surface: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -286,7 +287,7 @@ class World:
         else:
             v, res = self.contact_solver.solve(system, supports, c, self.dt)
             self.contact_results[id(body)] = (c, res)
-        self.timings["solve"] += time.perf_counter() - t0
+        self.timings["velocity_solve"] += time.perf_counter() - t0
         return v
 
     def step(self) -> None:
@@ -315,7 +316,13 @@ class World:
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         self.sim.step()
-        self.timings["fem"] = time.perf_counter() - tic - self.timings["solve"]
+        fem = time.perf_counter() - tic
+        core = dict(self.sim.timings)
+        linear = sum(v for k, v in core.items() if k in ("assembly", "factorize", "solve"))
+        contact = self.timings.pop("velocity_solve", 0.0)
+        self.timings.update(core)
+        self.timings["contact"] = max(contact - linear, 0.0) if self._pending else 0.0
+        self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"], 0.0)
         tic = time.perf_counter()
         if self.rigids:
             self._apply_reactions()

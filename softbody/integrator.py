@@ -19,6 +19,8 @@ Two ways to solve, same answer to the stated tolerance:
 """
 from __future__ import annotations
 
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,6 +82,22 @@ def merge(first: Constraints, second: Constraints) -> Constraints:
                        np.concatenate([first.value, second.value[keep]]), frames)
 
 
+Timings = dict  # phase -> seconds, accumulated: rotations, forces, assembly, factorize, solve
+
+
+@contextmanager
+def timed(timings: Timings | None, phase: str):
+    """Add the wall time of the block to timings[phase] (no-op when timings is None)."""
+    if timings is None:
+        yield
+        return
+    tic = time.perf_counter()
+    try:
+        yield
+    finally:
+        timings[phase] = timings.get(phase, 0.0) + time.perf_counter() - tic
+
+
 def to_local(T: np.ndarray | None, x: np.ndarray) -> np.ndarray:
     """T^T x per node (frames None: identity)."""
     return x if T is None else np.einsum("nji,nj->ni", T, x)
@@ -90,7 +108,7 @@ def to_global(T: np.ndarray | None, y: np.ndarray) -> np.ndarray:
 
 
 def factorize_constrained(body: FemBody, A: np.ndarray, T: np.ndarray | None, mask: np.ndarray,
-                          solver: SpdSolver) -> tuple[np.ndarray, float]:
+                          solver: SpdSolver, timings: Timings | None = None) -> tuple[np.ndarray, float]:
     """Factorise T^T A T with the masked components eliminated (identity * scale on the diagonal).
 
     A: block data (nnzb, 3, 3). Returns the rotated block data (for products) and the scale.
@@ -110,7 +128,8 @@ def factorize_constrained(body: FemBody, A: np.ndarray, T: np.ndarray | None, ma
         data = data.copy()
         data[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
         data[pat.up_diag[mflat]] = scale
-    solver.factorize(data)
+    with timed(timings, "factorize"):
+        solver.factorize(data)
     return A, scale
 
 
@@ -123,6 +142,7 @@ class DirectSystem:
     b: np.ndarray
     solver: SpdSolver
     stats: dict = field(default_factory=dict)
+    timings: Timings | None = None
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -137,12 +157,13 @@ class DirectSystem:
         T, mask, value = cons.dense(pat.n_nodes)
         b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
         if not reuse or getattr(self, "_rotated", None) is None:
-            self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver)
+            self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
         A, scale = self._rotated, self._scale
         rhs = b - pat.matvec(A, value)
         rhs[mask] = scale * value[mask]
-        y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
+        with timed(self.timings, "solve"):
+            y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
         y[mask] = value[mask]  # exact, not up to round-off
         reaction = np.where(mask, pat.matvec(A, y) - b, 0.0)
         return to_global(T, y), reaction
@@ -179,13 +200,15 @@ class IterativeSystem:
     """Matrix-free A = c_m M + c_k K'(R) and b (N, 3), solved by projected preconditioned CG."""
 
     def __init__(self, body: FemBody, R: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
-                 x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings):
+                 x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
+                 Q: np.ndarray | None = None):
         self.body, self.R, self.c_m, self.c_k, self.b = body, R, c_m, c_k, b
         self.x0 = x0
         self.pre = pre
         self.settings = settings
-        self.Q = body.node_rotations(R) if body.warping else None
+        self.Q = Q  # per-node rotations, for conjugating the preconditioner
         self.stats: dict = {"iterations": 0, "factorizations": 0}
+        self.timings = timings
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         return self.c_m * self.body.mass_product(y) + self.c_k * self.body.stiffness_product(y, self.R)
@@ -196,7 +219,9 @@ class IterativeSystem:
         return self.c_m * self.body.M_blocks + self.c_k * K
 
     def _refactor(self, T: np.ndarray | None, mask: np.ndarray) -> None:
-        factorize_constrained(self.body, self.assemble(), T, mask, self.pre.solver)
+        with timed(self.timings, "assembly"):
+            A = self.assemble()
+        factorize_constrained(self.body, A, T, mask, self.pre.solver, self.timings)
         self.pre.T, self.pre.Q = T, self.Q
         self.pre.stale = False
         self.pre.factorizations += 1
@@ -223,10 +248,12 @@ class IterativeSystem:
         y = to_local(T, self.x0)
         y[mask] = value[mask]
         atol = self.settings.tol * (np.linalg.norm(b[free]) + 1e-300)
-        y, its, ok = self._pcg(A, b, y, free, T, atol)
+        with timed(self.timings, "solve"):
+            y, its, ok = self._pcg(A, b, y, free, T, atol)
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
             self._refactor(T, mask)
-            y, its, ok = self._pcg(A, b, y, free, T, atol)
+            with timed(self.timings, "solve"):
+                y, its, ok = self._pcg(A, b, y, free, T, atol)
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
@@ -265,26 +292,32 @@ LinearSystem = DirectSystem | IterativeSystem
 
 
 def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
-                settings: IterativeSettings | None = None) -> LinearSystem:
+                settings: IterativeSettings | None = None, timings: Timings | None = None) -> LinearSystem:
     """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
 
     method "direct" assembles and factorises; "iterative" is matrix-free PCG (see module doc).
+    timings, if given, accumulates seconds per phase (rotations, forces, assembly, factorize, solve).
     """
     alpha, beta = body.damping
     x, v = body.positions, body.velocities
-    R = body.rotations(x)
-    f_el = body.scatter_nodal(body.element_forces(x, R))
-    c_m, c_k = 1.0 + h * alpha, h * beta + h * h
-    b = body.mass_product(v) + h * (f_el + f_ext)
+    with timed(timings, "rotations"):
+        R = body.rotations(x)
+    with timed(timings, "forces"):
+        f_el = body.scatter_nodal(body.element_forces(x, R))
+        c_m, c_k = 1.0 + h * alpha, h * beta + h * h
+        b = body.mass_product(v) + h * (f_el + f_ext)
     if method == "direct":
-        K = body.pattern.assemble(body.warped_stiffness(R))
-        return DirectSystem(body, c_m * body.M_blocks + c_k * K, b, solver)
+        with timed(timings, "assembly"):
+            A = c_m * body.M_blocks + c_k * body.pattern.assemble(body.warped_stiffness(R))
+        return DirectSystem(body, A, b, solver, timings=timings)
     pre = body.__dict__.get("_preconditioner")
     if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
         p = body.pattern
         pre = body.__dict__["_preconditioner"] = Preconditioner(
             SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
-    return IterativeSystem(body, R, c_m, c_k, b, v, pre, settings or IterativeSettings())
+    with timed(timings, "rotations"):
+        Q = body.node_rotations(R) if body.warping else None
+    return IterativeSystem(body, R, c_m, c_k, b, v, pre, settings or IterativeSettings(), timings, Q)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -67,6 +67,8 @@ class Simulation:
         self.t = 0.0
         self.steps = 0
         self.velocity_solver: VelocitySolver | None = None
+        # seconds of the last step by phase: rotations, forces, assembly, factorize, solve
+        self.timings: dict[str, float] = {}
         self.external_forces: dict[int, np.ndarray] = {}  # id(body) -> (N, 3) extra loads [N]
         for b in bodies:
             body_solver(b, solver)  # fail early on a bad backend
@@ -80,7 +82,8 @@ class Simulation:
         method = self.method
         if method == "auto":
             method = "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
-        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend), method, self.settings)
+        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend), method, self.settings,
+                             self.timings)
         supports = support_constraints(body, t_next, h)
         if self.velocity_solver is not None:
             v = self.velocity_solver(body, system, supports, t_next)
@@ -92,6 +95,7 @@ class Simulation:
     def step(self) -> None:
         """Advance every body by dt. On divergence raises SimulationDiverged and leaves the state untouched."""
         t_next = self.t + self.dt
+        self.timings = {}
         new = [self._step_body(b, t_next) for b in self.bodies]
         for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
             self._check(i, b, x, v)
