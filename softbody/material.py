@@ -10,7 +10,10 @@ from .errors import InvalidInputError
 
 
 def _check_positive(name: str, value: float) -> float:
-    value = float(value)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}") from None
     if not math.isfinite(value) or value <= 0.0:
         raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
     return value
@@ -30,7 +33,10 @@ class LinearElastic:
     def __post_init__(self) -> None:
         object.__setattr__(self, "E", _check_positive("Young's modulus E", self.E))
         object.__setattr__(self, "density", _check_positive("density", self.density))
-        nu = float(self.nu)
+        try:
+            nu = float(self.nu)
+        except (TypeError, ValueError):
+            nu = math.nan
         if not math.isfinite(nu) or not (-1.0 < nu < 0.5):
             raise InvalidInputError(f"Poisson ratio nu must satisfy -1 < nu < 0.5, got {self.nu!r}")
         object.__setattr__(self, "nu", nu)
