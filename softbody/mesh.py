@@ -27,7 +27,10 @@ class Mesh:
     def __init__(self, nodes: np.ndarray, elements: np.ndarray, kind: str):
         self.element_type: ElementType = element_type(kind)
         self.kind = self.element_type.name
-        nodes = np.array(nodes, dtype=float)
+        try:
+            nodes = np.array(nodes, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise MeshError(f"nodes must be an (N, 3) array of numbers: {exc}") from None
         if nodes.ndim != 2 or nodes.shape[1] != 3:
             raise MeshError(f"nodes must have shape (N, 3), got {nodes.shape}")
         bad = np.flatnonzero(~np.isfinite(nodes).all(axis=1))
@@ -40,6 +43,8 @@ class Mesh:
         if elements.shape[0] == 0:
             raise MeshError("the mesh has no elements")
         if not np.issubdtype(elements.dtype, np.integer):
+            if elements.dtype.kind not in "fb":
+                raise MeshError(f"element node indices must be integers, got dtype {elements.dtype}")
             if not np.all(np.isfinite(elements)) or np.any(elements != np.round(elements)):
                 raise MeshError("element node indices must be integers")
         elements = elements.astype(np.int64)
