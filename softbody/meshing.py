@@ -32,6 +32,16 @@ def _check_kind(kind: str) -> str:
     return kind
 
 
+def _check_center(center) -> np.ndarray:
+    try:
+        c = np.asarray(center, dtype=float)
+    except (TypeError, ValueError):
+        c = None
+    if c is None or c.shape != (3,) or not np.all(np.isfinite(c)):
+        raise InvalidInputError(f"center must be three finite numbers [m], got {center!r}")
+    return c
+
+
 def _orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     X = nodes[tets]
     det = np.linalg.det(np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2))
@@ -65,7 +75,7 @@ def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", ce
         raise InvalidInputError(f"size must be three positive lengths, got {size!r}")
     axes = [np.linspace(-s / 2, s / 2, n + 1) for s, n in zip(size, (nx, ny, nz))]
     zz, yy, xx = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]) + np.asarray(center, dtype=float)
+    nodes = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]) + _check_center(center)
     nid = np.arange(len(nodes)).reshape(nz + 1, ny + 1, nx + 1)
     k, j, i = np.meshgrid(np.arange(nz), np.arange(ny), np.arange(nx), indexing="ij")
     k, j, i = k.ravel(), j.ravel(), i.ravel()
@@ -77,15 +87,16 @@ def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", ce
 def ball_mesh(radius: float, cells: int, kind: str = "tet4", center=(0.0, 0.0, 0.0)) -> Mesh:
     """A ball of ``radius`` [m]: a cube grid of cells^3 cells mapped onto the sphere (smooth cube-to-ball map)."""
     _check_kind(kind)
-    if not (np.isfinite(radius) and radius > 0):
+    if not (isinstance(radius, (int, float, np.number)) and np.isfinite(radius) and radius > 0):
         raise InvalidInputError(f"radius must be > 0, got {radius!r}")
+    center = _check_center(center)
     n = _check_cells((cells, cells, cells))[0]
     cube = box_mesh((2.0, 2.0, 2.0), (n, n, n), "hex8" if kind == "hex8" else "tet4")
     x, y, z = cube.nodes.T
     mapped = np.column_stack([x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
                               y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
                               z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3)])
-    mesh = Mesh(radius * mapped + np.asarray(center, dtype=float), cube.elements, cube.kind)
+    mesh = Mesh(radius * mapped + center, cube.elements, cube.kind)
     return to_tet10(mesh) if kind == "tet10" else mesh
 
 
