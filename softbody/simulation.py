@@ -9,7 +9,7 @@ import numpy as np
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
-from .linsolve import SpdSolver
+from .linsolve import BACKENDS, SpdSolver
 
 # A hook (body, system, supports, t_next) -> velocities (N, 3); the integration layer uses it for contact.
 VelocitySolver = Callable[[FemBody, LinearSystem, Constraints, float], np.ndarray]
@@ -50,9 +50,18 @@ class Simulation:
         for b in bodies:
             if not isinstance(b, FemBody):
                 raise InvalidInputError(f"bodies must be FemBody instances, got {type(b).__name__}")
-        dt = float(dt)
+        try:
+            dt = float(dt)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"time step dt must be a finite number > 0 [s], got {dt!r}") from None
         if not math.isfinite(dt) or dt <= 0:
             raise InvalidInputError(f"time step dt must be a finite number > 0 [s], got {dt!r}")
+        if solver not in BACKENDS:  # also checked per body, but a world may start without bodies
+            raise InvalidInputError(f"unknown solver backend {solver!r}; valid: {BACKENDS}")
+        if max_energy is not None:
+            if not (isinstance(max_energy, (int, float, np.number)) and math.isfinite(max_energy) and max_energy > 0):
+                raise InvalidInputError(f"max_energy must be None or a finite number > 0 [J], got {max_energy!r}")
+            max_energy = float(max_energy)
         self.bodies = bodies
         self.dt = dt
         self.gravity = _gravity(gravity)
@@ -156,7 +165,11 @@ def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
     g = _gravity(gravity)
     f = body.node_mass[:, None] * g
     if forces is not None:
-        f = f + np.asarray(forces, dtype=float).reshape(f.shape)
+        fx = np.asarray(forces, dtype=float)
+        if fx.size != f.size or not np.all(np.isfinite(fx)):
+            raise InvalidInputError(f"forces must be finite with shape {f.shape} [N], got shape {fx.shape}"
+                                    + ("" if fx.size != f.size else " with non-finite entries"))
+        f = f + fx.reshape(f.shape)
     K = body.pattern.assemble(body.Ke)
     nodes, _ = body.constrained_targets(0.0, 1.0)
     u_c = np.zeros((len(nodes), 3))
