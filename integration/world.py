@@ -115,7 +115,8 @@ class World:
             raise InvalidInputError("a kinematic body (with a motion script) must have mass 0")
         if motion is not None and not callable(motion):
             raise InvalidInputError("motion must be a function of time returning a pose")
-        if friction is not None and (not math.isfinite(friction) or friction < 0):
+        if friction is not None and not (isinstance(friction, (int, float, np.number))
+                                         and math.isfinite(friction) and friction >= 0):
             raise InvalidInputError(f"friction must be >= 0, got {friction!r}")
         bid = p.createMultiBody(mass, col, basePosition=_vec3(position, "position"),
                                 baseOrientation=_quat(orientation), physicsClientId=self.client)
@@ -190,7 +191,10 @@ class World:
         """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0)."""
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
-        friction = float(friction)
+        try:
+            friction = float(friction)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"friction must be a finite number >= 0, got {friction!r}") from None
         if not math.isfinite(friction) or friction < 0:
             raise InvalidInputError(f"friction must be a finite number >= 0, got {friction!r}")
         if any(b is body for b in self.sim.bodies):
