@@ -136,8 +136,8 @@ def parse_cells(text: str) -> Cells:
 class RunResult:
     """One configuration run. ``times`` (n,) [s] and ``values`` (n,) [m] are the monitored coordinate
     after each step (the first entry is t = 0); sizes are of the mesh; ``dofs`` counts the free DOFs
-    (3 per node not fixed or attached); ``median_ms_per_step`` is the median over steps of the World's
-    per-phase timings (collision + soft step + rigid); ``peak_mem_mb`` is the peak increase of the
+    (3 per node not fixed or attached); ``median_ms_per_step`` is the median over steps of the wall-clock
+    time of World.step (collision, soft step with contacts, rigid step); ``peak_mem_mb`` is the peak increase of the
     process's resident memory while building and running the scene [MiB]. ``status`` is "ok" or the
     reason the run stopped early (its trajectory is then partial)."""
 
@@ -301,13 +301,17 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
             body = sc.body
             duration = float(sc.duration if duration is None else duration)
             ts, xs = [sc.world.t], [sc.monitored()]
+            tic = [0.0]
 
             def callback(world) -> None:
-                steps_ms.append(1e3 * sum(world.timings.values()))
+                toc = time.perf_counter()
+                steps_ms.append(1e3 * (toc - tic[0]))
                 ts.append(world.t)
                 xs.append(sc.monitored())
+                tic[0] = time.perf_counter()
 
             try:
+                tic[0] = time.perf_counter()
                 sc.world.run(duration, callback)
             except (SimulationDiverged, SolverError) as exc:
                 status = f"{type(exc).__name__}: {exc}"
@@ -368,6 +372,14 @@ class _InProcessExecutor(cf.Executor):
 
 def _init_worker() -> None:
     pin_threads(1)
+    parent = os.getppid()
+
+    def watch() -> None:  # a killed study must not leave its workers running
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 @contextlib.contextmanager
@@ -556,13 +568,15 @@ def write_results(study: Study, ladder: Ladder | None = None) -> None:
     ref = study.reference
     axis = ref.meta.get("axis", "?")
     lines = [f"# Study: {study.scene}", "",
-             f"Monitored: {axis} of node {ref.meta.get('monitor')} (rest {ref.meta.get('monitor_rest')}), "
+             f"Monitored: {axis} of node {ref.meta.get('monitor')} "
+             f"(rest {[round(v, 6) + 0.0 for v in ref.meta.get('monitor_rest', [])]}), "
              f"{ref.duration:g} s at dt = {ref.dt:g} s, {ref.method} linear solves.",
              f"Reference: {ref.element} cells {cells_text(ref.cells)} ({ref.elements} elements, {ref.nodes} nodes).",
              "Error: RMS difference of the monitored coordinate against the reference over the common time "
              "grid, in metres (shown in mm).",
-             "Cost: median wall-clock ms per step of the World (collision + soft step + rigid); memory: peak "
-             "increase of the worker's resident memory during the run.", ""]
+             "Cost: median wall-clock ms per step of World.step (collision, soft step with contacts, rigid step); "
+             "memory: peak increase of the worker's resident memory while building and running the scene "
+             "(a pybullet connection alone is about 28 MiB).", ""]
     if ladder is not None and ladder.note:
         lines += [f"Ladder: {ladder.note}.", ""]
     lines += ["| element | cells | elements | nodes | DOFs | ms/step | peak MiB | error [mm] |",
@@ -573,7 +587,44 @@ def write_results(study: Study, ladder: Ladder | None = None) -> None:
             err += f" ({row['status']})"
         lines.append(f"| {row['element']} | {row['cells']} | {row['elements']} | {row['nodes']} | {row['dofs']} | "
                      f"{row['median_ms_per_step']:.1f} | {row['peak_mem_mb']:.1f} | {err} |")
+    lines += equal_fidelity_lines(study)
     (out / "table.md").write_text("\n".join(lines) + "\n")
+
+
+def equal_fidelity(study: Study, base: str = "tet4") -> list[dict]:
+    """For each rung of ``base`` (as a tolerance: its error), the cheapest run of every element type whose
+    error is within it: the paper's "efficiency at equal fidelity" (ratio of ms per step)."""
+    ok = [r for r in study.runs if r.status == "ok"]
+    out = []
+    for b in sorted((r for r in ok if r.element == base), key=lambda r: r.nodes):
+        tol = study.errors[b.key]
+        row = {"tolerance_m": tol, "base": b.key, "cheapest": {}}
+        for e in ELEMENTS:
+            within = [r for r in ok if r.element == e and study.errors[r.key] <= tol]
+            if within:
+                row["cheapest"][e] = min(within, key=lambda r: r.median_ms_per_step)
+        out.append(row)
+    return out
+
+
+def equal_fidelity_lines(study: Study) -> list[str]:
+    rows = equal_fidelity(study)
+    elements = [e for e in ELEMENTS if any(r.element == e for r in study.runs)]
+    if not rows or "tet4" not in elements:
+        return []
+    lines = ["", "Speed at equal fidelity: for each tet4 rung's error as a tolerance, the cheapest run of each "
+                 "element type within it (cells, ms/step), and how many times faster than the cheapest tet4 run.", "",
+             "| tolerance [mm] (tet4 rung) | " + " | ".join(elements) + " | "
+             + " | ".join(f"tet4 / {e}" for e in elements if e != "tet4") + " |",
+             "|---|" + "---|" * (2 * len(elements) - 1)]
+    for row in rows:
+        ch = row["cheapest"]
+        cells = [f"{cells_text(ch[e].cells)}, {ch[e].median_ms_per_step:.1f}" if e in ch else "-" for e in elements]
+        ratios = [f"{ch['tet4'].median_ms_per_step / ch[e].median_ms_per_step:.1f}x" if e in ch else "-"
+                  for e in elements if e != "tet4"]
+        lines.append(f"| {1e3 * row['tolerance_m']:.3f} ({row['base'].split('_')[1]}) | " + " | ".join(cells)
+                     + " | " + " | ".join(ratios) + " |")
+    return lines
 
 
 COLORS = {"tet4": "tab:blue", "hex8": "tab:orange", "tet10": "tab:green"}
@@ -587,6 +638,19 @@ def _figure(w: float, h: float):
     fig = Figure(figsize=(w, h), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+def _log_axes(ax) -> None:
+    """Log-log axes with plain-number tick labels at 1, 2, 5 x 10^k."""
+    from matplotlib import ticker
+
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        axis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        axis.set_minor_formatter(ticker.NullFormatter())
+    ax.grid(alpha=0.3, which="both")
 
 
 def pareto_front(points: Sequence[tuple[float, float]]) -> list[int]:
@@ -610,7 +674,7 @@ def write_plots(study: Study) -> list[Path]:
     elements = [e for e in ELEMENTS if any(r.element == e for r in study.runs)]
     paths = []
 
-    fig = _figure(4.2 * len(elements), 3.8)
+    fig = _figure(4.2 * len(elements), 5.2)
     axes = fig.subplots(1, len(elements), sharey=True, squeeze=False)[0]
     for ax, e in zip(axes, elements):
         runs = sorted((r for r in study.runs if r.element == e), key=lambda r: r.nodes)
@@ -622,7 +686,8 @@ def write_plots(study: Study) -> list[Path]:
         ax.set_title(f"{e}")
         ax.set_xlabel("time [s]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, title="cells (#elements, #nodes)", title_fontsize=7)
+        ax.legend(fontsize=7, title="cells (#elements, #nodes)", title_fontsize=7, ncol=2,
+                  loc="upper center", bbox_to_anchor=(0.5, -0.16))
     axes[0].set_ylabel(f"monitored {axis} [m]")
     fig.suptitle(f"{study.scene}: monitored node per resolution")
     paths.append(out / "trajectories.png")
@@ -632,12 +697,12 @@ def write_plots(study: Study) -> list[Path]:
     ax = fig.subplots()
     for e in elements:
         runs = sorted((r for r in study.runs if r.element == e), key=lambda r: r.nodes)
-        ax.loglog([r.nodes for r in runs], [r.median_ms_per_step for r in runs], marker=MARKERS[e],
+        ax.plot([r.nodes for r in runs], [r.median_ms_per_step for r in runs], marker=MARKERS[e],
                   color=COLORS[e], label=e)
     ax.set_xlabel("nodes")
     ax.set_ylabel("median ms per step")
     ax.set_title(f"{study.scene}: cost per step against nodes")
-    ax.grid(alpha=0.3, which="both")
+    _log_axes(ax)
     ax.legend()
     paths.append(out / "time_vs_nodes.png")
     fig.savefig(paths[-1])
@@ -647,7 +712,7 @@ def write_plots(study: Study) -> list[Path]:
     ok = [r for r in study.runs if math.isfinite(study.errors[r.key]) and study.errors[r.key] > 0]
     for e in elements:
         runs = sorted((r for r in ok if r.element == e), key=lambda r: r.nodes)
-        ax.loglog([r.median_ms_per_step for r in runs], [1e3 * study.errors[r.key] for r in runs],
+        ax.plot([r.median_ms_per_step for r in runs], [1e3 * study.errors[r.key] for r in runs],
                   marker=MARKERS[e], color=COLORS[e], label=e, lw=0.8)
         for r in runs:
             ax.annotate(cells_text(r.cells), (r.median_ms_per_step, 1e3 * study.errors[r.key]), fontsize=6,
@@ -660,7 +725,7 @@ def write_plots(study: Study) -> list[Path]:
     ax.set_xlabel("median ms per step")
     ax.set_ylabel(f"RMS error of {axis} vs reference [mm]")
     ax.set_title(f"{study.scene}: error against cost")
-    ax.grid(alpha=0.3, which="both")
+    _log_axes(ax)
     ax.legend()
     paths.append(out / "pareto.png")
     fig.savefig(paths[-1])

@@ -1,0 +1,200 @@
+"""Convergence studies (integration/study.py, `softbody study` / `softbody recommend`).
+
+One small study (the cantilever's small ladder: 3 rungs per element type, 0.3 s, about one period of
+the first bending mode) is made once per module on local worker processes and shared by the tests;
+one test makes the same study again on a local two-worker Dask cluster.
+"""
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import softbody
+from integration import cli
+from integration.study import (CSV_COLUMNS, LADDERS, NoConfigurationWithinTolerance, load_trajectory,
+                               pareto_front, recommend, rms_error, run_study)
+
+SCENE = "cantilever"
+PNGS = ("trajectories.png", "time_vs_nodes.png", "pareto.png")
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("study_local")
+    return run_study(SCENE, out, ladder="small", workers=2, progress=False)
+
+
+def csv_rows(out: Path) -> list[dict]:
+    with open(out / "results.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+# ---------------------------------------------------------------------------------------- metric
+def test_rms_error_is_the_rms_difference_in_metres_on_the_common_grid():
+    t = np.linspace(0.0, 1.0, 101)
+    ref = 0.01 * np.sin(2 * np.pi * t)
+    assert rms_error(t, ref, t, ref) == 0.0
+    assert rms_error(t, ref + 0.002, t, ref) == pytest.approx(0.002, rel=1e-12)
+    # a coarser run time grid: the reference is interpolated onto it
+    tc = t[::4]
+    assert rms_error(tc, np.interp(tc, t, ref) - 0.003, t, ref) == pytest.approx(0.003, rel=1e-12)
+    # a run longer than the reference is compared only where the reference exists
+    tl = np.linspace(0.0, 2.0, 201)
+    assert rms_error(tl, np.where(tl <= 1.0, 0.0, 5.0), t, np.zeros_like(t)) == 0.0
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    pts = [(1.0, 10.0), (2.0, 5.0), (3.0, 6.0), (4.0, 1.0), (2.5, 5.0)]
+    assert pareto_front(pts) == [0, 1, 3]
+
+
+# ---------------------------------------------------------------------------------------- ladders
+PAPER_SHEET = {  # SPEC.md section 5 / the paper's Fig. 9: (#elements, #nodes) per rung
+    "tet4": [(160, 75), (960, 324), (5120, 1445), (10000, 2646), (17280, 4375), (23660, 5832)],
+    "hex8": [(32, 75), (192, 324), (576, 845), (1024, 1445), (1620, 2166), (2000, 2646)],
+    "tet10": [(20, 71), (80, 227), (360, 773), (640, 1317), (810, 1643)],
+}
+
+
+def test_sheet_ladder_is_the_papers():
+    lad = LADDERS["sheet-on-sphere"]["full"]
+    for kind, counts in PAPER_SHEET.items():
+        got = []
+        for cells in lad.rungs[kind]:
+            m = softbody.box_mesh((1.0, 1.0, 0.25), cells, kind)
+            got.append((m.n_elements, m.n_nodes))
+        assert got == counts, kind
+
+
+def test_tube_ladder_has_the_papers_element_counts():
+    lad = LADDERS["hanging-tube"]["full"]
+    hex_counts = [48, 160, 280, 432, 616]  # the paper's Fig. 8
+    assert [a * b * c for a, b, c in lad.rungs["hex8"]] == hex_counts
+    assert [5 * a * b * c for a, b, c in lad.rungs["tet4"]] == [240, 800, 1400, 2160, 2400, 3080, 3840]
+    assert all(c[0] % 2 == 0 for rungs in lad.rungs.values() for c in rungs)
+
+
+MONITOR = {"sheet-on-sphere": (-0.5, -0.5, 0.35), "hanging-tube": (0.1, 0.0, -1.0), "cantilever": (1.0, 0.0, 0.0)}
+
+
+def _mesh(scene: str, kind: str, cells) -> softbody.Mesh:
+    if scene == "sheet-on-sphere":
+        return softbody.box_mesh((1.0, 1.0, 0.25), cells, kind, center=(0.0, 0.0, 0.475))
+    if scene == "hanging-tube":
+        return softbody.tube_mesh(0.1, 0.06, 1.0, cells, kind)
+    return softbody.box_mesh((1.0, 0.1, 0.1), cells, kind, center=(0.5, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("scene", sorted(LADDERS))
+def test_every_rung_has_the_monitored_point_as_a_node(scene):
+    """Errors compare one material point: every rung and the reference must have a node exactly there.
+    Rungs go coarse to fine, and the reference is beyond the top of its element type's ladder (at least
+    as many cells in every direction, more in one)."""
+    for name, lad in LADDERS[scene].items():
+        ref_kind, ref_cells = lad.reference
+        ref = _mesh(scene, ref_kind, ref_cells)
+        for kind, rungs in lad.rungs.items():
+            assert list(rungs) == sorted(rungs, key=lambda c: _mesh(scene, kind, c).n_nodes), (name, kind)
+            for cells in rungs:
+                m = _mesh(scene, kind, cells)
+                assert np.linalg.norm(m.nodes - MONITOR[scene], axis=1).min() < 1e-12, (name, kind, cells)
+        assert np.linalg.norm(ref.nodes - MONITOR[scene], axis=1).min() < 1e-12, (name, "reference")
+        top = lad.rungs[ref_kind][-1]
+        assert all(r >= t for r, t in zip(ref_cells, top)) and tuple(ref_cells) != tuple(top), name
+
+
+# ---------------------------------------------------------------------------------------- the small study
+def test_small_study_writes_csv_table_trajectories_and_plots(study):
+    out = study.out
+    rows = csv_rows(out)
+    lad = LADDERS[SCENE]["small"]
+    assert len(rows) == sum(len(r) for r in lad.rungs.values()) + 1
+    assert tuple(rows[0]) == CSV_COLUMNS
+    assert [r["role"] for r in rows].count("reference") == 1
+    for r in rows:
+        assert r["status"] == "ok"
+        cells = [int(c) for c in r["cells"].split("x")]
+        mesh = _mesh(SCENE, r["element"], cells)
+        assert (int(r["elements"]), int(r["nodes"])) == (mesh.n_elements, mesh.n_nodes)
+        assert int(r["dofs"]) == 3 * int((mesh.nodes[:, 0] > 1e-12).sum())  # the x = 0 face is fixed
+        assert float(r["median_ms_per_step"]) > 0 and float(r["peak_mem_mb"]) >= 0
+        assert int(r["steps"]) == 30 and float(r["duration_s"]) == 0.3
+        traj = load_trajectory(out, r["element"], cells)
+        assert traj.times.shape == traj.values.shape == (31,)
+    table = (out / "table.md").read_text()
+    assert "RMS difference" in table and "| tet10 | 16x2x2 |" in table and table.count("\n| ") >= len(rows) + 1
+    for name in PNGS:
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000, name
+
+
+def test_small_study_errors_decrease_monotonically_with_refinement(study):
+    rows = [r for r in csv_rows(study.out) if r["role"] == "ladder"]
+    for kind, rungs in LADDERS[SCENE]["small"].rungs.items():
+        errors = [float(next(r["error_m"] for r in rows if r["element"] == kind and r["cells"] == "x".join(map(str, c))))
+                  for c in rungs]
+        assert all(e > 0 for e in errors), (kind, errors)
+        assert all(a > b for a, b in zip(errors, errors[1:])), (kind, errors)
+
+
+def test_small_study_is_reused_from_the_cache(study):
+    again = run_study(SCENE, study.out, ladder="small", workers=2, progress=False)
+    assert again.executed == []
+    for r in study.runs + [study.reference]:
+        assert np.array_equal(again.run(r.element, r.cells).values, r.values)
+
+
+def _brute_force(out: Path, tol: float):
+    best = None
+    for r in csv_rows(out):
+        if r["role"] != "ladder" or r["status"] != "ok" or float(r["error_m"]) > tol:
+            continue
+        if best is None or float(r["median_ms_per_step"]) < float(best["median_ms_per_step"]):
+            best = r
+    return best
+
+
+def test_recommend_picks_what_a_brute_force_check_of_the_csv_picks(study):
+    errors = sorted(float(r["error_m"]) for r in csv_rows(study.out) if r["role"] == "ladder")
+    tolerances = [e * 1.0001 for e in errors] + [1.0]
+    for tol in tolerances:
+        rec = recommend(study.out, tol, scene=SCENE)
+        expect = _brute_force(study.out, tol)
+        assert (rec.choice["element"], rec.choice["cells"]) == (expect["element"], expect["cells"]), tol
+        assert rec.choice["error_m"] <= tol
+        costs = [c["median_ms_per_step"] for c in rec.candidates]
+        assert costs == sorted(costs)
+        assert "recommended" in rec.table()
+    with pytest.raises(NoConfigurationWithinTolerance, match="no configuration"):
+        recommend(study.out, errors[0] / 2)
+
+
+def test_cli_study_and_recommend_use_the_cached_study(study, capsys):
+    assert cli.main(["study", SCENE, "--quick", "--out", str(study.out), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "0 runs made" in out and "| tet4 | 4x2x2 |" in out
+    tol = sorted(float(r["error_m"]) for r in csv_rows(study.out) if r["role"] == "ladder")[2]
+    assert cli.main(["recommend", SCENE, "--tolerance", f"{1e3 * tol * 1.0001}mm", "--study", str(study.out)]) == 0
+    out = capsys.readouterr().out
+    expect = _brute_force(study.out, tol * 1.0001)
+    assert f"recommended: --element {expect['element']} --cells {expect['cells'].replace('x', ' ')}" in out
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["recommend", SCENE, "--tolerance", "1e-9", "--study", str(study.out)])
+    assert exc.value.code == 2
+    assert "no configuration" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------- where runs run
+def test_study_on_a_local_dask_cluster_gives_identical_trajectories(study, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        remote = run_study(SCENE, tmp_path, ladder="small", cluster=cluster.scheduler_address, progress=False)
+    assert sorted(remote.executed) == sorted(r.key for r in study.runs + [study.reference])
+    for r in study.runs + [study.reference]:
+        other = remote.run(r.element, r.cells)
+        assert np.array_equal(other.times, r.times) and np.array_equal(other.values, r.values), r.key
+    assert remote.errors == study.errors
