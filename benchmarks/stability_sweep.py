@@ -560,8 +560,9 @@ def write_report(out: dict, path: Path, steps: int, elapsed: float, command: str
     for r in out["special"]:
         ex = {k: v for k, v in r.extra.items() if k != "label"}
         meas = ", ".join(f"{k} {fmt(float(v))}" for k, v in ex.items())
+        er = "-" if math.isnan(r.energy_ratio) else f"{r.energy_ratio:.4g}"
         lines.append(f"| {r.extra['label']} | {r.kind} | {'yes' if r.stable else 'NO: ' + r.error} | "
-                     f"{fmt(r.energy_ratio)} | {fmt(r.min_volume)} | {meas} |")
+                     f"{er} | {fmt(r.min_volume)} | {meas} |")
     lines += ["", SPECIAL_NOTES, "",
               "## Locking for nu near 0.5 (stiffening factor against tet10)", "",
               "Static tip deflection of the clamped cantilever (E = 5e7 Pa) under gravity, tet10 / element type, "
@@ -585,12 +586,66 @@ over the cube's edge or the beam's length (`first`/`second`: first and second ha
 if the inverted cube's elastic force points back to the rest shape; `max_penetration` [m]; `end_velocity`
 mean vertical velocity at the end [m/s] (> 0: bounced); `max_angle`, `angle_end` [deg] of the beam's
 centre about the hinge (0: horizontal, 90: hanging); `elastic_end`, `kinetic_end` [J]. The pybullet plate
-does work on the cube, so its energy ratio is not measured (0)."""
+does work on the cube, so its energy ratio is not measured (-)."""
 
 
 EXPLANATION = """## What fails and why the method cannot hold it
 
-(Filled in from the measured numbers above; see the final section of the report.)
+**Large rotation per step (all `U` cells).** Backward Euler is unconditionally stable for a *linear*
+system. Stiffness warping makes the system nonlinear, and the paper's method linearises it once per
+step: the rotations R_e come from the positions at the start of the step, and the step moves every node
+along a straight line, x' = x + h v'. Turning by an angle theta = omega h in one step therefore also
+stretches the body by about theta^2 / 2 across the rotation axis (the infinitesimal rotation field is in
+the null space of K, so nothing in the step resists it); the next step sees that stretch as strain and
+pushes it back. The spurious strain energy, relative to the kinetic energy of the rotation, is about
+(3/4) (c h / L)^2 theta^2 with c the wave speed and L the body size: it grows with the time step twice,
+with the stiffness, and with the bulk modulus, which is unbounded as nu -> 0.5 (c is the P-wave speed).
+So:
+
+- the free cube spinning at 1 rev/s is unstable at dt = 0.1 s (0.63 rad per step) for every material;
+- the cantilever at dt = 0.1 s is stable where it hardly rotates (E = 1e9 Pa, and 1e8 Pa except tet10 at
+  nu = 0.499) and mostly at nu = 0, where the bulk modulus is small; softer beams, which swing through
+  large angles in a few steps, fail for nu >= 0.3;
+- at dt = 0.01 s only nearly incompressible cases fail (8 of 240): tet10, whose quadratic fields carry
+  the spurious volumetric strain that the linear elements partly lock away, at nu = 0.499 (E = 1e2, 1e3,
+  1e5..1e7 Pa) and nu = 0.49 (E <= 1e3 Pa), and hex8 at nu = 0.499, E = 1e5 Pa;
+- the 10 rev/s spin is stable at dt = 1 ms (theta = 0.063: 0.5 % energy excess, set in the first steps,
+  then decaying; shape within 0.5 % of the edge) and crosses the 1 % line at dt = 2 ms (5 %);
+- the 60 s swinging beam (E = 5e7 Pa, c h / L = 2.2 at dt = 0.01 s) keeps its energy within 0.2 %, its
+  shape within 0.15 % of its length, and ends hanging straight down (90 deg) nearly at rest; at dt = 0.02 s
+  (c h / L = 4.5) the excess reaches 56 %, though the shape still returns.
+
+The cure is outside this method: a step small enough that theta and c h / L theta stay small (rule of
+thumb: omega h < 0.05 rad, and less for stiff or nearly incompressible bodies), or a nonlinear
+(Newton-iterated, corotational) step that updates R_e within the step. Every such case is caught when
+the simulation has an energy bound: `Simulation(..., max_energy=...)` raises `SimulationDiverged`
+naming the step, the time and the worst element, and keeps the state of the last good step
+(tests/test_stability.py::test_rotation_per_step_limit_is_detected). Non-finite values raise it always.
+
+**Backward Euler damps at large dt.** Where the step is stable it is strongly dissipative when it does
+not resolve the motion: the stiff cantilever at dt = 0.1 s keeps only half the work of gravity as
+energy (ratio 0.5, the backward Euler step response) and lands on the static solution within a few
+steps; its vibration is gone. That is right for settling and wrong for vibration: resolve the first
+period (dt = T1 / 200 gives the period within 3 %, tests/test_stability.py).
+
+**Volume under large compression.** Small-strain linear elasticity has no term that keeps volume: in
+the rotated frame a compression costs energy linearly in the strain, so a body can be crushed to a few
+per cent of its volume, and nothing stops an element from passing through zero volume. Crushed to 5 %
+of its height, the linear elements keep 4-7 % of their volume and tet10's mid-edge nodes bulge so far
+that its elements invert (volume ratio down to -0.36); very soft materials at large steps invert elements
+too (the E = 1e2 Pa cantilever: gravity stress rho g L = 1e4 Pa is 100 E, the beam simply falls and
+stretches). What the method does hold: the warping rotation is a proper rotation (det R = +1, the
+reflection put into the weakest direction), so an inverted element is pushed back, not held as a
+mirrored rest state: every crushed or mirrored cube recovers its rest shape to 1e-5 of its size.
+
+**Impact.** The 20 m/s ball never enters the plane (contacts are velocity constraints inside the
+implicit step, with the detection margin grown by the surface speed times the step) and bounces back at
+6-7 m/s; the lost energy is the inelastic node contact plus backward Euler's damping of the ringing.
+
+**Locking.** Linear tets are too stiff in bending on coarse grids at every nu (shear locking: factor 1.5
+on the (20, 2, 2) grid at nu = 0.3), and the fully integrated hex8 locks volumetrically as nu -> 0.5
+(factor 2.5 at nu = 0.499 on that grid, 4 on the coarser one). tet10 does not lock: use it for nu >= 0.45.
+These are accuracy, not stability, limits: the locked elements are stable, only too stiff.
 """
 
 
