@@ -124,8 +124,11 @@ def add_study_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=_positive_float, default=None,
                         help="simulated time [s] of every run (default: the ladder's, else the scene's)")
     parser.add_argument("--dt", type=_positive_float, default=0.01, help="time step [s] (default 0.01)")
-    parser.add_argument("--method", choices=("direct", "iterative"), default="direct",
-                        help="linear solve per step: direct (default; bit-reproducible, as the paper) or iterative")
+    from .study import solve_methods
+
+    parser.add_argument("--method", choices=solve_methods(), default=None,
+                        help="linear solve per step (default: the Simulation's; direct factorises every step, "
+                             "as the paper did)")
     parser.add_argument("--workers", type=_nonnegative_int, default=None,
                         help="local worker processes (default: one per core; 0: in this process)")
     parser.add_argument("--cluster", default=None, metavar="ADDRESS",

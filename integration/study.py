@@ -43,7 +43,15 @@ from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
 FORMAT = 1  # version of the cached run files; bump to invalidate old caches
 ELEMENTS = ("tet4", "hex8", "tet10")
 THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
-METHODS = ("direct", "iterative")
+
+
+def solve_methods() -> tuple[str, ...]:
+    """The linear-solve methods softbody.Simulation accepts (e.g. auto, direct, iterative)."""
+    from softbody import simulation
+
+    return tuple(getattr(simulation, "METHODS", ("direct",)))
+
+
 CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
                "dt_s", "method", "median_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status")
 
@@ -268,21 +276,32 @@ def _warm_up(scene: str) -> None:
     _WARM.add(scene)
 
 
+def default_method() -> str:
+    """The linear solve softbody.Simulation uses by default ("direct" where it has no choice)."""
+    import inspect
+
+    from softbody import Simulation
+
+    p = inspect.signature(Simulation.__init__).parameters.get("method")
+    return "direct" if p is None or p.default is inspect.Parameter.empty else str(p.default)
+
+
 def run_configuration(scene: str, element: str, cells: Sequence[int], duration: float | None = None,
-                      dt: float = 0.01, method: str = "direct", threads: int | None = 1) -> RunResult:
+                      dt: float = 0.01, method: str | None = None, threads: int | None = 1) -> RunResult:
     """Build ``scene`` with ``element`` and ``cells``, run it for ``duration`` [s] (default: the scene's)
     with step ``dt`` [s], and return its monitored trajectory, sizes, cost and peak memory.
 
-    method: the step's linear solve, "direct" (factorise every step, as the paper does) or "iterative"
-    (the Simulation's preconditioned CG). A pure function of its arguments, for worker processes: with
-    "direct", the same inputs give bit-identical trajectories in any process, local or remote;
-    "iterative" refactorises its preconditioner on a measured-time cost model, so its trajectories vary
-    at the level of its tolerance (about 1e-9 m in the canonical scenes). ``threads`` pins BLAS / MKL /
-    OpenMP for the process (None leaves them as they are)."""
+    method: the step's linear solve, one of softbody.Simulation's methods (:func:`solve_methods`: "direct"
+    factorises every step, as the paper did; "iterative" is preconditioned CG), or None for the
+    Simulation's default (:func:`default_method`).
+    A pure function of its arguments, for worker processes: the same inputs give bit-identical
+    trajectories in any process, local or remote (one BLAS / MKL thread; both methods are deterministic).
+    ``threads`` pins BLAS / MKL / OpenMP for the process (None leaves them as they are)."""
     from .scenes import build_scene
 
-    if method not in METHODS:
-        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    method = default_method() if method is None else method
+    if method not in solve_methods():
+        raise InvalidInputError(f"method must be one of {solve_methods()}, got {method!r}")
     if threads is not None:
         pin_threads(threads)
     cells = tuple(int(c) for c in cells)
@@ -475,7 +494,7 @@ def _expected_cost(spec: tuple[str, Cells]) -> float:
 
 
 def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None, ladder: str | Ladder = "full",
-              duration: float | None = None, dt: float = 0.01, method: str = "direct",
+              duration: float | None = None, dt: float = 0.01, method: str | None = None,
               workers: int | None = None, cluster=None,
               force: bool = False, progress: bool = True, plots: bool = True) -> Study:
     """Run (or load from ``out``'s cache) the ladder of ``scene`` for ``elements`` and its reference, then
@@ -491,8 +510,9 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
     bad = [e for e in elements if e not in lad.rungs]
     if bad or not elements:
         raise InvalidInputError(f"elements {bad or elements} not in the ladder; valid: {sorted(lad.rungs)}")
-    if method not in METHODS:
-        raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+    method = default_method() if method is None else method
+    if method not in solve_methods():
+        raise InvalidInputError(f"method must be one of {solve_methods()}, got {method!r}")
     if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
         raise InvalidInputError(f"dt must be a finite number > 0 [s], got {dt!r}")
     if duration is None:

@@ -141,7 +141,7 @@ def test_small_study_errors_decrease_monotonically_with_refinement(study):
 
 
 def test_small_study_is_reused_from_the_cache(study):
-    again = run_study(SCENE, study.out, ladder="small", workers=2, progress=False)
+    again = run_study(SCENE, study.out, ladder="small", workers=2, progress=False, plots=False)
     assert again.executed == []
     for r in study.runs + [study.reference]:
         assert np.array_equal(again.run(r.element, r.cells).values, r.values)
