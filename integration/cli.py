@@ -1,4 +1,4 @@
-"""The ``softbody`` command line: run canonical scenes, convergence studies of them, and recommendations."""
+"""The ``softbody`` command line: run canonical scenes, convergence studies of them, recommendations and benchmarks."""
 from __future__ import annotations
 
 import argparse
@@ -191,6 +191,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     rec.add_argument("--study", default=None, metavar="DIR",
                      help="study directory (default: studies/SCENE; made first if it has no results.csv)")
     add_study_arguments(rec)
+    from .bench import add_bench_arguments
+
+    bench = sub.add_parser("bench", help="benchmark: ms per step with its breakdown, the solver floor, pybullet's "
+                                         "soft body, memory and scaling; JSON + markdown + plot")
+    add_bench_arguments(bench)
     args = parser.parse_args(argv)
     try:
         if args.command == "run":
@@ -199,6 +204,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             study_command(args)
         elif args.command == "recommend":
             recommend_command(args)
+        elif args.command == "bench":
+            from .bench import bench_command
+
+            bench_command(args)
     except InvalidInputError as exc:
         parser.exit(2, f"softbody: error: {exc}\n")
     except KeyboardInterrupt:
