@@ -72,10 +72,15 @@ class ContactSolver:
     thresholds for releasing and adding contacts.
     """
 
-    def __init__(self, max_iterations: int = 30, velocity_tol: float = 1e-7, slip_tol: float = 1e-3):
+    def __init__(self, max_iterations: int = 30, velocity_tol: float = 1e-7, slip_tol: float = 1e-3,
+                 friction_switches: int = 2, cone_tol: float = 1e-3):
         self.max_iterations = max_iterations
         self.velocity_tol = velocity_tol
         self.slip_tol = slip_tol
+        # stick/slip may change only in the first friction_switches iterations (a node on the cone's
+        # edge would otherwise flip forever); non-penetration stays exact in every iteration
+        self.friction_switches = friction_switches
+        self.cone_tol = cone_tol
         self.previous: dict[int, tuple[set, set]] = {}  # id(body) -> (active nodes, sticking nodes)
 
     def solve(self, system: LinearSystem, supports: Constraints, c: NodeContacts, h: float
@@ -123,12 +128,13 @@ class ContactSolver:
             # friction: stick -> slip when the needed force leaves the cone; slip -> stick when sliding stops
             ft = rl[:, 1:]
             ftn = np.linalg.norm(ft, axis=1)
-            to_slip = active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + 1e-9))
+            switching = it <= self.friction_switches
+            to_slip = switching & active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + self.cone_tol))
             vt = vrel[:, 1:]
             vtn = np.linalg.norm(vt, axis=1)
             old = slip_force[:, 1:]
             reversed_ = np.einsum("mi,mi->m", vt, old) > 0  # sliding along the friction force: it stopped
-            to_stick = active & ~stick & friction & (reversed_ | (vtn < self.velocity_tol))
+            to_stick = switching & active & ~stick & friction & (reversed_ | (vtn < self.velocity_tol))
             new_slip = np.zeros((m, 2))
             with np.errstate(invalid="ignore", divide="ignore"):
                 d_stick = np.where(ftn[:, None] > 0, ft / ftn[:, None], 0.0)  # direction of the needed force
@@ -138,7 +144,8 @@ class ContactSolver:
             cont = active & ~stick & friction & ~to_stick
             new_slip = np.where(cont[:, None], mag * d_slip, new_slip)
             slip_change = np.abs(new_slip - old).max(initial=0.0) > self.slip_tol * max(1e-12, mag.max(initial=0.0))
-            changed = changed or to_slip.any() or to_stick.any() or (slip_change and cont.any())
+            refine = it <= 2 * self.friction_switches  # slip forces: a bounded fixed-point iteration
+            changed = changed or to_slip.any() or to_stick.any() or (refine and slip_change and cont.any())
             if not changed:
                 break
             active = (active & ~release) | add

@@ -247,7 +247,12 @@ class IterativeSystem:
             self._refactor(T, mask)
         y = to_local(T, self.x0)
         y[mask] = value[mask]
-        atol = self.settings.tol * (np.linalg.norm(b[free]) + 1e-300)
+        # tolerance relative to the load on the free components once the constrained values are moved
+        # to the right-hand side (prescribed motion alone is a load), or to the initial residual
+        value_only = np.where(mask, value, 0.0)
+        b_eff = (b - A(value_only))[free] if mask.any() else b[free]
+        r0 = (b - A(y))[free]
+        atol = self.settings.tol * max(np.linalg.norm(b_eff), np.linalg.norm(r0), 1e-300)
         with timed(self.timings, "solve"):
             y, its, ok = self._pcg(A, b, y, free, T, atol)
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
