@@ -65,7 +65,7 @@ PYBULLET_CELLS = [(16, 16, 4), (24, 24, 6)]
 
 DEFAULTS = dict(steps=50, repeats=3, warmup=20, threads=1)
 TINY = dict(steps=5, repeats=2, warmup=12, floor_repeats=3, profile_steps=3, pybullet_max_k=8)
-SCALING = dict(steps=10, repeats=1, warmup=15, floor_repeats=3, profile_steps=0)
+SCALING = dict(steps=10, repeats=1, warmup=15, floor_repeats=3, profile_steps=3)
 
 PHASES = ("collision", "rotations", "forces", "assembly", "factorize", "solve", "contact", "other", "rigid",
           "recording")
@@ -255,6 +255,8 @@ def measure_config(spec: dict) -> dict:
         recorder = Recorder.attach(scene, path=rec_dir / f"{Config(spec['scene'], spec['element'], tuple(spec['cells'])).slug}.rrd",
                                    every=1)
 
+    moved = [0.0]  # largest distance of any node from its rest position so far [m] (outside the timed region)
+
     def one_step() -> tuple[float, dict, int]:
         tic = time.perf_counter()
         world.step()
@@ -265,6 +267,7 @@ def measure_config(spec: dict) -> dict:
             phases["recording"] = time.perf_counter() - t0
         wall = time.perf_counter() - tic
         active = sum(int(r.active.sum()) for _, r in world.contact_results.values())
+        moved[0] = max(moved[0], float(np.sqrt(((body.positions - body.rest) ** 2).sum(axis=1)).max()))
         return wall, phases, active
 
     try:
@@ -307,6 +310,7 @@ def measure_config(spec: dict) -> dict:
         out["contacts_mean"] = float(np.mean(contacts)) if contacts else 0.0
         out["contacts_max"] = int(max(contacts)) if contacts else 0
         out["sim_time_s"] = world.t
+        out["max_node_displacement_m"] = moved[0]
         if spec.get("floor_repeats", 0) > 0:
             out.update(measure_floor(world, body, spec["floor_repeats"]))
             if out.get("floor_ms"):
@@ -731,7 +735,8 @@ def markdown(doc: dict) -> str:
                              f"{_fmt(t['max_kinetic_energy_j'], 1)} | {_fmt(t['ms_per_step'])} | {t['reason']} |")
         for r in pbs:
             pb = r["pybullet"]
-            lines.append(f"\n{r['label']}: stable from k = {pb['k']}, ours/pybullet = {_fmt(r.get('ours_over_pybullet'), 3)}; "
+            lines.append(f"\n{r['label']} (ours: largest node displacement {_fmt(r.get('max_node_displacement_m'), 3)} m): "
+                         f"stable from k = {pb['k']}, ours/pybullet = {_fmt(r.get('ours_over_pybullet'), 3)}; "
                          f"stays on the sphere from k = {pb['k_on_sphere']}, ours/pybullet = "
                          f"{_fmt(r.get('ours_over_pybullet_on_sphere'), 3)}.")
     prof = [r for r in ok if r.get("profile")]
