@@ -40,7 +40,7 @@ import numpy as np
 
 from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
 
-FORMAT = 1  # version of the cached run files; bump to invalidate old caches
+FORMAT = 2  # version of the cached run files; bump to invalidate old caches
 ELEMENTS = ("tet4", "hex8", "tet10")
 THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
@@ -49,11 +49,12 @@ def solve_methods() -> tuple[str, ...]:
     """The linear-solve methods softbody.Simulation accepts (e.g. auto, direct, iterative)."""
     from softbody import simulation
 
-    return tuple(getattr(simulation, "METHODS", ("direct",)))
+    methods = getattr(simulation, "METHODS", None)
+    return tuple(methods) if methods else tuple(dict.fromkeys((default_method(), "direct")))
 
 
 CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
-               "dt_s", "method", "median_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status")
+               "dt_s", "method", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status")
 
 Cells = tuple[int, int, int]
 
@@ -145,7 +146,9 @@ class RunResult:
     """One configuration run. ``times`` (n,) [s] and ``values`` (n,) [m] are the monitored coordinate
     after each step (the first entry is t = 0); sizes are of the mesh; ``dofs`` counts the free DOFs
     (3 per node not fixed or attached); ``median_ms_per_step`` is the median over steps of the wall-clock
-    time of World.step (collision, soft step with contacts, rigid step); ``peak_mem_mb`` is the peak increase of the
+    time of World.step (collision, soft step with contacts, rigid step), ``median_cpu_ms_per_step`` the
+    same in CPU time of the running thread (with one BLAS / MKL thread it is the whole step's CPU time,
+    and it hardly grows when other processes compete for the cores); ``peak_mem_mb`` is the peak increase of the
     process's resident memory while building and running the scene [MiB]. ``status`` is "ok" or the
     reason the run stopped early (its trajectory is then partial)."""
 
@@ -162,6 +165,7 @@ class RunResult:
     dofs: int
     steps: int
     median_ms_per_step: float
+    median_cpu_ms_per_step: float
     peak_mem_mb: float
     wall_s: float
     status: str = "ok"
@@ -308,6 +312,7 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
     _warm_up(scene)
     wall = time.perf_counter()
     steps_ms: list[float] = []
+    cpu_ms: list[float] = []
     status = "ok"
     with _PeakRss() as mem:
         sc = build_scene(scene, element=element, cells=cells, dt=dt)
@@ -320,17 +325,18 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
             body = sc.body
             duration = float(sc.duration if duration is None else duration)
             ts, xs = [sc.world.t], [sc.monitored()]
-            tic = [0.0]
+            tic = [0.0, 0.0]
 
             def callback(world) -> None:
-                toc = time.perf_counter()
+                toc, ctoc = time.perf_counter(), time.thread_time()
                 steps_ms.append(1e3 * (toc - tic[0]))
+                cpu_ms.append(1e3 * (ctoc - tic[1]))
                 ts.append(world.t)
                 xs.append(sc.monitored())
-                tic[0] = time.perf_counter()
+                tic[0], tic[1] = time.perf_counter(), time.thread_time()
 
             try:
-                tic[0] = time.perf_counter()
+                tic[0], tic[1] = time.perf_counter(), time.thread_time()
                 sc.world.run(duration, callback)
             except (SimulationDiverged, SolverError) as exc:
                 status = f"{type(exc).__name__}: {exc}"
@@ -339,6 +345,7 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
                 times=np.array(ts), values=np.array(xs), elements=int(body.mesh.n_elements),
                 nodes=int(body.mesh.n_nodes), dofs=int(3 * (~body.supported()).sum()), steps=len(steps_ms),
                 median_ms_per_step=float(np.median(steps_ms)) if steps_ms else math.nan,
+                median_cpu_ms_per_step=float(np.median(cpu_ms)) if cpu_ms else math.nan,
                 peak_mem_mb=0.0, wall_s=0.0, status=status,
                 meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
                       "monitor_rest": [float(v) for v in body.rest[sc.monitor]]})
@@ -464,6 +471,7 @@ class Study:
                 "scene": self.scene, "role": role, "element": r.element, "cells": cells_text(r.cells),
                 "elements": r.elements, "nodes": r.nodes, "dofs": r.dofs, "steps": r.steps,
                 "duration_s": r.duration, "dt_s": r.dt, "method": r.method, "median_ms_per_step": round(r.median_ms_per_step, 4),
+                "median_cpu_ms_per_step": round(r.median_cpu_ms_per_step, 4),
                 "peak_mem_mb": round(r.peak_mem_mb, 2), "wall_s": round(r.wall_s, 3),
                 "error_m": "" if role == "reference" else f"{self.errors[r.key]:.6e}", "status": r.status})
         return rows
@@ -599,14 +607,24 @@ def write_results(study: Study, ladder: Ladder | None = None) -> None:
              "(a pybullet connection alone is about 28 MiB).", ""]
     if ladder is not None and ladder.note:
         lines += [f"Ladder: {ladder.note}.", ""]
-    lines += ["| element | cells | elements | nodes | DOFs | ms/step | peak MiB | error [mm] |",
-              "|---|---|---:|---:|---:|---:|---:|---:|"]
+    load = [r.median_ms_per_step / r.median_cpu_ms_per_step for r in study.runs + [study.reference]
+            if r.median_cpu_ms_per_step > 0]
+    if load and float(np.median(load)) > 1.25:
+        lines += [f"**Loaded machine**: wall-clock time per step was {float(np.median(load)):.1f}x the CPU time "
+                  "(median over runs): other processes competed for the cores, so ms/step is inflated and "
+                  "noisy; CPU ms/step is the steadier figure. Rerun on a quiet machine (--force).", ""]
+    lines += ["| element | cells | elements | nodes | DOFs | ms/step | CPU ms/step | peak MiB | error [mm] |",
+              "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for row in rows:
         err = "reference" if row["role"] == "reference" else f"{1e3 * float(row['error_m']):.3f}"
         if row["status"] != "ok":
             err += f" ({row['status']})"
+        busy = row["median_ms_per_step"] > 1.3 * row["median_cpu_ms_per_step"]
         lines.append(f"| {row['element']} | {row['cells']} | {row['elements']} | {row['nodes']} | {row['dofs']} | "
-                     f"{row['median_ms_per_step']:.1f} | {row['peak_mem_mb']:.1f} | {err} |")
+                     f"{row['median_ms_per_step']:.1f}{' *' if busy else ''} | {row['median_cpu_ms_per_step']:.1f} | "
+                     f"{row['peak_mem_mb']:.1f} | {err} |")
+    if any(row["median_ms_per_step"] > 1.3 * row["median_cpu_ms_per_step"] for row in rows):
+        lines += ["", "\\* wall-clock time more than 1.3x the CPU time: the run shared its core with other work."]
     lines += equal_fidelity_lines(study)
     (out / "table.md").write_text("\n".join(lines) + "\n")
 
@@ -763,7 +781,7 @@ def read_results(study_dir: str | Path) -> list[dict]:
         for row in csv.DictReader(f):
             for k in ("elements", "nodes", "dofs", "steps"):
                 row[k] = int(row[k])
-            for k in ("duration_s", "dt_s", "median_ms_per_step", "peak_mem_mb", "wall_s"):
+            for k in ("duration_s", "dt_s", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s"):
                 row[k] = float(row[k])
             row["error_m"] = float(row["error_m"]) if row["error_m"] else math.nan
             rows.append(row)
