@@ -73,15 +73,17 @@ class ContactSolver:
     """
 
     def __init__(self, max_iterations: int = 30, velocity_tol: float = 1e-7, slip_tol: float = 1e-3,
-                 friction_switches: int = 2, cone_tol: float = 1e-3):
+                 friction_switches: int = 1, cone_tol: float = 1e-3):
         self.max_iterations = max_iterations
         self.velocity_tol = velocity_tol
         self.slip_tol = slip_tol
-        # stick/slip may change only in the first friction_switches iterations (a node on the cone's
-        # edge would otherwise flip forever); non-penetration stays exact in every iteration
+        # stick/slip may change only in the first friction_switches iterations of a step; later changes
+        # are carried to the next step (lagged friction: a node on the cone's edge would otherwise
+        # flip forever, and each flip costs a solve). Non-penetration stays exact in every iteration.
         self.friction_switches = friction_switches
         self.cone_tol = cone_tol
-        self.previous: dict[int, tuple[set, set]] = {}  # id(body) -> (active nodes, sticking nodes)
+        # id(body) -> (active nodes, sticking nodes, {slipping node: friction force (3,) world [N]})
+        self.previous: dict[int, tuple[set, set, dict]] = {}
 
     def solve(self, system: LinearSystem, supports: Constraints, c: NodeContacts, h: float
               ) -> tuple[np.ndarray, ContactResult]:
@@ -91,19 +93,24 @@ class ContactSolver:
         m = len(c)
         if m == 0:
             v, _ = system.solve(supports)
-            self.previous[id(body)] = (set(), set())
+            self.previous[id(body)] = (set(), set(), {})
             return v, ContactResult(np.zeros((0, 3)), np.zeros(0, bool), np.zeros(0, bool), 1, 1)
         frames = tangent_frames(c.normal)
         vr_local = np.einsum("mji,mj->mi", frames, c.rigid_velocity)  # rigid velocity in (n, t1, t2)
         target = vr_local.copy()
         target[:, 0] -= c.distance / h
-        prev_active, prev_stick = self.previous.get(id(body), (set(), set()))
+        prev_active, prev_stick, prev_slip = self.previous.get(id(body), (set(), set(), {}))
         active = (c.distance <= 0) | np.isin(c.node, list(prev_active))
         friction = c.mu > 0
         stick = friction & (np.isin(c.node, list(prev_stick)) | ~np.isin(c.node, list(prev_active)))
         slip_force = np.zeros((m, 3))  # local frame, tangential components only
+        carried = [i for i, n in enumerate(c.node.tolist()) if n in prev_slip and not stick[i]]
+        if carried:  # last step's sliding friction, in this step's tangent plane
+            f_prev = np.array([prev_slip[int(c.node[i])] for i in carried])
+            slip_force[carried, 1:] = np.einsum("mji,mj->mi", frames[carried], f_prev)[:, 1:]
         factorizations = 0
         last_key = None
+        released = np.zeros(m, dtype=bool)  # a contact released once this step is not released again
         for it in range(1, self.max_iterations + 1):
             mask = np.zeros((m, 3), dtype=bool)
             mask[:, 0] = active
@@ -122,19 +129,22 @@ class ContactSolver:
             lam = rl[:, 0]
             vrel = np.einsum("mji,mj->mi", frames, v[c.node]) - vr_local
             gap_rate = vrel[:, 0] + c.distance / h
-            release = active & (lam < 0)
+            release = active & (lam < 0) & ~released
             add = ~active & (gap_rate < -self.velocity_tol)
+            released |= release
             changed = release.any() or add.any()
             # friction: stick -> slip when the needed force leaves the cone; slip -> stick when sliding stops
             ft = rl[:, 1:]
             ftn = np.linalg.norm(ft, axis=1)
             switching = it <= self.friction_switches
-            to_slip = switching & active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + self.cone_tol))
+            want_slip = active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + self.cone_tol))
+            to_slip = switching & want_slip
             vt = vrel[:, 1:]
             vtn = np.linalg.norm(vt, axis=1)
             old = slip_force[:, 1:]
             reversed_ = np.einsum("mi,mi->m", vt, old) > 0  # sliding along the friction force: it stopped
-            to_stick = switching & active & ~stick & friction & (reversed_ | (vtn < self.velocity_tol))
+            want_stick = active & ~stick & friction & (reversed_ | (vtn < self.velocity_tol))
+            to_stick = switching & want_stick
             new_slip = np.zeros((m, 2))
             with np.errstate(invalid="ignore", divide="ignore"):
                 d_stick = np.where(ftn[:, None] > 0, ft / ftn[:, None], 0.0)  # direction of the needed force
@@ -144,7 +154,7 @@ class ContactSolver:
             cont = active & ~stick & friction & ~to_stick
             new_slip = np.where(cont[:, None], mag * d_slip, new_slip)
             slip_change = np.abs(new_slip - old).max(initial=0.0) > self.slip_tol * max(1e-12, mag.max(initial=0.0))
-            refine = it <= 2 * self.friction_switches  # slip forces: a bounded fixed-point iteration
+            refine = it <= self.friction_switches + 1  # slip forces: a bounded fixed-point iteration
             changed = changed or to_slip.any() or to_stick.any() or (refine and slip_change and cont.any())
             if not changed:
                 break
@@ -157,7 +167,13 @@ class ContactSolver:
         force_local[slipping, 1:] = slip_force[slipping, 1:]
         force_local[active & ~friction, 1:] = 0.0
         force = np.einsum("mij,mj->mi", frames, force_local)
-        self.previous[id(body)] = (set(c.node[active].tolist()), set(c.node[active & stick].tolist()))
+        # friction state for the next step, including the switches this step did not make
+        next_stick = active & friction & ((stick & ~want_slip) | want_stick)
+        next_slip = active & friction & ~next_stick
+        slip_world = np.einsum("mij,mj->mi", frames, np.where(want_slip[:, None], np.c_[np.zeros(m), mag * d_stick],
+                                                                np.c_[np.zeros(m), new_slip]))
+        self.previous[id(body)] = (set(c.node[active].tolist()), set(c.node[next_stick].tolist()),
+                                   {int(n): f for n, f in zip(c.node[next_slip], slip_world[next_slip])})
         viol = float(np.max(-(gap_rate * h), initial=0.0))
         full = np.zeros((len(keep), 3))
         full[keep] = force
