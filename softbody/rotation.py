@@ -15,6 +15,13 @@ def _svd_rotation(F: np.ndarray) -> np.ndarray:
     return R
 
 
+def _det3(F: np.ndarray) -> np.ndarray:
+    """Determinants of (n, 3, 3) matrices by cofactors (much faster than a batched LU for 3x3)."""
+    return (F[:, 0, 0] * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+            - F[:, 0, 1] * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+            + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
+
+
 def _newton_rotation(F: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndarray, np.ndarray]:
     """Scaled Newton iteration R <- (g R + R^-T / g) / 2, g = |det R|^(-1/3), on components.
 
@@ -50,10 +57,15 @@ def polar_rotation(F: np.ndarray, tol: float = 1e-12, max_iter: int = 30) -> np.
     """
     shape = F.shape
     F = np.asarray(F, dtype=float).reshape(-1, 3, 3)
-    R = np.empty_like(F)
-    det = np.linalg.det(F)
+    det = _det3(F)
     scale = np.abs(F).max(axis=(1, 2))
     good = det > 1e-6 * scale**3
+    if good.all():  # the usual case: no copies
+        R, ok = _newton_rotation(F, tol, max_iter)
+        if not ok.all():
+            R[~ok] = _svd_rotation(F[~ok])
+        return R.reshape(shape)
+    R = np.empty_like(F)
     if good.any():
         Rg, ok = _newton_rotation(F[good], tol, max_iter)
         R[good] = Rg
