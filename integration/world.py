@@ -21,6 +21,7 @@ import numpy as np
 import pybullet as p
 
 from softbody import FemBody, Simulation
+from softbody.simulation import run_steps
 from softbody.errors import InvalidInputError
 from softbody.integrator import Constraints, LinearSystem
 
@@ -356,19 +357,7 @@ class World:
     def run(self, duration: float, callback: Callable[["World"], object] | None = None,
             progress: bool = False) -> None:
         """Step for ``duration`` [s], calling ``callback(world)`` after each step; progress bar on request."""
-        duration = float(duration)
-        if not math.isfinite(duration) or duration < 0:
-            raise InvalidInputError(f"duration must be a finite number >= 0 [s], got {duration!r}")
-        n = int(round(duration / self.dt))
-        steps = range(n)
-        if progress:
-            from tqdm import tqdm
-
-            steps = tqdm(steps, desc="simulating", unit="step")
-        for _ in steps:
-            self.step()
-            if callback is not None:
-                callback(self)
+        run_steps(self.step, self.dt, duration, None if callback is None else lambda: callback(self), progress)
 
     # ------------------------------------------------------------------ diagnostics
     def max_penetration(self) -> float:

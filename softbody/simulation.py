@@ -140,19 +140,24 @@ class Simulation:
 
         progress=True shows a progress bar (tqdm).
         """
-        duration = float(duration)
-        if not math.isfinite(duration) or duration < 0:
-            raise InvalidInputError(f"duration must be a finite number >= 0 [s], got {duration!r}")
-        n = int(round(duration / self.dt))
-        steps: Iterable[int] = range(n)
-        if progress:
-            from tqdm import tqdm
+        run_steps(self.step, self.dt, duration, None if callback is None else lambda: callback(self), progress)
 
-            steps = tqdm(steps, desc="simulating", unit="step")
-        for _ in steps:
-            self.step()
-            if callback is not None:
-                callback(self)
+
+def run_steps(step: Callable[[], object], dt: float, duration: float,
+              after_step: Callable[[], object] | None = None, progress: bool = False) -> None:
+    """Call ``step()`` round(duration / dt) times, then ``after_step()`` each time; tqdm bar on request."""
+    duration = float(duration)
+    if not math.isfinite(duration) or duration < 0:
+        raise InvalidInputError(f"duration must be a finite number >= 0 [s], got {duration!r}")
+    steps: Iterable[int] = range(int(round(duration / dt)))
+    if progress:
+        from tqdm import tqdm
+
+        steps = tqdm(steps, desc="simulating", unit="step")
+    for _ in steps:
+        step()
+        if after_step is not None:
+            after_step()
 
 
 def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
