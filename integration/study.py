@@ -542,8 +542,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
             with contextlib.suppress(Exception):
                 cached = RunResult.load(path)
             if cached is not None and (cached.scene != scene or cached.duration != duration or cached.dt != dt
-                                       or cached.method != method or cached.status != "ok"):
-                cached = None
+                                       or cached.method != method):
+                cached = None  # a run that stopped early (status) is a deterministic result: kept
         if cached is None:
             pending.append(spec)
         else:
@@ -557,19 +557,21 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
             from tqdm import tqdm
 
             bar = tqdm(total=len(pending), desc=f"study {scene}", unit="run")
-        with open_executor(workers, cluster) as ex:
-            futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method): (e, c) for e, c in pending}
-            for fut in cf.as_completed(futures):
-                spec = futures[fut]
-                res = fut.result()
-                res.save(out / "trajectories" / f"{res.key}.npz")
-                results[spec] = res
-                executed.append(res.key)
-                if bar is not None:
-                    bar.set_postfix_str(f"{res.key} {res.median_ms_per_step:.1f} ms/step", refresh=False)
-                    bar.update()
-        if bar is not None:
-            bar.close()
+        try:
+            with open_executor(workers, cluster) as ex:
+                futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method): (e, c) for e, c in pending}
+                for fut in cf.as_completed(futures):
+                    spec = futures[fut]
+                    res = fut.result()
+                    res.save(out / "trajectories" / f"{res.key}.npz")
+                    results[spec] = res
+                    executed.append(res.key)
+                    if bar is not None:
+                        bar.set_postfix_str(f"{res.key} {res.median_ms_per_step:.1f} ms/step", refresh=False)
+                        bar.update()
+        finally:
+            if bar is not None:
+                bar.close()
 
     reference = results[ref_spec]
     if reference.status != "ok":
