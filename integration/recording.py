@@ -42,7 +42,6 @@ import rerun.blueprint as rrb
 import scipy.sparse as sp
 
 from softbody import FemBody, Simulation
-from softbody.body import von_mises_stress
 from softbody.errors import InvalidInputError
 
 TIMELINE = "sim_time"
@@ -117,15 +116,6 @@ class _SoftChannel:
             A.data[:] = 1.0  # an element counts once per node (tet10 faces list no node twice, but be safe)
             counts = np.asarray(A.sum(axis=1)).ravel()
             self.average = sp.diags(1.0 / np.maximum(counts, 1)) @ A
-            self.DB = np.einsum("ij,ejb->eib", body.D, body.Bc)  # element-centre stress of u, (E, 6, 3k)
-        self.mass = None
-
-    def kinetic_energy(self) -> float:
-        """1/2 v^T M v with the body's own mass matrix (built once; a CSR product per frame)."""
-        if self.mass is None:
-            self.mass = self.body.mass_matrix().tocsr()
-        v = self.body.velocities.ravel()
-        return 0.5 * float(v @ (self.mass @ v))
 
 
 class Recorder:
@@ -372,19 +362,12 @@ class Recorder:
 
     # ------------------------------------------------------------------ per frame
     def _stress_and_energy(self, s: _SoftChannel) -> tuple[np.ndarray | None, float | None]:
-        """Von Mises per element (if colours need it) and the elastic energy (if diagnostics), from one R and u."""
+        """Von Mises per element (if colours need it) and the elastic energy (if diagnostics).
+
+        Both use the body's warping rotations at these positions, which the next step reuses."""
         body = s.body
-        want_vm = s.average is not None
-        want_energy = "diagnostics" in self.content
-        if not (want_vm or want_energy):
-            return None, None
-        x = body.positions
-        u = body.local_displacements(x, body.rotations(x))  # (E, 3k) unrotated element displacements
-        vm = energy = None
-        if want_vm:
-            vm = von_mises_stress(np.matmul(s.DB, u[:, :, None])[:, :, 0])  # = FemBody.von_mises(x)
-        if want_energy:
-            energy = 0.5 * float(np.einsum("ea,ea->", u, np.matmul(body.Ke, u[:, :, None])[:, :, 0]))
+        vm = body.von_mises() if s.average is not None else None
+        energy = body.elastic_energy() if "diagnostics" in self.content else None
         return vm, energy
 
     def _colors(self, s: _SoftChannel, vm: np.ndarray | None) -> tuple[np.ndarray, float, float]:
@@ -415,7 +398,7 @@ class Recorder:
                     f[s.path + "#colors"] = colors
                     ranges.append((lo, hi))
             if "diagnostics" in content:
-                kinetic += s.kinetic_energy()
+                kinetic += s.body.kinetic_energy()
                 elastic += energy
         if ranges:
             f["plots/color_range"] = (min(r[0] for r in ranges), max(r[1] for r in ranges))

@@ -289,7 +289,8 @@ class FemBody:
     def strain(self, x: np.ndarray | None = None) -> np.ndarray:
         """Small (unrotated) strain at each element centre, Voigt (E, 6)."""
         x = self.positions if x is None else x
-        return np.einsum("eia,ea->ei", self.Bc, self.local_displacements(x, self.rotations(x)))
+        u = self.local_displacements(x, self.rotations(x))
+        return (self.Bc @ u[:, :, None])[:, :, 0]
 
     def stress(self, x: np.ndarray | None = None) -> np.ndarray:
         """Cauchy stress (small strain, unrotated frame) at each element centre, Voigt (E, 6) [Pa]."""
