@@ -16,7 +16,9 @@ VelocitySolver = Callable[[FemBody, LinearSystem, Constraints, float], np.ndarra
 
 
 METHODS = ("auto", "direct", "iterative")
-ITERATIVE_MIN_DOFS = 6000  # below this a direct factorisation per step is as cheap (benchmarks/)
+# below this a direct factorisation per step is about as cheap; above it the iterative path is 3-7x
+# faster without contact (benchmarks/step_no_contact.py) and faster over whole runs with contact
+ITERATIVE_MIN_DOFS = 1500
 
 
 def _gravity(gravity) -> np.ndarray:
