@@ -187,7 +187,7 @@ class IterativeSettings:
 
 @dataclass
 class Preconditioner:
-    """The last factorised system (per body): its frames, node rotations and solver, and costs [s]."""
+    """The last factorised system (per body): its frames, node rotations, solver and counters."""
 
     solver: SpdSolver
     T: np.ndarray | None
