@@ -42,6 +42,10 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable, Sequence
 
+from softbody.linsolve import THREAD_VARS
+
+from .study import environ
+
 # ----------------------------------------------------------------------------------------------- configurations
 
 SHEET = "sheet-on-sphere"
@@ -70,8 +74,6 @@ SCALING = dict(steps=10, repeats=1, warmup=15, floor_repeats=3, profile_steps=3)
 PHASES = ("collision", "rotations", "forces", "assembly", "factorize", "solve", "contact", "other", "rigid",
           "recording")
 SOLVE_PHASES = ("factorize", "solve")
-THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS")
 
 
 @dataclass(frozen=True)
@@ -161,17 +163,9 @@ def run_in_fresh_process(func_name: str, spec: dict, threads: int = 1, timeout: 
 
     ctx = mp.get_context("spawn")
     recv, send = ctx.Pipe(duplex=False)
-    saved = {v: os.environ.get(v) for v in THREAD_VARS}
-    os.environ.update({v: str(threads) for v in THREAD_VARS})
-    try:
+    with environ(**{v: str(threads) for v in THREAD_VARS}):  # set before the child imports numpy
         proc = ctx.Process(target=_child, args=(send, func_name, spec, threads), daemon=True)
         proc.start()
-    finally:
-        for v, old in saved.items():
-            if old is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = old
     send.close()
     start = time.monotonic()
     result = None

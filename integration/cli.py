@@ -4,7 +4,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import time
 from typing import Sequence
 
 import numpy as np

@@ -39,10 +39,10 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 
 from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
+from softbody.linsolve import THREAD_VARS as THREAD_ENV
 
 FORMAT = 2  # version of the cached run files; bump to invalidate old caches
 ELEMENTS = ("tet4", "hex8", "tet10")
-THREAD_ENV = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
 def solve_methods() -> tuple[str, ...]:
@@ -203,9 +203,7 @@ def pin_threads(n: int = 1) -> None:
     """Pin BLAS, MKL (PARDISO) and OpenMP to ``n`` threads in this process, for reproducible results.
 
     Environment variables act on libraries loaded later (and on child processes); MKL is also set at run
-    time through softbody.linsolve.set_threads."""
-    for var in THREAD_ENV:
-        os.environ[var] = str(n)
+    time (softbody.linsolve.set_threads does both)."""
     from softbody import linsolve
 
     linsolve.set_threads(n)
@@ -371,7 +369,8 @@ def rms_error(times: np.ndarray, values: np.ndarray, ref_times: np.ndarray, ref_
 
 # ---------------------------------------------------------------------------------------- executors
 @contextlib.contextmanager
-def _environ(**values: str) -> Iterator[None]:
+def environ(**values: str) -> Iterator[None]:
+    """Set environment variables inside the block, restore them after (for spawning workers)."""
     old = {k: os.environ.get(k) for k in values}
     os.environ.update(values)
     try:
@@ -427,7 +426,7 @@ def open_executor(workers: int | None = None, cluster=None) -> Iterator[cf.Execu
         # glibc returns freed memory at once, so that the RSS of a reused worker measures the next run
         env = {var: "1" for var in THREAD_ENV} | {"MALLOC_TRIM_THRESHOLD_": "65536",
                                                   "MALLOC_MMAP_THRESHOLD_": "65536"}
-        with _environ(**env):
+        with environ(**env):
             ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_init_worker)
             try:

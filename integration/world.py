@@ -22,7 +22,7 @@ import pybullet as p
 
 from softbody import FemBody, Simulation
 from softbody.simulation import run_steps
-from softbody.errors import InvalidInputError
+from softbody.errors import InvalidInputError, finite_number
 from softbody.integrator import Constraints, LinearSystem
 
 from .collision import CollisionDetector, Contacts
@@ -47,10 +47,7 @@ def _vec3(v, name: str) -> list[float]:
 
 
 def _positive(v, name: str) -> float:
-    v = float(v)
-    if not math.isfinite(v) or v <= 0:
-        raise InvalidInputError(f"{name} must be a finite number > 0, got {v!r}")
-    return v
+    return finite_number(v, name, 0.0)
 
 
 class World:
@@ -192,12 +189,7 @@ class World:
         """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0)."""
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
-        try:
-            friction = float(friction)
-        except (TypeError, ValueError):
-            raise InvalidInputError(f"friction must be a finite number >= 0, got {friction!r}") from None
-        if not math.isfinite(friction) or friction < 0:
-            raise InvalidInputError(f"friction must be a finite number >= 0, got {friction!r}")
+        friction = finite_number(friction, "friction", 0.0, strict=False)
         if any(b is body for b in self.sim.bodies):
             raise InvalidInputError("this soft body is already in the world")
         self.sim.bodies.append(body)

@@ -15,7 +15,7 @@ import scipy.sparse.linalg as spla
 from .errors import InvalidInputError, SolverError
 
 try:  # pragma: no cover - availability depends on the machine
-    from pypardiso.pardiso_wrapper import PyPardisoError, PyPardisoSolver
+    from pypardiso.pardiso_wrapper import PyPardisoSolver
 
     HAVE_PARDISO = True
 except Exception:  # ImportError, or mkl_rt missing
@@ -24,11 +24,17 @@ except Exception:  # ImportError, or mkl_rt missing
 BACKENDS = ("auto", "pardiso", "superlu")
 
 
+THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+               "VECLIB_MAXIMUM_THREADS")
+
+
 def set_threads(n: int) -> None:
-    """Pin the solver's threads (MKL and OpenMP) to n >= 1."""
+    """Pin the solver's and BLAS's threads to n >= 1: MKL at run time, and the environment variables
+    (THREAD_VARS) that act on libraries loaded later and on child processes."""
     if n < 1:
         raise InvalidInputError(f"threads must be >= 1, got {n}")
-    os.environ["MKL_NUM_THREADS"] = str(n)
+    for var in THREAD_VARS:
+        os.environ[var] = str(n)
     if HAVE_PARDISO:
         PyPardisoSolver().libmkl.MKL_Set_Num_Threads(int(n))
 

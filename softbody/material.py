@@ -6,17 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
-
-
-def _check_positive(name: str, value: float) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}") from None
-    if not math.isfinite(value) or value <= 0.0:
-        raise InvalidInputError(f"{name} must be a finite number > 0, got {value!r}")
-    return value
+from .errors import InvalidInputError, finite_number
 
 
 @dataclass(frozen=True)
@@ -31,8 +21,8 @@ class LinearElastic:
     density: float
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "E", _check_positive("Young's modulus E", self.E))
-        object.__setattr__(self, "density", _check_positive("density", self.density))
+        object.__setattr__(self, "E", finite_number(self.E, "Young's modulus E", 0.0))
+        object.__setattr__(self, "density", finite_number(self.density, "density", 0.0))
         try:
             nu = float(self.nu)
         except (TypeError, ValueError):

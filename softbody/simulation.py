@@ -7,7 +7,7 @@ from typing import Callable, Iterable, Sequence
 import numpy as np
 
 from .body import FemBody
-from .errors import InvalidInputError, SimulationDiverged
+from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
 from .linsolve import BACKENDS, SpdSolver
 
@@ -52,12 +52,7 @@ class Simulation:
         for b in bodies:
             if not isinstance(b, FemBody):
                 raise InvalidInputError(f"bodies must be FemBody instances, got {type(b).__name__}")
-        try:
-            dt = float(dt)
-        except (TypeError, ValueError):
-            raise InvalidInputError(f"time step dt must be a finite number > 0 [s], got {dt!r}") from None
-        if not math.isfinite(dt) or dt <= 0:
-            raise InvalidInputError(f"time step dt must be a finite number > 0 [s], got {dt!r}")
+        dt = finite_number(dt, "time step dt", 0.0, unit="[s]")
         if solver not in BACKENDS:  # also checked per body, but a world may start without bodies
             raise InvalidInputError(f"unknown solver backend {solver!r}; valid: {BACKENDS}")
         if max_energy is not None:
@@ -148,9 +143,7 @@ class Simulation:
 def run_steps(step: Callable[[], object], dt: float, duration: float,
               after_step: Callable[[], object] | None = None, progress: bool = False) -> None:
     """Call ``step()`` round(duration / dt) times, then ``after_step()`` each time; tqdm bar on request."""
-    duration = float(duration)
-    if not math.isfinite(duration) or duration < 0:
-        raise InvalidInputError(f"duration must be a finite number >= 0 [s], got {duration!r}")
+    duration = finite_number(duration, "duration", 0.0, strict=False, unit="[s]")
     steps: Iterable[int] = range(int(round(duration / dt)))
     if progress:
         from tqdm import tqdm
