@@ -106,6 +106,16 @@ class Result:
     extra: dict = field(default_factory=dict)
 
 
+def guarded_step(step, result: Result) -> bool:
+    """Call ``step()``; on a divergence or solver failure mark ``result`` unstable and return False."""
+    try:
+        step()
+    except (sb.SimulationDiverged, sb.SolverError, np.linalg.LinAlgError) as exc:
+        result.stable, result.error = False, f"{type(exc).__name__}: {str(exc)[:120]}"
+        return False
+    return True
+
+
 def run_simulation(result: Result, body: sb.FemBody, dt: float, steps: int, gravity=G, callback=None,
                    max_energy: float | None = None, sim: sb.Simulation | None = None,
                    track_energy: bool = True) -> Result:
@@ -123,11 +133,7 @@ def run_simulation(result: Result, body: sb.FemBody, dt: float, steps: int, grav
     t0 = time.perf_counter()
     result.min_volume = min(result.min_volume, volume_ratio(body))
     for n in range(steps):
-        try:
-            sim.step()
-        except (sb.SimulationDiverged, sb.SolverError, np.linalg.LinAlgError) as exc:
-            result.stable = False
-            result.error = f"{type(exc).__name__}: {str(exc)[:120]}"
+        if not guarded_step(sim.step, result):
             break
         result.steps = n + 1
         if not (np.isfinite(body.positions).all() and np.isfinite(body.velocities).all()):
@@ -319,10 +325,7 @@ def plate_crush_world(kind: str, E: float = 1e5, nu: float = 0.3, dt: float = 5e
         t0 = time.perf_counter()
         x0 = body.positions.copy()
         for n in range(steps):
-            try:
-                world.step()
-            except (sb.SimulationDiverged, sb.SolverError) as exc:
-                res.stable, res.error = False, f"{type(exc).__name__}: {str(exc)[:120]}"
+            if not guarded_step(world.step, res):
                 break
             res.steps = n + 1
             res.min_volume = min(res.min_volume, volume_ratio(body))
@@ -358,10 +361,7 @@ def impact(kind: str, speed: float = 20.0, E: float = 1e6, nu: float = 0.3, dt: 
         pen, lowest, contact_steps = 0.0, math.inf, 0
         t0 = time.perf_counter()
         for n in range(int(round(duration / dt))):
-            try:
-                world.step()
-            except (sb.SimulationDiverged, sb.SolverError) as exc:
-                res.stable, res.error = False, f"{type(exc).__name__}: {str(exc)[:120]}"
+            if not guarded_step(world.step, res):
                 break
             res.steps = n + 1
             pen = max(pen, world.max_penetration(), float(-body.positions[:, 2].min()))

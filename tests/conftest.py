@@ -5,6 +5,8 @@ modes, own Voigt convention), so that tests compare the library against an outsi
 """
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -97,3 +99,14 @@ def dense(a) -> np.ndarray:
 @pytest.fixture(params=KINDS)
 def kind(request) -> str:
     return request.param
+
+
+def raises_naming(*names, call, exc=softbody.InvalidInputError):
+    """Assert ``call()`` raises exc (a ValueError subclass) whose message contains every name as a whole token."""
+    assert issubclass(exc, ValueError)
+    with pytest.raises(exc) as info:
+        call()
+    msg = str(info.value)
+    for name in names:
+        assert re.search(r"(?<![\w.])" + re.escape(str(name)) + r"(?![\w])", msg), f"{name!r} not named in: {msg}"
+    return msg

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.linalg import eigh
 
 import softbody
 from conftest import (KINDS, TET10_EDGES_SPEC, box_boundary_mask, dense, distorted_box, elasticity_matrix,

@@ -3,28 +3,17 @@ simulation options, prescribed motions at run time, the World's methods, scene b
 rejects bad values with a ValueError subclass (softbody.InvalidInputError) that names the value."""
 from __future__ import annotations
 
-import re
 
 import numpy as np
 import pytest
 
 import softbody as sb
+from conftest import raises_naming
 from integration import scenes
 from integration.world import World
 
 MAT = sb.LinearElastic(1e5, 0.3, 1000.0)
 CUBE = sb.box_mesh((1, 1, 1), (1, 1, 1), "hex8")
-
-
-def raises_naming(*names, call, exc=sb.InvalidInputError):
-    """call() raises exc (an InvalidInputError, so a ValueError) whose message contains every name."""
-    assert issubclass(exc, sb.InvalidInputError) and issubclass(exc, ValueError)
-    with pytest.raises(exc) as info:
-        call()
-    msg = str(info.value)
-    for name in names:
-        assert re.search(r"(?<![\w.])" + re.escape(str(name)) + r"(?![\w])", msg), f"{name!r} not named in: {msg}"
-    return msg
 
 
 # ---------------------------------------------------------------------------- materials and meshes

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import softbody
-from conftest import KINDS, TET10_EDGES_SPEC, box_boundary_mask
+from conftest import TET10_EDGES_SPEC, box_boundary_mask
 
 # ---------------------------------------------------------------------------- counts
 
