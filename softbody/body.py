@@ -15,7 +15,9 @@ from .elements import shape_gradients
 from .errors import InvalidInputError
 from .material import LinearElastic
 from .mesh import Mesh
-from .rotation import polar_rotation
+from .rotation import polar_rotation_components
+from .warping import (deformation_gradient_operator, isotropic_blocks, rest_load_operator,
+                      rotated_gradient_operator)
 
 Motion = Callable[[float], np.ndarray]
 
@@ -53,6 +55,11 @@ def _motion_positions(ids: np.ndarray, motion: Motion, t: float) -> np.ndarray:
         raise InvalidInputError(f"prescribe: motion(t) returned non-finite positions {p[bad[:3]].tolist()} "
                                 f"for nodes {ids[bad[:10]].tolist()} at t = {t:g} s; positions must be finite")
     return p
+
+
+def _components(R: np.ndarray) -> np.ndarray:
+    """Component-major (9, n) copy or view of matrices R (n, 3, 3) (a view for the arrays rotations() returns)."""
+    return np.ascontiguousarray(R.reshape(len(R), 9).T)
 
 
 class FemBody:
@@ -98,7 +105,14 @@ class FemBody:
         B = strain_displacement(G)  # (E, q, 6, 3k)
         self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, D, B, optimize=True)
         self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
-        self.Ke_x0 = np.einsum("eab,eb->ea", self.Ke, X.reshape(E, 3 * k))  # K_e X_e, (E, 3k)
+        # weighted gradients sqrt(w_q detJ_q) dN/dX (E, q, k, 3) and the operators that rotate them and
+        # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
+        sqrt_w = np.sqrt(detJ * w)
+        self._Gw = G * sqrt_w[:, :, None, None]
+        self._rotate_grads = rotated_gradient_operator(self._Gw)
+        lam, mu = material.lame
+        P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
+        self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
         xim, wm = et.mass_rule
@@ -117,7 +131,12 @@ class FemBody:
         self.char_tets = ct
         Xc = X[:, ct]  # (E, c, 4, 3)
         Dm = np.swapaxes(Xc[:, :, 1:] - Xc[:, :, :1], -1, -2)  # columns X2-X1, X3-X1, X4-X1
-        self.Dm_inv = np.linalg.inv(Dm)
+        Dm_inv = np.linalg.inv(Dm)
+        # F = mean over the c tets of Ds Dm^-1 = sum_a x_a g_a^T over their nodes, with the linear-tet
+        # gradients g_a (rows of Dm^-1, and minus their sum for the first node) divided by c
+        gc = np.concatenate([-Dm_inv.sum(axis=2, keepdims=True), Dm_inv], axis=2) / len(ct)
+        self._char_F = deformation_gradient_operator(mesh.elements[:, ct.reshape(-1)], gc.reshape(E, -1, 3),
+                                                     mesh.n_nodes)
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
@@ -131,6 +150,8 @@ class FemBody:
         self._mass_csr = sp.csr_matrix((self.M_data, self.pattern.indices, self.pattern.indptr), shape=(n, n))
         Ek = mesh.elements.size  # (N, E*k) 0/1 matrix summing element-node entries into nodes
         self._scatter = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.arange(Ek))), shape=(n, Ek))
+        incidence = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.repeat(np.arange(E), k))), shape=(n, E))
+        self._incidence9 = sp.kron(sp.identity(9), incidence, format="csr")  # sums (9, E) into (9, N)
         self.node_mass = np.bincount(mesh.elements.ravel(), weights=Me.sum(axis=2).ravel(),
                                      minlength=mesh.n_nodes)  # row sums: consistent gravity load / g
 
@@ -207,7 +228,7 @@ class FemBody:
 
         The last result is remembered, keyed by an exact copy of the positions, so that a recorder or
         a stress query between steps and the next step's start share one polar decomposition. The
-        returned array is read-only.
+        returned array is a read-only view of the component-major (9, E) result.
         """
         E = self.mesh.n_elements
         if not self.warping:
@@ -216,12 +237,16 @@ class FemBody:
         key = self.__dict__.get("_rotation_key")
         if key is not None and key.shape == x.shape and np.array_equal(key, x):
             return self._rotation_value
-        xc = x[self.mesh.elements[:, self.char_tets]]  # (E, c, 4, 3)
-        Ds = np.swapaxes(xc[:, :, 1:] - xc[:, :, :1], -1, -2)
-        R = polar_rotation((Ds @ self.Dm_inv).mean(axis=1))
-        R.flags.writeable = False
+        R9 = polar_rotation_components(self.characteristic_gradient(x))
+        R9.flags.writeable = False
+        R = R9.T.reshape(E, 3, 3)
         self._rotation_key, self._rotation_value = np.array(x, dtype=float), R
         return R
+
+    def characteristic_gradient(self, x: np.ndarray) -> np.ndarray:
+        """Deformation gradients of the elements' characteristic tetrahedra (hex8 "average": the mean
+        of its two) at positions x (N, 3), component-major (9, E): row 3 i + j holds F_ij."""
+        return (self._char_F @ np.asarray(x, dtype=float).reshape(-1)).reshape(9, -1)
 
     def local_displacements(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Unrotated element displacements R^T x_e - X_e, (E, 3k)."""
@@ -248,11 +273,10 @@ class FemBody:
         """M y for y (N, 3); returns (N, 3)."""
         return self._mass_csr @ y
 
-    def node_rotations(self, R: np.ndarray) -> np.ndarray:
-        """Per-node rotation (N, 3, 3): polar factor of the sum of the adjacent elements' R_e."""
-        E, k = self.mesh.elements.shape
-        S = self._scatter @ np.repeat(R.reshape(E, 1, 9), k, axis=1).reshape(E * k, 9)
-        return polar_rotation(S.reshape(-1, 3, 3))
+    def node_rotations(self, R: np.ndarray, tol: float = 1e-12) -> np.ndarray:
+        """Per-node rotation (N, 3, 3): polar factor (to ``tol``) of the sum of the adjacent elements' R_e (E, 3, 3)."""
+        S9 = (self._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
+        return polar_rotation_components(S9, tol=tol).T.reshape(-1, 3, 3)
 
     def elastic_forces(self, x: np.ndarray | None = None) -> np.ndarray:
         """Global elastic forces (N, 3) [N] at positions x (default: current), warped if warping is on."""
@@ -274,6 +298,31 @@ class FemBody:
         for a in range(n // 3):
             Rb[:, 3 * a:3 * a + 3, 3 * a:3 * a + 3] = R
         return Rb @ self.Ke @ np.swapaxes(Rb, 1, 2)
+
+    def warped_stiffness_blocks(self, R: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """Assembled warped stiffness K' = sum_e R_e K_e R_e^T (block data (nnzb, 3, 3) [N/m]) and the
+        warped rest loads sum_e R_e K_e X_e (N, 3) [N], so that the elastic forces are
+        f = -K' (x - c) + rest loads for any point c (K' annihilates translations). R: (E, 3, 3) or None.
+
+        The material is isotropic, so R K_e(dN/dX) R^T = K_e(R dN/dX): the warped element stiffness
+        is the rest formula with rotated gradients g = R dN/dX. Per quadrature point its 3x3 blocks
+        are w detJ [lam g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I], linear in S_ab = w detJ g_a g_b^T;
+        so only S is summed into the fixed pattern and K' follows per global block. Likewise
+        K_e X_e = sum_q w detJ (3 lam + 2 mu) g_a (as sum_b X_b g_b^T = I), one sparse product of R.
+        """
+        if R is None and "_rest_blocks" in self.__dict__:
+            return self._rest_blocks
+        E, q, k, _ = self._Gw.shape
+        R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
+        g = (self._rotate_grads @ R9.reshape(-1)).reshape(E, q, 3 * k)
+        S = g[:, 0, :, None] * g[:, 0, None, :] if q == 1 else np.swapaxes(g, 1, 2) @ g  # (E, 3k, 3k)
+        K = isotropic_blocks(self.pattern.assemble(S), *self.material.lame)
+        result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        if R is None:  # warping off: the same every step
+            for a in result:
+                a.flags.writeable = False
+            self._rest_blocks = result
+        return result
 
     def elastic_energy(self, x: np.ndarray | None = None) -> float:
         """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""

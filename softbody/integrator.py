@@ -175,9 +175,9 @@ class IterativeSettings:
 
     The preconditioner is refactorised for the next solve when a solve needed more than
     ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
-    and at once when CG fails to converge. One refactorisation (assembly + single-precision factor)
-    costs about as much as 5-10 iterations (matrix-free product + single-precision solve); counted
-    over the sheet-on-sphere runs, 3 minimises iterations + factorisations.
+    and at once when CG fails to converge. With K' assembled every step, an iteration costs one
+    sparse product and one single-precision triangular solve pair, a refactorisation one
+    single-precision numeric factorisation (about 15-30 iterations' worth on the sheet meshes).
     """
 
     tol: float = 1e-5
@@ -197,13 +197,24 @@ class Preconditioner:
     iterations: int = 0
 
 
-class IterativeSystem:
-    """Matrix-free A = c_m M + c_k K'(R) and b (N, 3), solved by projected preconditioned CG."""
+def _frame_product(first: np.ndarray | None, second: np.ndarray | None, transpose_first: bool = False):
+    """Per-node products first @ second (first^T @ second if transpose_first); None means identity."""
+    if first is None:
+        return second
+    if transpose_first:
+        first = np.swapaxes(first, 1, 2)
+    return first if second is None else first @ second
 
-    def __init__(self, body: FemBody, R: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
+
+class IterativeSystem:
+    """A = c_m M + c_k K' (K' assembled as BSR, M as CSR) and b (N, 3), solved by projected
+    conjugate gradients preconditioned by the body's last factorised system matrix."""
+
+    def __init__(self, body: FemBody, K: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
                  x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
                  Q: np.ndarray | None = None):
-        self.body, self.R, self.c_m, self.c_k, self.b = body, R, c_m, c_k, b
+        self.body, self.K, self.c_m, self.c_k, self.b = body, K, c_m, c_k, b
+        self._K_op = body.pattern.to_bsr(K)
         self.x0 = x0
         self.pre = pre
         self.settings = settings
@@ -212,12 +223,12 @@ class IterativeSystem:
         self.timings = timings
 
     def apply(self, y: np.ndarray) -> np.ndarray:
-        return self.c_m * self.body.mass_product(y) + self.c_k * self.body.stiffness_product(y, self.R)
+        """A y for y (N, 3)."""
+        return self.c_m * self.body.mass_product(y) + self.c_k * (self._K_op @ y.reshape(-1)).reshape(-1, 3)
 
     def assemble(self) -> np.ndarray:
-        """Block data of A (only for refactorisation)."""
-        K = self.body.pattern.assemble(self.body.warped_stiffness(self.R))
-        return self.c_m * self.body.M_blocks + self.c_k * K
+        """Block data of A (for refactorisation)."""
+        return self.c_m * self.body.M_blocks + self.c_k * self.K
 
     def _refactor(self, T: np.ndarray | None, mask: np.ndarray) -> None:
         with timed(self.timings, "assembly"):
@@ -228,14 +239,15 @@ class IterativeSystem:
         self.pre.factorizations += 1
         self.stats["factorizations"] += 1
 
-    def _precondition(self, r_global: np.ndarray) -> np.ndarray:
+    def _preconditioner_frames(self, T: np.ndarray | None) -> np.ndarray | None:
+        """Per-node C (N, 3, 3) with M^-1 ~ C^T P^-1 C in the current local frames, P the factorised
+        matrix: C = pre.T^T Qrel^T T, Qrel = Q pre.Q^T the rotation of each node since the factorisation."""
         pre = self.pre
         Qrel = None
         if self.Q is not None and pre.Q is not None:
-            Qrel = self.Q @ np.swapaxes(pre.Q, 1, 2)  # rotation of each node since the factorisation
-            r_global = to_local(Qrel, r_global)
-        z = to_global(pre.T, pre.solver.solve(to_local(pre.T, r_global).ravel()).reshape(-1, 3))
-        return z if Qrel is None else to_global(Qrel, z)
+            Qrel = self.Q @ np.swapaxes(pre.Q, 1, 2)
+        G = _frame_product(Qrel, pre.T)  # factorised local frame -> current global
+        return _frame_product(G, T, transpose_first=True)
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -249,15 +261,17 @@ class IterativeSystem:
         y = to_local(T, self.x0)
         y[mask] = value[mask]
         with timed(self.timings, "solve"):
+            C = self._preconditioner_frames(T)
             r_full = b - A(y)
             # tolerance relative to the load on the free components or, if that is zero (prescribed
             # motion alone is a load), to the initial residual
             atol = self.settings.tol * max(np.linalg.norm(b[free]), np.linalg.norm(r_full[free]), 1e-300)
-            y, r_full, its, ok = self._pcg(A, y, r_full, free, T, atol)
+            y, r_full, its, ok = self._pcg(A, y, r_full, free, C, atol)
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
             self._refactor(T, mask)
             with timed(self.timings, "solve"):
-                y, r_full, its, ok = self._pcg(A, y, r_full, free, T, atol)
+                C = self._preconditioner_frames(T)
+                y, r_full, its, ok = self._pcg(A, y, r_full, free, C, atol)
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
@@ -268,13 +282,18 @@ class IterativeSystem:
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
         return self.x0, reaction
 
-    def _pcg(self, A, y, r_full, free, T, atol):
+    def _precondition(self, r: np.ndarray, free: np.ndarray, C: np.ndarray | None) -> np.ndarray:
+        """z = C^T P^-1 C r on the free components (r, z (N, 3) in the current local frames)."""
+        z = self.pre.solver.solve(to_global(C, r).reshape(-1)).reshape(-1, 3)
+        return np.where(free, to_local(C, z), 0.0)
+
+    def _pcg(self, A, y, r_full, free, C, atol):
         """Projected PCG on the free components from y; r_full = b - A y on all components (kept
         up to date, so the constrained components give the reactions without another product)."""
         r = np.where(free, r_full, 0.0)
         if np.linalg.norm(r) <= atol:
             return y, r_full, 0, True
-        z = np.where(free, to_local(T, self._precondition(to_global(T, r))), 0.0)
+        z = self._precondition(r, free, C)
         d = z
         rz = float(np.sum(r * z))
         for it in range(1, self.settings.max_iter + 1):
@@ -288,7 +307,7 @@ class IterativeSystem:
             r = np.where(free, r_full, 0.0)
             if np.linalg.norm(r) <= atol:
                 return y, r_full, it, True
-            z = np.where(free, to_local(T, self._precondition(to_global(T, r))), 0.0)
+            z = self._precondition(r, free, C)
             rz_new = float(np.sum(r * z))
             d = z + (rz_new / rz) * d
             rz = rz_new
@@ -302,20 +321,25 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
                 settings: IterativeSettings | None = None, timings: Timings | None = None) -> LinearSystem:
     """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
 
-    method "direct" assembles and factorises; "iterative" is matrix-free PCG (see module doc).
-    timings, if given, accumulates seconds per phase (rotations, forces, assembly, factorize, solve).
+    K' and the warped elastic forces f_el = -K' (x - c) + sum_e R_e K_e X_e come from one assembly
+    (FemBody.warped_stiffness_blocks). method "direct" factorises A; "iterative" runs PCG (see the
+    module doc). timings, if given, accumulates seconds per phase (rotations, assembly, forces,
+    factorize, solve).
     """
     alpha, beta = body.damping
     x, v = body.positions, body.velocities
     with timed(timings, "rotations"):
-        R = body.rotations(x)
+        R = body.rotations(x) if body.warping else None
+    with timed(timings, "assembly"):
+        K, load = body.warped_stiffness_blocks(R)
     with timed(timings, "forces"):
-        f_el = body.scatter_nodal(body.element_forces(x, R))
+        u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
+        f_el = load - (body.pattern.to_bsr(K) @ u.reshape(-1)).reshape(-1, 3)
         c_m, c_k = 1.0 + h * alpha, h * beta + h * h
         b = body.mass_product(v) + h * (f_el + f_ext)
     if method == "direct":
         with timed(timings, "assembly"):
-            A = c_m * body.M_blocks + c_k * body.pattern.assemble(body.warped_stiffness(R))
+            A = c_m * body.M_blocks + c_k * K
         return DirectSystem(body, A, b, solver, timings=timings)
     pre = body.__dict__.get("_preconditioner")
     if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
@@ -323,8 +347,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         pre = body.__dict__["_preconditioner"] = Preconditioner(
             SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     with timed(timings, "rotations"):
-        Q = body.node_rotations(R) if body.warping else None
-    return IterativeSystem(body, R, c_m, c_k, b, v, pre, settings or IterativeSettings(), timings, Q)
+        Q = body.node_rotations(R, tol=1e-6) if body.warping else None
+    return IterativeSystem(body, K, c_m, c_k, b, v, pre, settings or IterativeSettings(), timings, Q)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -1,0 +1,68 @@
+"""Linear operators of stiffness warping, built once per mesh as sparse matrices.
+
+Per step, warping needs (i) each element's deformation gradient F (from its characteristic
+tetrahedra), (ii) the shape-function gradients rotated by each element's R, and (iii) the warped
+rest loads sum_e R_e K_e X_e. Each is linear in the positions or in the rotations, so each is one
+precomputed sparse matrix and one product per step, with no per-element Python work.
+
+Rotations and deformation gradients are component-major: a (9, E) array whose row 3 i + j holds
+entry (i, j) of every element's matrix (see :mod:`softbody.rotation`).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+
+def deformation_gradient_operator(nodes: np.ndarray, grads: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """Sparse D (9E, 3N) with (D x).reshape(9, E) = F, F_ij = sum_a x_{node a, i} grads_{a, j}.
+
+    nodes: (E, m) global node of each of the m contributing nodes; grads: (E, m, 3) their gradients.
+    """
+    E, m = nodes.shape
+    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")  # (3, 3)
+    rows = (3 * i + j)[None, None] * E + np.arange(E)[:, None, None, None]  # (E, 1, 3, 3)
+    cols = 3 * nodes[:, :, None, None] + i[None, None]  # (E, m, 3, 3)
+    vals = np.broadcast_to(grads[:, :, None, :], (E, m, 3, 3))
+    rows = np.broadcast_to(rows, cols.shape)
+    return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(9 * E, 3 * n_nodes))
+
+
+def rotated_gradient_operator(G: np.ndarray) -> sp.csr_matrix:
+    """Sparse P (E q k 3, 9E) with (P R9).reshape(E, q, k, 3) = R_e G_eqa (each gradient rotated by its element's R).
+
+    G: (E, q, k, 3) gradients (any weighting folded in).
+    """
+    E, q, k, _ = G.shape
+    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = np.arange(E * q * k * 3).reshape(E, q, k, 3)[..., None]  # (E, q, k, 3 (i), 1)
+    cols = (3 * i + j)[None, None, None] * E + np.arange(E)[:, None, None, None, None]  # (E, 1, 1, 3, 3)
+    vals = G[:, :, :, None, :]  # (E, q, k, 1, 3 (j))
+    shape = (E, q, k, 3, 3)
+    return sp.csr_matrix((np.broadcast_to(vals, shape).ravel(),
+                          (np.broadcast_to(rows, shape).ravel(), np.broadcast_to(cols, shape).ravel())),
+                         shape=(E * q * k * 3, 9 * E))
+
+
+def rest_load_operator(elements: np.ndarray, P: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """Sparse L (3N, 9E) with L R9 = sum_e R_e p_e scattered to the nodes, for per-element nodal
+    vectors P (E, k, 3): (L R9)_{node a, i} = sum_{e, j} R_e,ij P_e,a,j."""
+    E, k = elements.shape
+    i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+    rows = 3 * elements[:, :, None, None] + i[None, None]  # (E, k, 3, 3)
+    cols = np.broadcast_to((3 * i + j)[None, None] * E + np.arange(E)[:, None, None, None], rows.shape)
+    vals = np.broadcast_to(P[:, :, None, :], rows.shape)
+    return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_nodes, 9 * E))
+
+
+def isotropic_blocks(S: np.ndarray, lam: float, mu: float) -> np.ndarray:
+    """Stiffness blocks (n, 3, 3) lam S + mu S^T + mu tr(S) I from Gram blocks S (n, 3, 3).
+
+    With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), this is the isotropic
+    small-strain stiffness block K_ab; it is linear in S, so it may be applied after assembly.
+    """
+    K = lam * S + mu * np.swapaxes(S, 1, 2)
+    tr = mu * (S[:, 0, 0] + S[:, 1, 1] + S[:, 2, 2])
+    for i in range(3):
+        K[:, i, i] += tr
+    return K
