@@ -16,7 +16,8 @@ class BlockPattern:
 
     n_nodes: N. Blocks are stored in block-CSR order: ``indptr`` (N+1,), ``indices`` (nnzb,).
     ``scatter`` (E, k, k) maps element block (a, b) of element e to its global block index.
-    ``diag`` (N,) is the block index of each node's diagonal block. ``scatter_dof`` (E*3k*3k,) maps the
+    ``diag`` (N,) is the block index of each node's diagonal block; ``mirror`` (nnzb,) the index of the
+    block (B, A) for block (A, B). ``scatter_dof`` (E*3k*3k,) maps the
     entries of element matrices in their natural (E, 3k, 3k) layout to ``block_data.reshape(-1)``.
     Upper CSR (for the solver): ``up_indptr``, ``up_indices`` and ``up_gather`` (nnz_up,), the index of
     each upper-triangular scalar entry in ``block_data.reshape(-1)`` (blocks flattened row-major 3x3).
@@ -29,6 +30,7 @@ class BlockPattern:
     scatter: np.ndarray
     scatter_dof: np.ndarray
     diag: np.ndarray
+    mirror: np.ndarray
     block_row: np.ndarray
     up_indptr: np.ndarray
     up_indices: np.ndarray
@@ -75,7 +77,8 @@ class BlockPattern:
         np.add.at(up_indptr, srow + 1, 1)
         up_indptr = np.cumsum(up_indptr)
         up_diag = np.flatnonzero(srow == scol)
-        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, scatter_dof, diag, brow.astype(np.int64),
+        mirror = np.searchsorted(ukey, bcol * n_nodes + brow)
+        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, scatter_dof, diag, mirror, brow.astype(np.int64),
                    up_indptr, scol.astype(np.int64), flat, srow, scol, up_diag)
 
     def assemble(self, element_matrices: np.ndarray) -> np.ndarray:
@@ -98,10 +101,45 @@ class BlockPattern:
         """Values (nnz_up,) of the upper triangle in the order of ``up_indptr``/``up_indices``."""
         return block_data.reshape(-1)[self.up_gather]
 
-    def matvec(self, block_data: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """y = A x for A given by block data and x (N, 3); returns (N, 3)."""
-        contrib = np.einsum("bij,bj->bi", block_data, x[self.indices])
-        y = np.zeros((self.n_nodes, 3))
-        for c in range(3):
-            y[:, c] = np.bincount(self.block_row, weights=contrib[:, c], minlength=self.n_nodes)
-        return y
+
+@dataclass
+class PairAssembly:
+    """Assembly of symmetric element matrices given by the 3x3 blocks of their node pairs a <= b.
+
+    Blocks arrive component-major, (P, 3, 3, E) for the P pairs of E elements, and are summed into
+    the upper blocks of the pattern (row <= column; a pair whose nodes run the other way goes in
+    transposed). ``full`` then mirrors them into the lower blocks. Half the work of whole matrices.
+    """
+
+    pattern: BlockPattern
+    pairs: np.ndarray  # (P, 2) local nodes a <= b
+    scatter: np.ndarray  # (P * 9 * E,) upper-block entry of each (p, i, j, e)
+    n_upper: int
+    full_from_upper: np.ndarray  # (9 nnzb,) entry of the upper data that each block entry copies
+
+    @classmethod
+    def from_elements(cls, pattern: BlockPattern, elements: np.ndarray) -> "PairAssembly":
+        E, k = elements.shape
+        N = pattern.n_nodes
+        pairs = np.stack(np.triu_indices(k), axis=1)
+        upper = pattern.block_row <= pattern.indices
+        ub = np.cumsum(upper) - 1  # upper-block number of each upper block
+        a, b = elements[:, pairs[:, 0]].T, elements[:, pairs[:, 1]].T  # (P, E)
+        swap = a > b
+        key = np.where(swap, b, a).astype(np.int64) * N + np.where(swap, a, b)
+        blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]
+        i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+        entry = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
+        scatter = (9 * blk[:, None, None, :] + entry).reshape(-1)
+        src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
+        entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
+        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
+        return cls(pattern, pairs, scatter, int(upper.sum()), full_from_upper)
+
+    def assemble(self, blocks: np.ndarray) -> np.ndarray:
+        """Upper block data (n_upper, 3, 3) from pair blocks (P, 3, 3, E)."""
+        return np.bincount(self.scatter, weights=blocks.reshape(-1), minlength=9 * self.n_upper).reshape(-1, 3, 3)
+
+    def full(self, upper: np.ndarray) -> np.ndarray:
+        """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper``."""
+        return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)

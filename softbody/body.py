@@ -10,7 +10,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .assembly import BlockPattern
+from .assembly import BlockPattern, PairAssembly
 from .elements import shape_gradients
 from .errors import InvalidInputError
 from .material import LinearElastic
@@ -99,6 +99,8 @@ class FemBody:
         E, k = mesh.elements.shape
         D = material.elasticity_matrix()
 
+        self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
+
         # stiffness: K_e = sum_q w_q detJ_q B_q^T D B_q
         xi, w = et.stiffness_rule
         G, detJ = shape_gradients(et, X, xi)
@@ -109,7 +111,12 @@ class FemBody:
         # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
         sqrt_w = np.sqrt(detJ * w)
         self._Gw = G * sqrt_w[:, :, None, None]
-        self._rotate_grads = rotated_gradient_operator(self._Gw)
+        # one-point elements (tet4): rank-one element matrices, assembled per node pair from
+        # component-major rotated gradients (PairAssembly); else Gram matrices per element
+        self._pair_assembly = None
+        if self._Gw.shape[1] == 1:
+            self._pair_assembly = PairAssembly.from_elements(self.pattern, mesh.elements)
+        self._rotate_grads = rotated_gradient_operator(self._Gw, component_major=self._pair_assembly is not None)
         lam, mu = material.lame
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
@@ -143,7 +150,6 @@ class FemBody:
         self.Bc = strain_displacement(Gc[:, 0])  # (E, 6, 3k)
         self.D = D
 
-        self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
         self.M_blocks = self.M_data[:, None, None] * np.eye(3)  # (nnzb, 3, 3)
         n = mesh.n_nodes
@@ -314,9 +320,17 @@ class FemBody:
             return self._rest_blocks
         E, q, k, _ = self._Gw.shape
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
-        g = (self._rotate_grads @ R9.reshape(-1)).reshape(E, q, 3 * k)
-        S = g[:, 0, :, None] * g[:, 0, None, :] if q == 1 else np.swapaxes(g, 1, 2) @ g  # (E, 3k, 3k)
-        K = isotropic_blocks(self.pattern.assemble(S), *self.material.lame)
+        g = self._rotate_grads @ R9.reshape(-1)
+        lam, mu = self.material.lame
+        pa = self._pair_assembly
+        if pa is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
+            g = g.reshape(k, 3, E)
+            Su = pa.assemble(g[pa.pairs[:, 0], :, None, :] * g[pa.pairs[:, 1], None, :, :])
+            K = pa.full(isotropic_blocks(Su, lam, mu))
+        else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k)
+            g = g.reshape(E, q, 3 * k)
+            S = self.pattern.assemble(np.swapaxes(g, 1, 2) @ g)
+            K = isotropic_blocks(S, lam, mu, transposed=S[self.pattern.mirror])
         result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
         if R is None:  # warping off: the same every step
             for a in result:

@@ -55,12 +55,13 @@ class Constraints:
     def __len__(self) -> int:
         return len(self.nodes)
 
-    def dense(self, n_nodes: int) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-        """Per-node arrays: frames (N, 3, 3) or None if all identity, mask (N, 3), value (N, 3)."""
+    def dense(self, n_nodes: int) -> tuple["NodeFrames | None", np.ndarray, np.ndarray]:
+        """Per-node arrays: frames (NodeFrames, or None if all identity), mask (N, 3), value (N, 3)."""
         T = None
         if self.frames is not None and len(self):
-            T = np.broadcast_to(np.eye(3), (n_nodes, 3, 3)).copy()
-            T[self.nodes] = self.frames
+            rotated = (self.frames != np.eye(3)).any(axis=(1, 2))
+            if rotated.any():
+                T = NodeFrames(self.nodes[rotated], self.frames[rotated])
         mask = np.zeros((n_nodes, 3), dtype=bool)
         value = np.zeros((n_nodes, 3))
         mask[self.nodes] = self.mask
@@ -98,16 +99,45 @@ def timed(timings: Timings | None, phase: str):
         timings[phase] = timings.get(phase, 0.0) + time.perf_counter() - tic
 
 
-def to_local(T: np.ndarray | None, x: np.ndarray) -> np.ndarray:
-    """T^T x per node (frames None: identity)."""
-    return x if T is None else np.einsum("nji,nj->ni", T, x)
+@dataclass
+class NodeFrames:
+    """Local frames R (m, 3, 3) (axes as columns) at distinct nodes (m,); the identity at all others."""
+
+    nodes: np.ndarray
+    R: np.ndarray
+
+    def dense(self, n_nodes: int) -> np.ndarray:
+        T = np.broadcast_to(np.eye(3), (n_nodes, 3, 3)).copy()
+        T[self.nodes] = self.R
+        return T
 
 
-def to_global(T: np.ndarray | None, y: np.ndarray) -> np.ndarray:
-    return y if T is None else np.einsum("nij,nj->ni", T, y)
+Frames = NodeFrames | np.ndarray | None  # sparse frames, per-node frames (N, 3, 3), or identity
 
 
-def factorize_constrained(body: FemBody, A: np.ndarray, T: np.ndarray | None, mask: np.ndarray,
+def to_local(T: Frames, x: np.ndarray) -> np.ndarray:
+    """T^T x per node for x (N, 3)."""
+    if T is None:
+        return x
+    if isinstance(T, NodeFrames):
+        y = x.copy()
+        y[T.nodes] = np.einsum("nji,nj->ni", T.R, x[T.nodes])
+        return y
+    return np.einsum("nji,nj->ni", T, x)
+
+
+def to_global(T: Frames, y: np.ndarray) -> np.ndarray:
+    """T y per node for y (N, 3)."""
+    if T is None:
+        return y
+    if isinstance(T, NodeFrames):
+        x = y.copy()
+        x[T.nodes] = np.einsum("nij,nj->ni", T.R, y[T.nodes])
+        return x
+    return np.einsum("nij,nj->ni", T, y)
+
+
+def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, mask: np.ndarray,
                           solver: SpdSolver, timings: Timings | None = None) -> tuple[np.ndarray, float]:
     """Factorise T^T A T with the masked components eliminated (identity * scale on the diagonal).
 
@@ -116,11 +146,11 @@ def factorize_constrained(body: FemBody, A: np.ndarray, T: np.ndarray | None, ma
     pat = body.pattern
     if T is not None:
         A = A.copy()
-        rotated = np.zeros(pat.n_nodes, dtype=bool)
-        rotated[np.flatnonzero((T != np.eye(3)).any(axis=(1, 2)))] = True
-        rows, cols = rotated[pat.block_row], rotated[pat.indices]
-        A[rows] = np.swapaxes(T[pat.block_row[rows]], 1, 2) @ A[rows]
-        A[cols] = A[cols] @ T[pat.indices[cols]]
+        where = np.full(pat.n_nodes, -1)
+        where[T.nodes] = np.arange(len(T.nodes))
+        rows, cols = where[pat.block_row] >= 0, where[pat.indices] >= 0
+        A[rows] = np.swapaxes(T.R[where[pat.block_row[rows]]], 1, 2) @ A[rows]
+        A[cols] = A[cols] @ T.R[where[pat.indices[cols]]]
     data = pat.upper_data(A)
     scale = float(np.mean(data[pat.up_diag]))
     mflat = mask.ravel()
@@ -159,13 +189,13 @@ class DirectSystem:
         if not reuse or getattr(self, "_rotated", None) is None:
             self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
-        A, scale = self._rotated, self._scale
-        rhs = b - pat.matvec(A, value)
+        A, scale = pat.to_bsr(self._rotated), self._scale
+        rhs = b - (A @ value.reshape(-1)).reshape(-1, 3)
         rhs[mask] = scale * value[mask]
         with timed(self.timings, "solve"):
             y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
         y[mask] = value[mask]  # exact, not up to round-off
-        reaction = np.where(mask, pat.matvec(A, y) - b, 0.0)
+        reaction = np.where(mask, (A @ y.reshape(-1)).reshape(-1, 3) - b, 0.0)
         return to_global(T, y), reaction
 
 
@@ -197,15 +227,6 @@ class Preconditioner:
     iterations: int = 0
 
 
-def _frame_product(first: np.ndarray | None, second: np.ndarray | None, transpose_first: bool = False):
-    """Per-node products first @ second (first^T @ second if transpose_first); None means identity."""
-    if first is None:
-        return second
-    if transpose_first:
-        first = np.swapaxes(first, 1, 2)
-    return first if second is None else first @ second
-
-
 class IterativeSystem:
     """A = c_m M + c_k K' (K' assembled as BSR, M as CSR) and b (N, 3), solved by projected
     conjugate gradients preconditioned by the body's last factorised system matrix."""
@@ -214,7 +235,11 @@ class IterativeSystem:
                  x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
                  Q: np.ndarray | None = None):
         self.body, self.K, self.c_m, self.c_k, self.b = body, K, c_m, c_k, b
-        self._K_op = body.pattern.to_bsr(K)
+        self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
+        for i in range(3):  # M's blocks are multiples of I3
+            self._A[:, i, i] += c_m * body.M_data
+        self._A_op = body.pattern.to_bsr(self._A)
+        self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre
         self.settings = settings
@@ -224,11 +249,11 @@ class IterativeSystem:
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
-        return self.c_m * self.body.mass_product(y) + self.c_k * (self._K_op @ y.reshape(-1)).reshape(-1, 3)
+        return (self._A_op @ y.reshape(-1)).reshape(-1, 3)
 
     def assemble(self) -> np.ndarray:
         """Block data of A (for refactorisation)."""
-        return self.c_m * self.body.M_blocks + self.c_k * self.K
+        return self._A
 
     def _refactor(self, T: np.ndarray | None, mask: np.ndarray) -> None:
         with timed(self.timings, "assembly"):
@@ -239,15 +264,28 @@ class IterativeSystem:
         self.pre.factorizations += 1
         self.stats["factorizations"] += 1
 
-    def _preconditioner_frames(self, T: np.ndarray | None) -> np.ndarray | None:
-        """Per-node C (N, 3, 3) with M^-1 ~ C^T P^-1 C in the current local frames, P the factorised
-        matrix: C = pre.T^T Qrel^T T, Qrel = Q pre.Q^T the rotation of each node since the factorisation."""
+    def _preconditioner_frames(self, T: NodeFrames | None) -> np.ndarray | NodeFrames | None:
+        """Per-node C with A^-1 ~ C^T P^-1 C in the current local frames, P the factorised matrix:
+        C = pre.T^T Qrel^T T, Qrel = Q pre.Q^T the rotation of each node since the factorisation."""
         pre = self.pre
-        Qrel = None
-        if self.Q is not None and pre.Q is not None:
-            Qrel = self.Q @ np.swapaxes(pre.Q, 1, 2)
-        G = _frame_product(Qrel, pre.T)  # factorised local frame -> current global
-        return _frame_product(G, T, transpose_first=True)
+        if self._G is None or self._G[0] != pre.factorizations:
+            G = None  # factorised local frame -> current global frame, per node
+            if self.Q is not None and pre.Q is not None:
+                G = self.Q @ np.swapaxes(pre.Q, 1, 2)
+                if pre.T is not None:
+                    G[pre.T.nodes] = G[pre.T.nodes] @ pre.T.R
+            elif pre.T is not None:
+                G = pre.T
+            self._G = (pre.factorizations, G)
+        G = self._G[1]
+        if G is None or isinstance(G, NodeFrames):
+            if T is None:
+                return None if G is None else NodeFrames(G.nodes, np.swapaxes(G.R, 1, 2))
+            G = np.eye(3)[None].repeat(self.body.n_nodes, axis=0) if G is None else G.dense(self.body.n_nodes)
+        C = np.swapaxes(G, 1, 2).copy()
+        if T is not None:
+            C[T.nodes] = C[T.nodes] @ T.R
+        return C
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:

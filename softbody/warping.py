@@ -28,14 +28,16 @@ def deformation_gradient_operator(nodes: np.ndarray, grads: np.ndarray, n_nodes:
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(9 * E, 3 * n_nodes))
 
 
-def rotated_gradient_operator(G: np.ndarray) -> sp.csr_matrix:
-    """Sparse P (E q k 3, 9E) with (P R9).reshape(E, q, k, 3) = R_e G_eqa (each gradient rotated by its element's R).
+def rotated_gradient_operator(G: np.ndarray, component_major: bool = False) -> sp.csr_matrix:
+    """Sparse P (E q k 3, 9E) with (P R9).reshape(E, q, k, 3) = R_e G_eqa (each gradient rotated by its
+    element's R); component_major: the rows in the order (q, k, 3, E) instead.
 
     G: (E, q, k, 3) gradients (any weighting folded in).
     """
     E, q, k, _ = G.shape
     i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-    rows = np.arange(E * q * k * 3).reshape(E, q, k, 3)[..., None]  # (E, q, k, 3 (i), 1)
+    rows = np.arange(E * q * k * 3)
+    rows = (rows.reshape(q, k, 3, E).transpose(3, 0, 1, 2) if component_major else rows.reshape(E, q, k, 3))[..., None]
     cols = (3 * i + j)[None, None, None] * E + np.arange(E)[:, None, None, None, None]  # (E, 1, 1, 3, 3)
     vals = G[:, :, :, None, :]  # (E, q, k, 1, 3 (j))
     shape = (E, q, k, 3, 3)
@@ -55,13 +57,15 @@ def rest_load_operator(elements: np.ndarray, P: np.ndarray, n_nodes: int) -> sp.
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_nodes, 9 * E))
 
 
-def isotropic_blocks(S: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """Stiffness blocks (n, 3, 3) lam S + mu S^T + mu tr(S) I from Gram blocks S (n, 3, 3).
+def isotropic_blocks(S: np.ndarray, lam: float, mu: float, transposed: np.ndarray | None = None) -> np.ndarray:
+    """Stiffness blocks (n, 3, 3) lam S + mu S^T + mu tr(S) I from assembled Gram blocks S (n, 3, 3).
 
     With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), this is the isotropic
-    small-strain stiffness block K_ab; it is linear in S, so it may be applied after assembly.
+    small-strain stiffness block K_ab; it is linear in S, so it applies after assembly.
+    transposed: the blocks S^T if at hand (for a whole symmetric matrix, S[mirror]: block (B, A)).
     """
-    K = lam * S + mu * np.swapaxes(S, 1, 2)
+    K = lam * S
+    K += mu * (np.swapaxes(S, 1, 2) if transposed is None else transposed)
     tr = mu * (S[:, 0, 0] + S[:, 1, 1] + S[:, 2, 2])
     for i in range(3):
         K[:, i, i] += tr
