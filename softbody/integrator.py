@@ -235,10 +235,11 @@ class IterativeSystem:
                  x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
                  Q: np.ndarray | None = None):
         self.body, self.K, self.c_m, self.c_k, self.b = body, K, c_m, c_k, b
-        self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
-        for i in range(3):  # M's blocks are multiples of I3
-            self._A[:, i, i] += c_m * body.M_data
-        self._A_op = body.pattern.to_bsr(self._A)
+        with timed(timings, "assembly"):
+            self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
+            for i in range(3):  # M's blocks are multiples of I3
+                self._A[:, i, i] += c_m * body.M_data
+            self._A_op = body.pattern.to_bsr(self._A)
         self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre

@@ -83,16 +83,18 @@ class SpdSolver:
         b = np.asfortranarray(b, dtype=self.dtype)
         x = np.zeros_like(b)
         err = ctypes.c_int32(0)
-        i32 = ctypes.POINTER(ctypes.c_int32)
         f64 = ctypes.c_void_p
-        ps._mkl_pardiso(ps.pt.ctypes.data_as(ctypes.POINTER(ps._pt_type[0])),
-                        ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(1)),
-                        ctypes.byref(ctypes.c_int32(2)), ctypes.byref(ctypes.c_int32(phase)),
-                        ctypes.byref(ctypes.c_int32(self.n)), data.ctypes.data_as(f64),
-                        self._ia.ctypes.data_as(i32), self._ja.ctypes.data_as(i32),
-                        ps.perm.ctypes.data_as(i32),
+        if "_fixed_args" not in self.__dict__:  # pointers to arrays that live as long as the solver
+            i32 = ctypes.POINTER(ctypes.c_int32)
+            self._fixed_args = (ps.pt.ctypes.data_as(ctypes.POINTER(ps._pt_type[0])), self._ia.ctypes.data_as(i32),
+                                self._ja.ctypes.data_as(i32), ps.perm.ctypes.data_as(i32),
+                                ps.iparm.ctypes.data_as(i32))
+        pt, ia, ja, perm, iparm = self._fixed_args
+        one = ctypes.byref(ctypes.c_int32(1))
+        ps._mkl_pardiso(pt, one, one, ctypes.byref(ctypes.c_int32(2)), ctypes.byref(ctypes.c_int32(phase)),
+                        ctypes.byref(ctypes.c_int32(self.n)), data.ctypes.data_as(f64), ia, ja, perm,
                         ctypes.byref(ctypes.c_int32(1 if b.ndim == 1 else b.shape[1])),
-                        ps.iparm.ctypes.data_as(i32), ctypes.byref(ctypes.c_int32(0)),
+                        iparm, ctypes.byref(ctypes.c_int32(0)),
                         b.ctypes.data_as(f64), x.ctypes.data_as(f64), ctypes.byref(err))
         if err.value != 0:
             raise SolverError(f"PARDISO phase {phase} failed with error {err.value}"
