@@ -354,7 +354,7 @@ def measure_floor(world, body, repeats: int) -> dict:
         world.sim.velocity_solver = solve_velocities
     system, cons = captured[id(body)]
     A = getattr(system, "A", None)  # DirectSystem: the assembled block data
-    if A is None:  # IterativeSystem (matrix-free): assemble the same c_m M + c_k K'(R)
+    if A is None:  # IterativeSystem: its assembled c_m M + c_k K'(R)
         A = system.assemble()
     pat = body.pattern
     solver = SpdSolver(pat.up_indptr, pat.up_indices, body.n_dofs, "auto", precision="double")

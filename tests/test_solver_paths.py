@@ -1,4 +1,4 @@
-"""The fast solver path (matrix-free PCG preconditioned by a reused factorisation, Simulation method
+"""The fast solver path (PCG preconditioned by a reused single-precision factorisation, Simulation method
 "iterative") and a plain direct solve (assemble and factorise every solve, method "direct") give the
 same trajectory on a short sheet-on-sphere run with contact, for each element type.
 
