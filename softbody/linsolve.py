@@ -108,7 +108,9 @@ class SpdSolver:
 
         PARDISO: both orderings are analysed and the one whose factorisation needs fewer floating-point
         operations (as PARDISO counts them) is kept: nested dissection wins on large meshes, minimum
-        degree on small ones. The choice depends on the sparsity pattern only, so it is reproducible.
+        degree on small ones. The choice depends on the sparsity pattern only. (MKL's METIS carries a
+        random state within a process: the same sequence of analyses gives the same orderings run after
+        run, but two solvers in one process may order slightly differently.)
         """
         if self.backend == "pardiso":
             data = np.ascontiguousarray(data, dtype=float)
@@ -123,7 +125,7 @@ class SpdSolver:
                 ps.iparm[1], ps.iparm[18] = best, -1
                 self._pardiso(11, data, np.zeros(self.n))
             self.ordering = self.ORDERINGS[best]
-            self.factor_mflop = flops[best]
+            self.factor_mflop = int(ps.iparm[18])
         self._analysed = True
 
     def factorize(self, data: np.ndarray) -> None:
