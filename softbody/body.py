@@ -116,7 +116,7 @@ class FemBody:
         self._pair_assembly = None
         if self._Gw.shape[1] == 1:
             self._pair_assembly = PairAssembly.from_elements(self.pattern, mesh.elements)
-        self._rotate_grads = rotated_gradient_operator(self._Gw, component_major=self._pair_assembly is not None)
+            self._rotate_grads = rotated_gradient_operator(self._Gw)
         lam, mu = material.lame
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
@@ -320,15 +320,15 @@ class FemBody:
             return self._rest_blocks
         E, q, k, _ = self._Gw.shape
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
-        g = self._rotate_grads @ R9.reshape(-1)
         lam, mu = self.material.lame
         pa = self._pair_assembly
         if pa is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
-            g = g.reshape(k, 3, E)
+            g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
             Su = pa.assemble(g[pa.pairs[:, 0], :, None, :] * g[pa.pairs[:, 1], None, :, :])
             K = pa.full(isotropic_blocks(Su, lam, mu))
-        else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k)
-            g = g.reshape(E, q, 3 * k)
+        else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
+            RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
+            g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
             S = self.pattern.assemble(np.swapaxes(g, 1, 2) @ g)
             K = isotropic_blocks(S, lam, mu, transposed=S[self.pattern.mirror])
         result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)

@@ -28,16 +28,15 @@ def deformation_gradient_operator(nodes: np.ndarray, grads: np.ndarray, n_nodes:
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(9 * E, 3 * n_nodes))
 
 
-def rotated_gradient_operator(G: np.ndarray, component_major: bool = False) -> sp.csr_matrix:
-    """Sparse P (E q k 3, 9E) with (P R9).reshape(E, q, k, 3) = R_e G_eqa (each gradient rotated by its
-    element's R); component_major: the rows in the order (q, k, 3, E) instead.
+def rotated_gradient_operator(G: np.ndarray) -> sp.csr_matrix:
+    """Sparse P (E q k 3, 9E) with (P R9).reshape(q, k, 3, E) = R_e G_eqa (each gradient rotated by its
+    element's R), component-major.
 
     G: (E, q, k, 3) gradients (any weighting folded in).
     """
     E, q, k, _ = G.shape
     i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-    rows = np.arange(E * q * k * 3)
-    rows = (rows.reshape(q, k, 3, E).transpose(3, 0, 1, 2) if component_major else rows.reshape(E, q, k, 3))[..., None]
+    rows = np.arange(E * q * k * 3).reshape(q, k, 3, E).transpose(3, 0, 1, 2)[..., None]  # (E, q, k, 3 (i), 1)
     cols = (3 * i + j)[None, None, None] * E + np.arange(E)[:, None, None, None, None]  # (E, 1, 1, 3, 3)
     vals = G[:, :, :, None, :]  # (E, q, k, 1, 3 (j))
     shape = (E, q, k, 3, 3)
