@@ -133,7 +133,7 @@ class FemBody:
             Me = np.einsum("ea,ab->eab", d, np.eye(k))
         self.Me = Me
 
-        # characteristic tetrahedra for the warping rotation: Dm^-1 (E, c, 3, 3)
+        # characteristic tetrahedra for the warping rotation: the operator of their deformation gradients
         ct = et.char_tets if (et.name != "hex8" or hex_rotation == "average") else et.char_tets[:1]
         self.char_tets = ct
         Xc = X[:, ct]  # (E, c, 4, 3)
@@ -251,8 +251,10 @@ class FemBody:
 
     def characteristic_gradient(self, x: np.ndarray) -> np.ndarray:
         """Deformation gradients of the elements' characteristic tetrahedra (hex8 "average": the mean
-        of its two) at positions x (N, 3), component-major (9, E): row 3 i + j holds F_ij."""
-        return (self._char_F @ np.asarray(x, dtype=float).reshape(-1)).reshape(9, -1)
+        of its two) at positions x (N, 3), component-major (9, E): row 3 i + j holds F_ij. (Taken of
+        x minus its mean: each tet's gradients sum to zero, and so an offset adds no round-off.)"""
+        x = np.asarray(x, dtype=float)
+        return (self._char_F @ (x - x.mean(axis=0)).reshape(-1)).reshape(9, -1)
 
     def local_displacements(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Unrotated element displacements R^T x_e - X_e, (E, 3k)."""
@@ -268,12 +270,6 @@ class FemBody:
         E, k = self.mesh.elements.shape
         fl = (self.Ke @ local[:, :, None]).reshape(E, k, 3)
         return fl @ np.swapaxes(R, 1, 2)
-
-    def stiffness_product(self, y: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Matrix-free K' y = sum_e R_e K_e R_e^T y_e for y (N, 3); returns (N, 3)."""
-        E, k = self.mesh.elements.shape
-        local = (y[self.mesh.elements] @ R).reshape(E, 3 * k)
-        return self.scatter_nodal(self._rotated_product(local, R))
 
     def mass_product(self, y: np.ndarray) -> np.ndarray:
         """M y for y (N, 3); returns (N, 3)."""

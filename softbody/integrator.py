@@ -223,7 +223,7 @@ class Preconditioner:
     """The last factorised system (per body): its frames, node rotations, solver and counters."""
 
     solver: SpdSolver
-    T: np.ndarray | None
+    T: NodeFrames | None
     Q: np.ndarray | None
     stale: bool = True
     factorizations: int = 0
@@ -231,13 +231,13 @@ class Preconditioner:
 
 
 class IterativeSystem:
-    """A = c_m M + c_k K' (K' assembled as BSR, M as CSR) and b (N, 3), solved by projected
-    conjugate gradients preconditioned by the body's last factorised system matrix."""
+    """A = c_m M + c_k K' (one assembled BSR matrix) and b (N, 3), solved by projected conjugate
+    gradients preconditioned by the body's last factorised system matrix."""
 
     def __init__(self, body: FemBody, K: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
                  x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
                  Q: np.ndarray | None = None):
-        self.body, self.K, self.c_m, self.c_k, self.b = body, K, c_m, c_k, b
+        self.body, self.b = body, b
         with timed(timings, "assembly"):
             self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
             for i in range(3):  # M's blocks are multiples of I3
@@ -259,7 +259,7 @@ class IterativeSystem:
         """Block data of A (for refactorisation)."""
         return self._A
 
-    def _refactor(self, T: np.ndarray | None, mask: np.ndarray) -> None:
+    def _refactor(self, T: NodeFrames | None, mask: np.ndarray) -> None:
         with timed(self.timings, "assembly"):
             A = self.assemble()
         factorize_constrained(self.body, A, T, mask, self.pre.solver, self.timings)
@@ -268,7 +268,7 @@ class IterativeSystem:
         self.pre.factorizations += 1
         self.stats["factorizations"] += 1
 
-    def _preconditioner_frames(self, T: NodeFrames | None) -> np.ndarray | NodeFrames | None:
+    def _preconditioner_frames(self, T: NodeFrames | None) -> Frames:
         """Per-node C with A^-1 ~ C^T P^-1 C in the current local frames, P the factorised matrix:
         C = pre.T^T Qrel^T T, Qrel = Q pre.Q^T the rotation of each node since the factorisation."""
         pre = self.pre
@@ -282,10 +282,12 @@ class IterativeSystem:
                 G = pre.T
             self._G = (pre.factorizations, G)
         G = self._G[1]
-        if G is None or isinstance(G, NodeFrames):
+        if G is None:
+            return T
+        if isinstance(G, NodeFrames):
             if T is None:
-                return None if G is None else NodeFrames(G.nodes, np.swapaxes(G.R, 1, 2))
-            G = np.eye(3)[None].repeat(self.body.n_nodes, axis=0) if G is None else G.dense(self.body.n_nodes)
+                return NodeFrames(G.nodes, np.swapaxes(G.R, 1, 2))
+            G = G.dense(self.body.n_nodes)
         C = np.swapaxes(G, 1, 2).copy()
         if T is not None:
             C[T.nodes] = C[T.nodes] @ T.R
@@ -300,7 +302,7 @@ class IterativeSystem:
         free = ~mask
         if self.pre.stale:
             self._refactor(T, mask)
-        y = to_local(T, self.x0)
+        y = np.array(to_local(T, self.x0))  # a copy: x0 may be the body's velocities
         y[mask] = value[mask]
         with timed(self.timings, "solve"):
             C = self._preconditioner_frames(T)
@@ -324,7 +326,7 @@ class IterativeSystem:
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
         return self.x0, reaction
 
-    def _precondition(self, r: np.ndarray, free: np.ndarray, C: np.ndarray | None) -> np.ndarray:
+    def _precondition(self, r: np.ndarray, free: np.ndarray, C: Frames) -> np.ndarray:
         """z = C^T P^-1 C r on the free components (r, z (N, 3) in the current local frames)."""
         z = self.pre.solver.solve(to_global(C, r).reshape(-1)).reshape(-1, 3)
         return np.where(free, to_local(C, z), 0.0)

@@ -65,7 +65,7 @@ class SpdSolver:
         self._factor = None
         if self.backend == "pardiso":
             self._ps = PyPardisoSolver(mtype=2)
-            # non-default iparm: METIS ordering, no iterative refinement (MKL's default does two refinement
+            # non-default iparm: no iterative refinement (MKL's default does two refinement
             # steps per solve, which triples its cost and buys nothing for a Cholesky factor of an SPD
             # matrix), and the factor and solve in the requested precision
             self._ps.iparm[0], self._ps.iparm[1], self._ps.iparm[7] = 1, 2, 0
@@ -108,9 +108,9 @@ class SpdSolver:
 
         PARDISO: both orderings are analysed and the one whose factorisation needs fewer floating-point
         operations (as PARDISO counts them) is kept: nested dissection wins on large meshes, minimum
-        degree on small ones. The choice depends on the sparsity pattern only. (MKL's METIS carries a
-        random state within a process: the same sequence of analyses gives the same orderings run after
-        run, but two solvers in one process may order slightly differently.)
+        degree on small ones. The choice is made from the sparsity pattern, not from timings; MKL's
+        METIS carries a random state within a process, so the same sequence of analyses gives the same
+        orderings run after run, but two solvers in one process may order slightly differently.
         """
         if self.backend == "pardiso":
             data = np.ascontiguousarray(data, dtype=float)

@@ -49,7 +49,7 @@ def _newton_rotation(F9: np.ndarray, tol: float, max_iter: int) -> tuple[np.ndar
     """Scaled Newton iteration R <- (g R + R^-T / g) / 2, g = |det R|^(-1/3), component-major.
 
     F9: (9, n) with det F > 0. Convergence is quadratic: once an update changes R by less than
-    sqrt(tol), the remaining error is below tol / 2, and the iteration stops there. The first two
+    sqrt(tol) (largest entry), the remaining error is of the order of tol, and the iteration stops. The first two
     updates are not checked (they are never that small unless F is already a rotation). Every
     operation writes into a buffer. Returns R (9, n) and a mask (n,) of the converged matrices.
     """
@@ -116,5 +116,5 @@ def polar_rotation(F: np.ndarray, tol: float = 1e-12, max_iter: int = 30) -> np.
     F: (..., 3, 3). Returns R (..., 3, 3); see :func:`polar_rotation_components`.
     """
     shape = F.shape
-    F9 = np.asarray(F, dtype=float).reshape(-1, 9).T
+    F9 = np.ascontiguousarray(np.asarray(F, dtype=float).reshape(-1, 9).T)
     return np.ascontiguousarray(polar_rotation_components(F9, tol, max_iter).T).reshape(shape)

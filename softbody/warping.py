@@ -2,8 +2,10 @@
 
 Per step, warping needs (i) each element's deformation gradient F (from its characteristic
 tetrahedra), (ii) the shape-function gradients rotated by each element's R, and (iii) the warped
-rest loads sum_e R_e K_e X_e. Each is linear in the positions or in the rotations, so each is one
-precomputed sparse matrix and one product per step, with no per-element Python work.
+rest loads sum_e R_e K_e X_e. Each is linear in the positions or in the rotations, so each can be
+one precomputed sparse matrix and one product per step, with no per-element Python work. (FemBody
+uses (ii) for one-point elements, whose rotated gradients it wants component-major; for the others
+one batched matmul is faster.)
 
 Rotations and deformation gradients are component-major: a (9, E) array whose row 3 i + j holds
 entry (i, j) of every element's matrix (see :mod:`softbody.rotation`).

@@ -39,9 +39,9 @@ def test_solutions_match_scipy_and_the_single_precision_path_is_close(kind, cell
 
 
 @pardiso
-@pytest.mark.parametrize("kind, cells, expected", [("tet10", (4, 4, 2), "minimum degree"),
-                                                    ("hex8", (14, 14, 6), "METIS nested dissection")])
-def test_the_ordering_with_fewer_factorisation_flops_is_kept_reproducibly(kind, cells, expected):
+@pytest.mark.parametrize("kind, cells", [("tet10", (4, 4, 2)), ("hex8", (14, 14, 6))])
+def test_the_ordering_with_fewer_factorisation_flops_is_kept_reproducibly(kind, cells):
+    # (with this machine's MKL: minimum degree for the first, METIS for the second)
     p, data, _, n = _system(kind, cells)
     flops = {}
     for order in SpdSolver.ORDERINGS:
@@ -52,7 +52,7 @@ def test_the_ordering_with_fewer_factorisation_flops_is_kept_reproducibly(kind, 
     chosen = SpdSolver(p.up_indptr, p.up_indices, n, "pardiso")
     chosen.analyse(data)
     assert chosen.factor_mflop <= 1.2 * min(flops.values())  # (METIS's random state: see SpdSolver.analyse)
-    assert chosen.ordering == SpdSolver.ORDERINGS[min(flops, key=lambda o: (flops[o], o != 2))] == expected
+    assert chosen.ordering == SpdSolver.ORDERINGS[min(flops, key=lambda o: (flops[o], o != 2))]
     # the choice depends on the pattern only: a second solver chooses the same (bit-identical runs across
     # processes are checked by the study tests)
     b = np.arange(n, dtype=float)
