@@ -116,26 +116,25 @@ class NodeFrames:
 Frames = NodeFrames | np.ndarray | None  # sparse frames, per-node frames (N, 3, 3), or identity
 
 
-def to_local(T: Frames, x: np.ndarray) -> np.ndarray:
-    """T^T x per node for x (N, 3)."""
+def _per_node(T: Frames, x: np.ndarray, spec: str) -> np.ndarray:
+    """Apply per-node 3x3 frames to x (N, 3) by the einsum ``spec`` (T^T x or T x); None: identity."""
     if T is None:
         return x
     if isinstance(T, NodeFrames):
         y = x.copy()
-        y[T.nodes] = np.einsum("nji,nj->ni", T.R, x[T.nodes])
+        y[T.nodes] = np.einsum(spec, T.R, x[T.nodes])
         return y
-    return np.einsum("nji,nj->ni", T, x)
+    return np.einsum(spec, T, x)
+
+
+def to_local(T: Frames, x: np.ndarray) -> np.ndarray:
+    """T^T x per node for x (N, 3)."""
+    return _per_node(T, x, "nji,nj->ni")
 
 
 def to_global(T: Frames, y: np.ndarray) -> np.ndarray:
     """T y per node for y (N, 3)."""
-    if T is None:
-        return y
-    if isinstance(T, NodeFrames):
-        x = y.copy()
-        x[T.nodes] = np.einsum("nij,nj->ni", T.R, y[T.nodes])
-        return x
-    return np.einsum("nij,nj->ni", T, y)
+    return _per_node(T, y, "nij,nj->ni")
 
 
 def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, mask: np.ndarray,
