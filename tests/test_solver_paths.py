@@ -85,3 +85,23 @@ def test_preconditioner_follows_node_rotations_and_frames_exactly():
     A1 = c_m * body.M_blocks + c_k * K1
     y_direct, _ = DirectSystem(body, A1, b, solver).solve(cons)
     np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-9 * np.abs(y_direct).max())
+
+
+def test_iterative_solve_leaves_the_warm_start_untouched():
+    """The warm start (the body's velocities on a step's first solve) is not written into, also when
+    the constraint frames are all identity (no frame copy hides the aliasing)."""
+    import softbody
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem, Preconditioner
+    from softbody.linsolve import SpdSolver
+    from softbody.meshing import box_mesh
+
+    body = softbody.FemBody(box_mesh((0.4, 0.3, 0.2), (3, 3, 2), "tet4"), softbody.LinearElastic(1e6, 0.3, 1000.0))
+    p, n = body.pattern, body.n_nodes
+    K, _ = body.warped_stiffness_blocks(None)
+    x0 = np.random.default_rng(6).standard_normal((n, 3))
+    before = x0.copy()
+    pre = Preconditioner(SpdSolver(p.up_indptr, p.up_indices, body.n_dofs), None, None)
+    system = IterativeSystem(body, K, 1.0, 1e-3, np.zeros((n, 3)), x0, pre, IterativeSettings())
+    nodes = np.array([0, 1, 2])
+    system.solve(Constraints(nodes, np.ones((3, 3), bool), np.full((3, 3), 7.0), np.broadcast_to(np.eye(3), (3, 3, 3))))
+    assert np.array_equal(x0, before)
