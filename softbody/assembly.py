@@ -103,43 +103,67 @@ class BlockPattern:
 
 
 @dataclass
-class PairAssembly:
-    """Assembly of symmetric element matrices given by the 3x3 blocks of their node pairs a <= b.
+class UpperAssembly:
+    """Assembly of symmetric element matrices into the upper blocks (row <= column) of the pattern.
 
-    Blocks arrive component-major, (P, 3, 3, E) for the P pairs of E elements, and are summed into
-    the upper blocks of the pattern (row <= column; a pair whose nodes run the other way goes in
-    transposed). ``full`` then mirrors them into the lower blocks. Half the work of whole matrices.
+    Only the node pairs a <= b of each element contribute: about half the entries of whole element
+    matrices. The result is component-major, (9, n_upper): row 3 i + j holds entry (i, j) of every
+    upper block (a pair whose global nodes run the other way goes in transposed), so that a per-block
+    linear map (an isotropic material's stiffness, see :func:`softbody.warping.isotropic_matrix`) is
+    one (9, 9) matrix product. ``full`` then mirrors the upper blocks into block data (nnzb, 3, 3).
+
+    Two input layouts, fixed at construction:
+    - "pairs": the 3x3 blocks of the P pairs, component-major (P, 3, 3, E) (one-point elements);
+    - "matrices": whole element matrices (E, 3k, 3k) (interleaved dofs), of which the pairs are picked.
     """
 
     pattern: BlockPattern
+    layout: str
     pairs: np.ndarray  # (P, 2) local nodes a <= b
-    scatter: np.ndarray  # (P * 9 * E,) upper-block entry of each (p, i, j, e)
+    select: np.ndarray | None  # "matrices": flat index of each contribution in (E, 3k, 3k)
+    scatter: np.ndarray  # target in (9, n_upper).ravel() of each contribution
     n_upper: int
-    full_from_upper: np.ndarray  # (9 nnzb,) entry of the upper data that each block entry copies
+    upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
+    full_from_upper: np.ndarray  # (9 nnzb,) entry of (9, n_upper).ravel() that each block entry copies
 
     @classmethod
-    def from_elements(cls, pattern: BlockPattern, elements: np.ndarray) -> "PairAssembly":
+    def from_elements(cls, pattern: BlockPattern, elements: np.ndarray, layout: str) -> "UpperAssembly":
+        if layout not in ("pairs", "matrices"):
+            raise ValueError(f"layout must be 'pairs' or 'matrices', got {layout!r}")
         E, k = elements.shape
         N = pattern.n_nodes
         pairs = np.stack(np.triu_indices(k), axis=1)
         upper = pattern.block_row <= pattern.indices
+        n_upper = int(upper.sum())
         ub = np.cumsum(upper) - 1  # upper-block number of each upper block
         a, b = elements[:, pairs[:, 0]].T, elements[:, pairs[:, 1]].T  # (P, E)
         swap = a > b
         key = np.where(swap, b, a).astype(np.int64) * N + np.where(swap, a, b)
-        blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]
+        blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]  # (P, E)
         i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        entry = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
-        scatter = (9 * blk[:, None, None, :] + entry).reshape(-1)
+        row = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
+        target = row * n_upper + blk[:, None, None, :]  # (P, 3, 3, E)
+        select = None
+        if layout == "pairs":
+            scatter = target.reshape(-1)
+        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices, in memory order
+            within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).reshape(-1)
+            order = np.argsort(within)  # (P 9,) contributions of one element in memory order
+            select = ((9 * k * k) * np.arange(E)[:, None] + within[order][None]).reshape(-1)
+            scatter = target.reshape(-1, E)[order].T.reshape(-1)
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
-        entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
-        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
-        return cls(pattern, pairs, scatter, int(upper.sum()), full_from_upper)
+        row = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
+        full_from_upper = (row * n_upper + ub[src][:, None, None]).reshape(-1)
+        return cls(pattern, layout, pairs, select, scatter, n_upper, upper, full_from_upper)
 
-    def assemble(self, blocks: np.ndarray) -> np.ndarray:
-        """Upper block data (n_upper, 3, 3) from pair blocks (P, 3, 3, E)."""
-        return np.bincount(self.scatter, weights=blocks.reshape(-1), minlength=9 * self.n_upper).reshape(-1, 3, 3)
+    def assemble(self, contributions: np.ndarray) -> np.ndarray:
+        """Upper blocks, component-major (9, n_upper), from pair blocks (P, 3, 3, E) ("pairs") or element
+        matrices (E, 3k, 3k) ("matrices")."""
+        w = contributions.reshape(-1)
+        if self.select is not None:
+            w = w[self.select]
+        return np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(9, -1)
 
     def full(self, upper: np.ndarray) -> np.ndarray:
-        """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper``."""
+        """Block data (nnzb, 3, 3) of the symmetric matrix with component-major upper blocks (9, n_upper)."""
         return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)

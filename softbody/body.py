@@ -10,13 +10,13 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
-from .assembly import BlockPattern, PairAssembly
+from .assembly import BlockPattern, UpperAssembly
 from .elements import shape_gradients
 from .errors import InvalidInputError
 from .material import LinearElastic
 from .mesh import Mesh
 from .rotation import polar_rotation_components
-from .warping import (deformation_gradient_operator, isotropic_blocks, rest_load_operator,
+from .warping import (deformation_gradient_operator, isotropic_matrix, rest_load_operator,
                       rotated_gradient_operator)
 
 Motion = Callable[[float], np.ndarray]
@@ -111,13 +111,17 @@ class FemBody:
         # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
         sqrt_w = np.sqrt(detJ * w)
         self._Gw = G * sqrt_w[:, :, None, None]
-        # one-point elements (tet4): rank-one element matrices, assembled per node pair from
-        # component-major rotated gradients (PairAssembly); else Gram matrices per element
-        self._pair_assembly = None
+        # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
+        # products of component-major rotated gradients for one-point elements (tet4), else from whole
+        # Gram matrices per element (one batched matmul)
+        self._rotate_grads = None
         if self._Gw.shape[1] == 1:
-            self._pair_assembly = PairAssembly.from_elements(self.pattern, mesh.elements)
+            self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs")
             self._rotate_grads = rotated_gradient_operator(self._Gw)
+        else:
+            self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         lam, mu = material.lame
+        self._isotropic = isotropic_matrix(lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
 
@@ -309,24 +313,22 @@ class FemBody:
         The material is isotropic, so R K_e(dN/dX) R^T = K_e(R dN/dX): the warped element stiffness
         is the rest formula with rotated gradients g = R dN/dX. Per quadrature point its 3x3 blocks
         are w detJ [lam g_a g_b^T + mu g_b g_a^T + mu (g_a . g_b) I], linear in S_ab = w detJ g_a g_b^T;
-        so only S is summed into the fixed pattern and K' follows per global block. Likewise
+        so only S is summed (over the pairs a <= b, into the upper blocks) and K' follows per block. Likewise
         K_e X_e = sum_q w detJ (3 lam + 2 mu) g_a (as sum_b X_b g_b^T = I), one sparse product of R.
         """
         if R is None and "_rest_blocks" in self.__dict__:
             return self._rest_blocks
         E, q, k, _ = self._Gw.shape
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
-        lam, mu = self.material.lame
-        pa = self._pair_assembly
-        if pa is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
+        ua = self._upper
+        if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
-            Su = pa.assemble(g[pa.pairs[:, 0], :, None, :] * g[pa.pairs[:, 1], None, :, :])
-            K = pa.full(isotropic_blocks(Su, lam, mu))
+            S9 = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
         else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
-            S = self.pattern.assemble(np.swapaxes(g, 1, 2) @ g)
-            K = isotropic_blocks(S, lam, mu, transposed=S[self.pattern.mirror])
+            S9 = ua.assemble(np.swapaxes(g, 1, 2) @ g)
+        K = ua.full(self._isotropic @ S9)
         result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
         if R is None:  # warping off: the same every step
             for a in result:

@@ -58,16 +58,18 @@ def rest_load_operator(elements: np.ndarray, P: np.ndarray, n_nodes: int) -> sp.
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_nodes, 9 * E))
 
 
-def isotropic_blocks(S: np.ndarray, lam: float, mu: float, transposed: np.ndarray | None = None) -> np.ndarray:
-    """Stiffness blocks (n, 3, 3) lam S + mu S^T + mu tr(S) I from assembled Gram blocks S (n, 3, 3).
+def isotropic_matrix(lam: float, mu: float) -> np.ndarray:
+    """The (9, 9) map L with K9 = L @ S9 for component-major 3x3 blocks (row 3 i + j holds entry (i, j)):
+    K = lam S + mu S^T + mu tr(S) I.
 
-    With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), this is the isotropic
-    small-strain stiffness block K_ab; it is linear in S, so it applies after assembly.
-    transposed: the blocks S^T if at hand (for a whole symmetric matrix, S[mirror]: block (B, A)).
+    With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), K is the isotropic small-strain
+    stiffness block K_ab; it is linear in S, so it applies after assembly, to each assembled block.
     """
-    K = lam * S
-    K += mu * (np.swapaxes(S, 1, 2) if transposed is None else transposed)
-    tr = mu * (S[:, 0, 0] + S[:, 1, 1] + S[:, 2, 2])
+    L = np.zeros((9, 9))
     for i in range(3):
-        K[:, i, i] += tr
-    return K
+        for j in range(3):
+            L[3 * i + j, 3 * i + j] += lam
+            L[3 * i + j, 3 * j + i] += mu
+        for m in range(3):
+            L[4 * i, 4 * m] += mu
+    return L
