@@ -29,6 +29,7 @@ import numpy as np
 from .body import FemBody
 from .errors import SolverError
 from .linsolve import SpdSolver
+from .preconditioner import ConstraintCorrection, Preconditioner
 
 
 @dataclass
@@ -137,6 +138,19 @@ def to_global(T: Frames, y: np.ndarray) -> np.ndarray:
     return _per_node(T, y, "nij,nj->ni")
 
 
+def _frames_at(T: Frames, nodes: np.ndarray) -> np.ndarray:
+    """The frames (M, 3, 3) of ``nodes`` (M,)."""
+    if T is None:
+        return np.broadcast_to(np.eye(3), (len(nodes), 3, 3))
+    if isinstance(T, NodeFrames):
+        out = np.broadcast_to(np.eye(3), (len(nodes), 3, 3)).copy()
+        hit = np.isin(nodes, T.nodes)
+        order = np.argsort(T.nodes)
+        out[hit] = T.R[order[np.searchsorted(T.nodes, nodes[hit], sorter=order)]]
+        return out
+    return T[nodes]
+
+
 def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, mask: np.ndarray,
                           solver: SpdSolver, timings: Timings | None = None) -> tuple[np.ndarray, float]:
     """Factorise T^T A T with the masked components eliminated (identity * scale on the diagonal).
@@ -201,7 +215,13 @@ class DirectSystem:
 
 @dataclass
 class IterativeSettings:
-    """tol: relative residual of the free components (||r|| <= tol ||b||); max_iter per solve.
+    """tol: relative residual of the free components; max_iter per solve.
+
+    The residual r = b - A y on the free components must reach ||r|| <= tol * max(||b||, ||r0||,
+    sum_t ||t||), where r0 is the initial residual and t runs over the terms that make up b
+    (M v, h f_el, h f_ext, friction impulses), all on the free components. The last scale matters
+    at rest: there b is the small difference of large terms (gravity against elastic forces), and a
+    tolerance on ||b|| alone would ask for an accuracy far below what the terms themselves resolve.
 
     The preconditioner is refactorised for the next solve when a solve needed more than
     ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
@@ -210,23 +230,16 @@ class IterativeSettings:
     single-precision numeric factorisation (about 10-20 iterations' worth on the sheet meshes).
     Measured on the sheet-on-sphere runs, the step time is flat for refactor_after from 3 to 6:
     fewer refactorisations are paid back in iterations one for one.
+
+    The factorisation eliminates the supports only; every other constrained node (contacts) is removed
+    from the preconditioner exactly by a Schur complement (softbody.preconditioner), for up to
+    ``max_corrected_nodes`` nodes. With more, the next factorisation eliminates them all.
     """
 
     tol: float = 1e-5
     max_iter: int = 200
     refactor_after: int = 3
-
-
-@dataclass
-class Preconditioner:
-    """The last factorised system (per body): its frames, node rotations, solver and counters."""
-
-    solver: SpdSolver
-    T: NodeFrames | None
-    Q: np.ndarray | None
-    stale: bool = True
-    factorizations: int = 0
-    iterations: int = 0
+    max_corrected_nodes: int = 64
 
 
 class IterativeSystem:
@@ -235,8 +248,9 @@ class IterativeSystem:
 
     def __init__(self, body: FemBody, K: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
                  x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
-                 Q: np.ndarray | None = None):
+                 Q: np.ndarray | None = None, terms: tuple[np.ndarray, ...] = ()):
         self.body, self.b = body, b
+        self.terms = terms  # the (N, 3) terms that sum to b, for the scale of the tolerance (IterativeSettings)
         with timed(timings, "assembly"):
             self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
             for i in range(3):  # M's blocks are multiples of I3
@@ -258,14 +272,36 @@ class IterativeSystem:
         """Block data of A (for refactorisation)."""
         return self._A
 
-    def _refactor(self, T: NodeFrames | None, mask: np.ndarray) -> None:
+    def _refactor(self, T: NodeFrames | None, mask: np.ndarray, everything: bool = False) -> None:
+        """Factorise the current A with the supports' constrained components eliminated (with
+        ``everything``, all constrained components)."""
         with timed(self.timings, "assembly"):
             A = self.assemble()
-        factorize_constrained(self.body, A, T, mask, self.pre.solver, self.timings)
-        self.pre.T, self.pre.Q = T, self.Q
-        self.pre.stale = False
-        self.pre.factorizations += 1
+        keep = mask if everything else mask & self.body.supported()[:, None]
+        factorize_constrained(self.body, A, T, keep, self.pre.solver, self.timings)
+        self.pre.factorized(T, self.Q, keep.any(axis=1))
         self.stats["factorizations"] += 1
+
+    def _prepared(self, T: NodeFrames | None, mask: np.ndarray) -> tuple[Frames, ConstraintCorrection | None]:
+        """The preconditioner for constraint set (T, mask): its per-node frames C and the correction for
+        the constrained nodes that the factorisation does not eliminate (refactorising if needed)."""
+        pre, limit = self.pre, self.settings.max_corrected_nodes
+        constrained = mask.any(axis=1)
+        if pre.stale or np.count_nonzero(constrained & ~pre.eliminated) > limit:
+            self._refactor(T, mask, everything=np.count_nonzero(constrained & ~self.body.supported()) > limit)
+        nodes = np.flatnonzero(constrained & ~pre.eliminated)
+        with timed(self.timings, "solve"):
+            C = self._preconditioner_frames(T)
+        if not len(nodes):
+            return C, None
+        with timed(self.timings, "factorize"):  # preconditioner set-up: new columns, Schur complement
+            try:
+                return C, pre.correction(nodes, mask[nodes], _frames_at(C, nodes))
+            except np.linalg.LinAlgError:  # not positive definite: P is too far off for this set
+                pass
+        self._refactor(T, mask, everything=True)
+        with timed(self.timings, "solve"):
+            return self._preconditioner_frames(T), None
 
     def _preconditioner_frames(self, T: NodeFrames | None) -> Frames:
         """Per-node C with A^-1 ~ C^T P^-1 C in the current local frames, P the factorised matrix:
@@ -299,22 +335,22 @@ class IterativeSystem:
         b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
         A = lambda y: to_local(T, self.apply(to_global(T, y)))
         free = ~mask
-        if self.pre.stale:
-            self._refactor(T, mask)
+        C, fix = self._prepared(T, mask)
         y = np.array(to_local(T, self.x0))  # a copy: x0 may be the body's velocities
         y[mask] = value[mask]
         with timed(self.timings, "solve"):
-            C = self._preconditioner_frames(T)
             r_full = b - A(y)
-            # tolerance relative to the load on the free components or, if that is zero (prescribed
-            # motion alone is a load), to the initial residual
-            atol = self.settings.tol * max(np.linalg.norm(b[free]), np.linalg.norm(r_full[free]), 1e-300)
-            y, r_full, its, ok = self._pcg(A, y, r_full, free, C, atol)
+            # tolerance relative to the load on the free components, its terms, or, if all are zero
+            # (prescribed motion alone is a load), the initial residual (see IterativeSettings)
+            terms = self.terms if extra_rhs is None else (*self.terms, extra_rhs)
+            scale = sum(np.linalg.norm(to_local(T, t)[free]) for t in terms)
+            atol = self.settings.tol * max(np.linalg.norm(b[free]), np.linalg.norm(r_full[free]), scale, 1e-300)
+            y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
-            self._refactor(T, mask)
+            self.pre.stale = True
+            C, fix = self._prepared(T, mask)
             with timed(self.timings, "solve"):
-                C = self._preconditioner_frames(T)
-                y, r_full, its, ok = self._pcg(A, y, r_full, free, C, atol)
+                y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
@@ -325,18 +361,21 @@ class IterativeSystem:
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
         return self.x0, reaction
 
-    def _precondition(self, r: np.ndarray, free: np.ndarray, C: Frames) -> np.ndarray:
-        """z = C^T P^-1 C r on the free components (r, z (N, 3) in the current local frames)."""
-        z = self.pre.solver.solve(to_global(C, r).reshape(-1)).reshape(-1, 3)
-        return np.where(free, to_local(C, z), 0.0)
+    def _precondition(self, r: np.ndarray, free: np.ndarray, C: Frames, fix: ConstraintCorrection | None) -> np.ndarray:
+        """z = C^T P_F^-1 C r on the free components (r, z (N, 3) in the current local frames), P_F^-1
+        the inverse of P restricted to the free components (P^-1 corrected by ``fix``)."""
+        u = self.pre.solver.solve(to_global(C, r).reshape(-1))
+        if fix is not None:
+            u = fix.apply(u)
+        return np.where(free, to_local(C, u.reshape(-1, 3)), 0.0)
 
-    def _pcg(self, A, y, r_full, free, C, atol):
+    def _pcg(self, A, y, r_full, free, C, fix, atol):
         """Projected PCG on the free components from y; r_full = b - A y on all components (kept
         up to date, so the constrained components give the reactions without another product)."""
         r = np.where(free, r_full, 0.0)
         if np.linalg.norm(r) <= atol:
             return y, r_full, 0, True
-        z = self._precondition(r, free, C)
+        z = self._precondition(r, free, C, fix)
         d = z
         rz = float(np.sum(r * z))
         for it in range(1, self.settings.max_iter + 1):
@@ -350,7 +389,7 @@ class IterativeSystem:
             r = np.where(free, r_full, 0.0)
             if np.linalg.norm(r) <= atol:
                 return y, r_full, it, True
-            z = self._precondition(r, free, C)
+            z = self._precondition(r, free, C, fix)
             rz_new = float(np.sum(r * z))
             d = z + (rz_new / rz) * d
             rz = rz_new
@@ -379,7 +418,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
         f_el = load - (body.pattern.to_bsr(K) @ u.reshape(-1)).reshape(-1, 3)
         c_m, c_k = 1.0 + h * alpha, h * beta + h * h
-        b = body.mass_product(v) + h * (f_el + f_ext)
+        terms = (body.mass_product(v), h * f_el, h * f_ext)
+        b = terms[0] + terms[1] + terms[2]
     if method == "direct":
         with timed(timings, "assembly"):
             A = c_m * body.M_blocks + c_k * K
@@ -391,7 +431,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
             SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     with timed(timings, "rotations"):
         Q = body.node_rotations(R, tol=1e-6) if body.warping else None
-    return IterativeSystem(body, K, c_m, c_k, b, v, pre, settings or IterativeSettings(), timings, Q)
+    return IterativeSystem(body, K, c_m, c_k, b, v, pre, settings or IterativeSettings(), timings, Q, terms)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -2,12 +2,13 @@
 "iterative") and a plain direct solve (factorise every solve, method "direct") give the
 same trajectory on a short sheet-on-sphere run with contact, for each element type.
 
-Tolerance: 1e-5 m on every node at every step. The iterative solve stops at a relative residual of
-1e-5 of the right-hand side (IterativeSettings.tol), so each step's velocity differs from the direct
-one by about 1e-5 of |v| (~1 m/s at impact), i.e. ~1e-7 m of position per 0.01 s step; over 50 steps,
-through the contact active-set loop, the measured differences are 2.4e-7 .. 2.9e-7 m. 1e-5 m leaves a
-margin of 30x for other machines and BLAS builds and is still 1e-4 of the sheet's 0.05-0.1 m motion, far
-below any visible or physically meaningful difference (the mesh spacing is 0.06-0.25 m).
+Tolerance: 1e-5 m on every node at every step. The iterative solve stops at a residual of 1e-5 of
+the right-hand side or of the terms it is made of (IterativeSettings.tol), so each step's velocity
+differs from the direct one by about 1e-5 of |v| (~1 m/s at impact), i.e. ~1e-7 m of position per
+0.01 s step; over 50 steps, through the contact active-set loop, the measured differences are
+2e-7 .. 4e-7 m (tet4 1.95e-7, hex8 4.21e-7, tet10 4.0e-7). 1e-5 m leaves a margin of 25x for other
+machines and BLAS builds and is still 1e-4 of the sheet's 0.05-0.1 m motion, far below any visible or
+physically meaningful difference (the mesh spacing is 0.06-0.25 m).
 """
 from __future__ import annotations
 
@@ -105,3 +106,79 @@ def test_iterative_solve_leaves_the_warm_start_untouched():
     nodes = np.array([0, 1, 2])
     system.solve(Constraints(nodes, np.ones((3, 3), bool), np.full((3, 3), 7.0), np.broadcast_to(np.eye(3), (3, 3, 3))))
     assert np.array_equal(x0, before)
+
+
+def _small_system(seed: int = 7):
+    import softbody
+    from softbody.linsolve import SpdSolver
+    from softbody.meshing import box_mesh
+    from softbody.preconditioner import Preconditioner
+
+    body = softbody.FemBody(box_mesh((0.4, 0.3, 0.2), (3, 3, 2), "tet4"), softbody.LinearElastic(1e6, 0.3, 1000.0))
+    p = body.pattern
+    K, _ = body.warped_stiffness_blocks(None)
+    pre = Preconditioner(SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, precision="double"), None, None)
+    return body, K, pre, np.random.default_rng(seed)
+
+
+def _direct(body, K, c_m, c_k, b, cons):
+    from softbody.integrator import DirectSystem
+    from softbody.linsolve import SpdSolver
+
+    p = body.pattern
+    y, r = DirectSystem(body, c_m * body.M_blocks + c_k * K, b, SpdSolver(p.up_indptr, p.up_indices, body.n_dofs)).solve(cons)
+    return y, r
+
+
+def test_contact_set_changes_need_no_refactorisation():
+    """The factorisation eliminates the supports only; other constrained nodes are removed from the
+    preconditioner exactly (Schur complement on cached columns of P^-1). So with the matrix unchanged, a
+    solve whose contact set differs from the one at factorisation (a node released, two added, another
+    frame) still converges in one iteration, to the direct answer, without refactorising."""
+    from scipy.spatial.transform import Rotation
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system()
+    body.fix([3])
+    n = body.n_nodes
+    b = rng.standard_normal((n, 3))
+    c_m, c_k = 1.0, 1e-3
+    settings = IterativeSettings(tol=1e-10)
+
+    def contacts(nodes, mask, seed):
+        frames = Rotation.random(len(nodes), random_state=seed).as_matrix()
+        value = rng.standard_normal((len(nodes), 3))
+        return Constraints(np.r_[3, nodes], np.r_[[[True] * 3], mask], np.r_[[[0.0] * 3], value],
+                           np.r_[[np.eye(3)], frames])
+
+    first = contacts(np.array([0, 5, 9]), np.array([[True, False, False], [True, True, True], [True, False, True]]), 1)
+    IterativeSystem(body, K, c_m, c_k, b, np.zeros((n, 3)), pre, settings).solve(first)
+    assert pre.factorizations == 1
+    assert pre.eliminated[3] and not pre.eliminated[[0, 5, 9]].any()  # the support only
+    changed = contacts(np.array([5, 9, 14, 20]), np.array([[True, True, True], [True, False, False],
+                                                            [True, True, True], [True, False, False]]), 2)
+    system = IterativeSystem(body, K, c_m, c_k, b, np.zeros((n, 3)), pre, settings)
+    y, r = system.solve(changed)
+    assert pre.factorizations == 1 and system.stats["iterations"] == 1
+    y_direct, r_direct = _direct(body, K, c_m, c_k, b, changed)
+    np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-9 * np.abs(y_direct).max())
+    np.testing.assert_allclose(r, r_direct, rtol=0, atol=1e-8 * np.abs(r_direct).max())
+
+
+def test_more_contacts_than_the_correction_takes_are_eliminated_in_the_factorisation():
+    """Beyond max_corrected_nodes constrained nodes, the factorisation eliminates them all (as a
+    direct solve does) and the answer is the direct one."""
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system(8)
+    n = body.n_nodes
+    b = rng.standard_normal((n, 3))
+    nodes = np.array([1, 4, 7, 11])
+    cons = Constraints(nodes, np.ones((4, 3), bool), rng.standard_normal((4, 3)))
+    system = IterativeSystem(body, K, 1.0, 1e-3, b, np.zeros((n, 3)), pre,
+                             IterativeSettings(tol=1e-10, max_corrected_nodes=2))
+    y, _ = system.solve(cons)
+    assert pre.factorizations == 1 and pre.eliminated[nodes].all()
+    assert system.stats["iterations"] == 1
+    y_direct, _ = _direct(body, K, 1.0, 1e-3, b, cons)
+    np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-9 * np.abs(y_direct).max())

@@ -1,0 +1,107 @@
+"""The iterative solver's preconditioner: one factorised system matrix, reused over many steps, and
+corrected exactly for the constraints that it does not eliminate.
+
+P is the system matrix A of an earlier step with the supports' components eliminated (rows and columns
+zeroed, a scaled identity on the diagonal; see :func:`softbody.integrator.factorize_constrained`),
+factorised once. A later solve needs the inverse of the current A restricted to its free components.
+The integrator follows the rotation of each node since the factorisation by conjugating P with per-node
+frames; this module removes the other constrained directions (contacts) exactly, by a Schur complement.
+
+For constrained unit directions E (n_dof, m) in P's frames, the inverse of P restricted to the
+complement of E is
+
+    P^-1 - P^-1 E S^-1 E^T P^-1,   S = E^T P^-1 E (m, m).
+
+P^-1 E only needs P^-1 of the three unit vectors of each constrained node: one 3-column solve per node,
+kept for the life of the factorisation. A change of the contact set then costs no refactorisation and
+no extra iterations, and a node that stays in contact costs nothing after its first solve.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import scipy.linalg as sla
+
+from .linsolve import SpdSolver
+
+
+@dataclass
+class ConstraintCorrection:
+    """The Schur-complement correction for constrained directions at M nodes.
+
+    rows (3M,): the nodes' dofs; B (3M, m): the m constrained unit directions at those dofs, in P's
+    frames; Y (n_dof, 3M): P^-1 of the nodes' unit vectors; S: Cholesky factor of B^T Y[rows] B.
+    """
+
+    rows: np.ndarray
+    B: np.ndarray
+    Y: np.ndarray
+    S: tuple
+
+    def apply(self, u: np.ndarray) -> np.ndarray:
+        """u = P^-1 g (n_dof,) -> (P restricted to the complement of E)^-1 g, in place."""
+        beta = sla.cho_solve(self.S, self.B.T @ u[self.rows])
+        u -= self.Y @ (self.B @ beta).astype(self.Y.dtype, copy=False)
+        return u
+
+
+@dataclass
+class Preconditioner:
+    """The last factorised system (per body): its solver, the constraint frames T and node rotations Q
+    it was factorised with, the nodes it eliminates, cached P^-1 columns, and counters.
+
+    stale: refactorise before the next solve. ``eliminated`` (N,) bool: nodes with components
+    eliminated in P (None before the first factorisation).
+    """
+
+    solver: SpdSolver
+    T: Any
+    Q: np.ndarray | None
+    stale: bool = True
+    factorizations: int = 0
+    iterations: int = 0
+    eliminated: np.ndarray | None = None
+    column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
+    _slot: dict = field(default_factory=dict)  # node -> its first column in _Y
+    _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
+
+    def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
+        """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""
+        self.T, self.Q, self.eliminated = T, Q, eliminated
+        self.stale = False
+        self.factorizations += 1
+        self._slot, self._Y = {}, None
+
+    def columns(self, nodes: np.ndarray) -> np.ndarray:
+        """P^-1 of the unit vectors of ``nodes`` (M,), (n_dof, 3M); solves for the nodes not cached yet."""
+        new = [int(n) for n in nodes if int(n) not in self._slot]
+        if new:
+            n_dof = self.solver.n
+            E = np.zeros((n_dof, 3 * len(new)), order="F")
+            dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
+            E[dofs, np.arange(3 * len(new))] = 1.0
+            Ynew = np.asfortranarray(self.solver.solve(E).reshape(n_dof, -1), dtype=self.solver.dtype)
+            start = 0 if self._Y is None else self._Y.shape[1]
+            self._Y = Ynew if self._Y is None else np.concatenate([self._Y, Ynew], axis=1)
+            for i, n in enumerate(new):
+                self._slot[n] = start + 3 * i
+            self.column_nodes += len(new)
+        cols = (np.array([self._slot[int(n)] for n in nodes])[:, None] + np.arange(3)).ravel()
+        return self._Y[:, cols]
+
+    def correction(self, nodes: np.ndarray, mask: np.ndarray, frames: np.ndarray) -> ConstraintCorrection:
+        """The correction for constrained components ``mask`` (M, 3) of ``nodes`` (M,), whose local axes
+        in P's frames are the columns of ``frames`` (M, 3, 3).
+
+        Raises numpy.linalg.LinAlgError if S is not positive definite (P is then no preconditioner for
+        this constraint set)."""
+        M = len(nodes)
+        Y = self.columns(nodes)
+        rows = (3 * nodes[:, None] + np.arange(3)).ravel()
+        blocks = np.zeros((M, 3, M, 3))
+        blocks[np.arange(M), :, np.arange(M), :] = frames
+        B = blocks.reshape(3 * M, 3 * M)[:, mask.ravel()]
+        S = B.T @ (Y[rows].astype(float) @ B)
+        return ConstraintCorrection(rows, B, Y, sla.cho_factor(0.5 * (S + S.T)))
