@@ -7,10 +7,13 @@ simulated second: the mean, not the median, so that occasional refactorisations 
 of each phase of ``world.timings``; over blocks: the median and the min..max spread. In the same
 process, right after the timed blocks:
 
-* the solver floor: one numeric Cholesky refactorisation plus one solve of the next step's own system
+* the solver floor: one numeric Cholesky refactorisation plus one solve of a step's own system
   matrix A = c_m M + c_k K'(R), with its constraint set (supports and active contacts), by a fresh
-  PARDISO (double precision, backend "auto") solver whose symbolic analysis was done beforehand; median
-  over ``floor_repeats``. ``step / floor`` is the headline ratio;
+  PARDISO (double precision, backend "auto") solver whose symbolic analysis was done beforehand. The
+  system is captured from the step right after the warm-up (run untimed), and ``floor_repeats``
+  refactorisations + solves of it are timed after every block, so that each block has a floor taken
+  seconds apart from it: ``step / floor`` is the median over blocks of block ms/step / that block's
+  floor (median of its repeats), the headline ratio; ``floor_ms`` is the median of the blocks' floors;
 * a cProfile of ``profile_steps`` more steps (top-20 table written to ``out_dir/profiles/``), with the
   largest number of calls per step of any function, to show there is no Python loop per element or node;
 * the peak RSS of the process (``ru_maxrss``) right after the timed steps.
@@ -267,6 +270,7 @@ def measure_config(spec: dict) -> dict:
     try:
         for _ in range(spec["warmup"]):
             one_step()
+        floor = capture_floor(world, body) if spec.get("floor_repeats", 0) > 0 else None
         pre_f0, pre_i0 = _pcg_counters(body)
         direct0 = direct_factorizations[0]
         blocks = []
@@ -282,6 +286,8 @@ def measure_config(spec: dict) -> dict:
             n = len(walls)
             blocks.append({"ms_per_step": 1e3 * sum(walls) / n,
                            "phases_ms": {k: 1e3 * v / n for k, v in phase_sums.items()}})
+            if floor is not None:  # outside the timed steps; the state is not touched
+                blocks[-1]["floor"] = floor.time(spec["floor_repeats"])
         out["peak_rss_mb"] = _rss_mb()  # import + build + warm-up + timed steps
         n_timed = spec["steps"] * spec["repeats"]
         pre_f1, pre_i1 = _pcg_counters(body)
@@ -305,10 +311,12 @@ def measure_config(spec: dict) -> dict:
         out["contacts_max"] = int(max(contacts)) if contacts else 0
         out["sim_time_s"] = world.t
         out["max_node_displacement_m"] = moved[0]
-        if spec.get("floor_repeats", 0) > 0:
-            out.update(measure_floor(world, body, spec["floor_repeats"]))
-            if out.get("floor_ms"):
-                out["step_over_floor"] = out["ms_per_step"] / out["floor_ms"]
+        if floor is not None:
+            fl = [b["floor"] for b in blocks]
+            out.update(floor.info, floor_repeats=spec["floor_repeats"],
+                       floor_ms=_median([f + s for f, s in fl]), floor_factorize_ms=_median([f for f, _ in fl]),
+                       floor_solve_ms=_median([s for _, s in fl]), floor_ms_blocks=[f + s for f, s in fl],
+                       step_over_floor=_median([b["ms_per_step"] / (f + s) for b, (f, s) in zip(blocks, fl)]))
         out["rss_after_floor_mb"] = _rss_mb()
         if spec.get("profile_steps", 0) > 0:
             out["profile"] = profile_steps(world, body, spec["profile_steps"], spec.get("out_dir"),
@@ -322,12 +330,36 @@ def measure_config(spec: dict) -> dict:
     return out
 
 
-def measure_floor(world, body, repeats: int) -> dict:
-    """One numeric refactorisation + one solve of the next step's own system matrix and constraint set.
+@dataclass
+class Floor:
+    """A captured step system and its fresh double-precision solver, analysed and factorised once."""
+
+    body: object
+    A: object
+    b: object
+    cons: object
+    solver: object
+    info: dict
+
+    def time(self, repeats: int) -> tuple[float, float]:
+        """Medians over ``repeats`` of one numeric refactorisation and one solve [ms]."""
+        from softbody.integrator import DirectSystem
+
+        fact, solv = [], []
+        for _ in range(repeats):
+            t = {}
+            DirectSystem(self.body, self.A, self.b, self.solver, timings=t).solve(self.cons)
+            fact.append(t["factorize"])
+            solv.append(t["solve"])
+        return 1e3 * _median(fact), 1e3 * _median(solv)
+
+
+def capture_floor(world, body) -> Floor:
+    """The next step's own system matrix and constraint set, for timing the solver floor.
 
     The next step runs as usual (untimed) while its system and the last constraint set given to its
     solve are captured; then a fresh double-precision solver (backend "auto": PARDISO when available)
-    analyses A once, and ``repeats`` times refactorises and solves it (medians; analysis excluded).
+    analyses A and factorises it once (``floor_first_ms``: analysis included, for reference).
     """
     from softbody.integrator import DirectSystem
     from softbody.linsolve import SpdSolver
@@ -360,16 +392,9 @@ def measure_floor(world, body, repeats: int) -> dict:
     solver = SpdSolver(pat.up_indptr, pat.up_indices, body.n_dofs, "auto", precision="double")
     first = {}
     DirectSystem(body, A, system.b, solver, timings=first).solve(cons)  # symbolic analysis + a first factorisation
-    fact, solv = [], []
-    for _ in range(repeats):
-        t = {}
-        DirectSystem(body, A, system.b, solver, timings=t).solve(cons)
-        fact.append(t["factorize"])
-        solv.append(t["solve"])
-    f, s = 1e3 * _median(fact), 1e3 * _median(solv)
-    return {"floor_ms": f + s, "floor_factorize_ms": f, "floor_solve_ms": s, "floor_backend": solver.backend,
-            "floor_first_ms": 1e3 * (first.get("factorize", 0.0) + first.get("solve", 0.0)),
-            "floor_constraints": int(len(cons)), "floor_repeats": repeats}
+    info = {"floor_backend": solver.backend, "floor_constraints": int(len(cons)),
+            "floor_first_ms": 1e3 * (first.get("factorize", 0.0) + first.get("solve", 0.0))}
+    return Floor(body, A, system.b, cons, solver, info)
 
 
 def profile_steps(world, body, steps: int, out_dir, slug: str) -> dict:

@@ -107,24 +107,31 @@ class UpperAssembly:
     """Assembly of symmetric element matrices into the upper blocks (row <= column) of the pattern.
 
     Only the node pairs a <= b of each element contribute: about half the entries of whole element
-    matrices. The result is component-major, (9, n_upper): row 3 i + j holds entry (i, j) of every
-    upper block (a pair whose global nodes run the other way goes in transposed), so that a per-block
-    linear map (an isotropic material's stiffness, see :func:`softbody.warping.isotropic_matrix`) is
-    one (9, 9) matrix product. ``full`` then mirrors the upper blocks into block data (nnzb, 3, 3).
+    matrices. The result is the upper block data (n_upper, 9), each block row-major (a pair whose
+    global nodes run the other way goes in transposed), so that a per-block linear map (an isotropic
+    material's stiffness, see :func:`softbody.warping.isotropic_matrix`) is one (9, 9) matrix product.
+    ``full`` then mirrors the upper blocks into block data (nnzb, 3, 3).
 
     Two input layouts, fixed at construction:
-    - "pairs": the 3x3 blocks of the P pairs, component-major (P, 3, 3, E) (one-point elements);
-    - "matrices": whole element matrices (E, 3k, 3k) (interleaved dofs), of which the pairs are picked.
+    - "pairs": the 3x3 blocks of the node pairs a < b, component-major (P, 3, 3, E) (one-point
+      elements), summed by ``np.bincount``. The diagonal blocks are not assembled: ``full`` sets each to
+      minus the sum of the other blocks of its row. That is exact for matrices whose block rows sum to
+      zero, as every stiffness (and Gram) matrix of shape-function gradients does (the gradients of a
+      partition of unity sum to zero: translations cost no energy), and it saves 4 of tet4's 10 pairs;
+    - "matrices": whole element matrices (E, 3k, 3k) (interleaved dofs), of which the pairs a <= b are
+      picked and summed by one product with a 0/1 summation matrix (CSR, a row per upper entry): its
+      gathers run along the element matrices' rows, measured 1.5-2x faster than a gather and a bincount.
+      Their diagonal pairs are computed anyway, so they are summed rather than rebuilt from the rows.
     """
 
     pattern: BlockPattern
     layout: str
-    pairs: np.ndarray  # (P, 2) local nodes a <= b
-    select: np.ndarray | None  # "matrices": flat index of each contribution in (E, 3k, 3k)
-    scatter: np.ndarray  # target in (9, n_upper).ravel() of each contribution
+    pairs: np.ndarray  # (P, 2) local nodes a < b ("pairs") or a <= b ("matrices")
+    scatter: np.ndarray | None  # "pairs": target in (n_upper, 9).ravel() of each contribution
+    summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2)
     n_upper: int
-    upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
-    full_from_upper: np.ndarray  # (9 nnzb,) entry of (9, n_upper).ravel() that each block entry copies
+    upper: np.ndarray  # (nnzb,) bool: an assembled block, (A, B) with A < B ("pairs") or A <= B
+    full_from_upper: np.ndarray  # (9 nnzb,) entry of (n_upper + 1, 9).ravel() that each block entry copies
 
     @classmethod
     def from_elements(cls, pattern: BlockPattern, elements: np.ndarray, layout: str) -> "UpperAssembly":
@@ -132,8 +139,9 @@ class UpperAssembly:
             raise ValueError(f"layout must be 'pairs' or 'matrices', got {layout!r}")
         E, k = elements.shape
         N = pattern.n_nodes
-        pairs = np.stack(np.triu_indices(k), axis=1)
-        upper = pattern.block_row <= pattern.indices
+        rows_sum = layout == "pairs"  # diagonal blocks from the block-row sums
+        pairs = np.stack(np.triu_indices(k, 1 if rows_sum else 0), axis=1)
+        upper = pattern.block_row < pattern.indices if rows_sum else pattern.block_row <= pattern.indices
         n_upper = int(upper.sum())
         ub = np.cumsum(upper) - 1  # upper-block number of each upper block
         a, b = elements[:, pairs[:, 0]].T, elements[:, pairs[:, 1]].T  # (P, E)
@@ -141,29 +149,40 @@ class UpperAssembly:
         key = np.where(swap, b, a).astype(np.int64) * N + np.where(swap, a, b)
         blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]  # (P, E)
         i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        row = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
-        target = row * n_upper + blk[:, None, None, :]  # (P, 3, 3, E)
-        select = None
+        entry = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
+        target = 9 * blk[:, None, None, :] + entry  # (P, 3, 3, E)
+        scatter = summation = None
         if layout == "pairs":
             scatter = target.reshape(-1)
-        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices, in memory order
-            within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).reshape(-1)
-            order = np.argsort(within)  # (P 9,) contributions of one element in memory order
-            select = ((9 * k * k) * np.arange(E)[:, None] + within[order][None]).reshape(-1)
-            scatter = target.reshape(-1, E)[order].T.reshape(-1)
+        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices
+            within = (3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j  # (P, 3, 3)
+            cols = (9 * k * k) * np.arange(E) + within[..., None]  # (P, 3, 3, E)
+            summation = sp.csr_matrix((np.ones(cols.size), (target.reshape(-1), cols.reshape(-1))),
+                                      shape=(9 * n_upper, 9 * k * k * E))
+            summation.indices = summation.indices.astype(np.int32)
+            summation.indptr = summation.indptr.astype(np.int32)
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
-        row = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
-        full_from_upper = (row * n_upper + ub[src][:, None, None]).reshape(-1)
-        return cls(pattern, layout, pairs, select, scatter, n_upper, upper, full_from_upper)
+        entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
+        ub_src = ub[src]
+        if rows_sum:  # the diagonal blocks copy a zero block, then get minus their row sums
+            ub_src = np.where(pattern.block_row == pattern.indices, n_upper, ub_src)
+        full_from_upper = (9 * ub_src[:, None, None] + entry).reshape(-1)
+        return cls(pattern, layout, pairs, scatter, summation, n_upper, upper, full_from_upper)
 
     def assemble(self, contributions: np.ndarray) -> np.ndarray:
-        """Upper blocks, component-major (9, n_upper), from pair blocks (P, 3, 3, E) ("pairs") or element
-        matrices (E, 3k, 3k) ("matrices")."""
+        """Upper block data (n_upper, 9) from pair blocks (P, 3, 3, E) ("pairs") or element matrices
+        (E, 3k, 3k) ("matrices")."""
         w = contributions.reshape(-1)
-        if self.select is not None:
-            w = w[self.select]
-        return np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(9, -1)
+        if self.summation is not None:
+            return (self.summation @ w).reshape(-1, 9)
+        return np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(-1, 9)
 
     def full(self, upper: np.ndarray) -> np.ndarray:
-        """Block data (nnzb, 3, 3) of the symmetric matrix with component-major upper blocks (9, n_upper)."""
-        return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)
+        """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper`` (n_upper, 9)
+        (for "pairs": with zero block-row sums, and blocks above the diagonal ``upper``)."""
+        if self.layout == "matrices":
+            return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)
+        blocks = np.concatenate([upper.reshape(-1), np.zeros(9)])[self.full_from_upper].reshape(-1, 9)
+        p = self.pattern
+        blocks[p.diag] = -np.add.reduceat(blocks, p.indptr[:-1], axis=0)
+        return blocks.reshape(-1, 3, 3)

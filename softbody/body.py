@@ -323,12 +323,12 @@ class FemBody:
         ua = self._upper
         if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
-            S9 = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
+            S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
         else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
-            S9 = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        K = ua.full(self._isotropic @ S9)
+            S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
+        K = ua.full(S @ self._isotropic.T)
         result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
         if R is None:  # warping off: the same every step
             for a in result:

@@ -59,8 +59,8 @@ def rest_load_operator(elements: np.ndarray, P: np.ndarray, n_nodes: int) -> sp.
 
 
 def isotropic_matrix(lam: float, mu: float) -> np.ndarray:
-    """The (9, 9) map L with K9 = L @ S9 for component-major 3x3 blocks (row 3 i + j holds entry (i, j)):
-    K = lam S + mu S^T + mu tr(S) I.
+    """The (9, 9) map L with K = L S for 3x3 blocks flattened row-major (entry 3 i + j holds (i, j)):
+    K = lam S + mu S^T + mu tr(S) I. For blocks stacked as rows (n, 9): K = S @ L.T.
 
     With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), K is the isotropic small-strain
     stiffness block K_ab; it is linear in S, so it applies after assembly, to each assembled block.
