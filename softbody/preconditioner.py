@@ -64,6 +64,7 @@ class Preconditioner:
     iterations: int = 0
     eliminated: np.ndarray | None = None
     column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
+    previous_velocities: np.ndarray | None = None  # at the start of the last step, for the PCG's warm start
     _slot: dict = field(default_factory=dict)  # node -> its first column in _Y
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
 
