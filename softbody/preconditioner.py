@@ -31,19 +31,18 @@ from .linsolve import SpdSolver
 class ConstraintCorrection:
     """The Schur-complement correction for constrained directions at M nodes.
 
-    rows (3M,): the nodes' dofs; B (3M, m): the m constrained unit directions at those dofs, in P's
-    frames; Y (n_dof, 3M): P^-1 of the nodes' unit vectors; S: Cholesky factor of B^T Y[rows] B.
+    rows (3M,): the nodes' dofs; Y (n_dof, 3M): P^-1 of the nodes' unit vectors; G (3M, 3M):
+    B S^-1 B^T, with B (3M, m) the m constrained unit directions at those dofs in P's frames and
+    S = B^T Y[rows] B, so that P^-1 E S^-1 E^T P^-1 g = Y G (P^-1 g)[rows].
     """
 
     rows: np.ndarray
-    B: np.ndarray
     Y: np.ndarray
-    S: tuple
+    G: np.ndarray
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """u = P^-1 g (n_dof,) -> (P restricted to the complement of E)^-1 g, in place."""
-        beta = sla.cho_solve(self.S, self.B.T @ u[self.rows])
-        u -= self.Y @ (self.B @ beta).astype(self.Y.dtype, copy=False)
+        u -= self.Y @ (self.G @ u[self.rows]).astype(self.Y.dtype, copy=False)
         return u
 
 
@@ -105,4 +104,5 @@ class Preconditioner:
         blocks[np.arange(M), :, np.arange(M), :] = frames
         B = blocks.reshape(3 * M, 3 * M)[:, mask.ravel()]
         S = B.T @ (Y[rows].astype(float) @ B)
-        return ConstraintCorrection(rows, B, Y, sla.cho_factor(0.5 * (S + S.T)))
+        L = sla.cho_factor(0.5 * (S + S.T))
+        return ConstraintCorrection(rows, Y, B @ sla.cho_solve(L, B.T))
