@@ -24,11 +24,14 @@ from softbody.integrator import Constraints, LinearSystem, merge
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """Orthonormal frames (m, 3, 3) with the unit normals (m, 3) as first column."""
-    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    helper = np.where(np.abs(n[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-    t1 = np.cross(n, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(n, t1)
+    n = normals / np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None]
+    x, y, z = n.T
+    # t1 = n x e_x (or n x e_y where n is nearly along x), normalised; t2 = n x t1
+    along_x = np.abs(x) >= 0.9
+    t1 = np.where(along_x[:, None], np.stack([-z, np.zeros_like(x), x], axis=1), np.stack([np.zeros_like(x), z, -y], axis=1))
+    t1 /= np.sqrt(np.einsum("mi,mi->m", t1, t1))[:, None]
+    a, b, c = t1.T
+    t2 = np.stack([y * c - z * b, z * a - x * c, x * b - y * a], axis=1)
     return np.stack([n, t1, t2], axis=2)
 
 

@@ -376,22 +376,23 @@ class IterativeSystem:
         if np.linalg.norm(r) <= atol:
             return y, r_full, 0, True
         z = self._precondition(r, free, C, fix)
-        d = z
-        rz = float(np.sum(r * z))
+        d = z.copy()
+        rz = float(np.vdot(r, z))
         for it in range(1, self.settings.max_iter + 1):
             Ad = A(d)
-            dAd = float(np.sum(d * Ad))
+            dAd = float(np.vdot(d, Ad))
             if not dAd > 0:
                 return y, r_full, it, False
             a = rz / dAd
-            y = y + a * d
-            r_full = r_full - a * Ad
+            y += a * d  # y and r_full are the caller's own arrays
+            r_full -= a * Ad
             r = np.where(free, r_full, 0.0)
             if np.linalg.norm(r) <= atol:
                 return y, r_full, it, True
             z = self._precondition(r, free, C, fix)
-            rz_new = float(np.sum(r * z))
-            d = z + (rz_new / rz) * d
+            rz_new = float(np.vdot(r, z))
+            d *= rz_new / rz
+            d += z
             rz = rz_new
         return y, r_full, self.settings.max_iter, False
 
