@@ -1,7 +1,8 @@
 """Collision detection between soft-body surface nodes and rigid shapes, through pybullet's queries.
 
 Broad phase in numpy: a soft body's surface AABB against each rigid body's AABB (from pybullet),
-then only the surface nodes inside the rigid's AABB grown by the margin become candidates. Narrow
+then only the surface nodes inside the rigid's AABB and its bounding sphere, both grown by the
+margin, become candidates. Narrow
 phase: pybullet's ``getClosestPoints`` of a point probe at each candidate against the rigid body,
 which gives the closest point, the outward normal and the signed distance (for concave triangle
 meshes the sign comes from trimesh's inside test). Sharp rigid features (box corners, mesh
@@ -68,6 +69,10 @@ class CollisionDetector:
         x = positions[surface_nodes]
         lo, hi = rigid.aabb()
         inside = np.all((x >= lo - margin) & (x <= hi + margin), axis=1)
+        reach = rigid.bounding_radius() + margin
+        if np.isfinite(reach):  # and inside the shape's bounding sphere (for a sphere: exact)
+            c, _ = rigid.pose()
+            inside &= np.einsum("ij,ij->i", x - c, x - c) <= reach * reach
         cand = surface_nodes[inside]
         self.last_candidates += len(cand)
         if not len(cand):

@@ -84,6 +84,18 @@ class RigidBody:
         lo, hi = p.getAABB(self.id, physicsClientId=self.client)
         return np.array(lo), np.array(hi)
 
+    def bounding_radius(self) -> float:
+        """Radius [m] of a sphere about the body's origin that holds the whole shape (inf for a plane)."""
+        if self.shape == "sphere":
+            return float(self.params["radius"])
+        if self.shape == "box":
+            return float(np.linalg.norm(self.params["half_extents"]))
+        if self.shape == "mesh":
+            if "_bounding_radius" not in self.__dict__:
+                self._bounding_radius = float(np.linalg.norm(np.asarray(self.params["vertices"]), axis=1).max())
+            return self._bounding_radius
+        return float("inf")
+
     def surface_vertices(self) -> np.ndarray:
         """World positions of the shape's sharp vertices (box corners, mesh vertices); (0, 3) for smooth shapes."""
         if self.shape == "box":

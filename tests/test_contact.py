@@ -202,3 +202,37 @@ def test_scene_without_rigid_bodies_does_no_collision_work():
     body.fix(np.flatnonzero(np.isclose(m.nodes[:, 0], 0)))
     world.run(0.05)
     assert world.detector.last_candidates == 0 and len(world.contacts) == 0
+
+
+def test_bounding_sphere_broad_phase_keeps_every_contact():
+    """The broad phase culls candidates by the rigid's AABB and bounding sphere (grown by the margin);
+    every point pybullet finds within the margin of a sphere, a turned box or a mesh is still found,
+    with the same closest point and distance."""
+    import pybullet as p
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    world = World()
+    rigids = [world.add_sphere(0.3, position=(0.1, -0.2, 0.05)),
+              world.add_box((0.3, 0.1, 0.2), position=(-0.1, 0.2, 0.0),
+                            orientation=Rotation.from_euler("xyz", [0.3, -0.5, 0.9]).as_quat()),
+              world.add_mesh(trimesh.creation.icosphere(subdivisions=1, radius=0.25), position=(0.3, 0.1, -0.1))]
+    margin = 0.05
+    rng = np.random.default_rng(11)
+    for rb in rigids:
+        lo, hi = rb.aabb()
+        pts = rng.uniform(lo - 2 * margin, hi + 2 * margin, size=(3000, 3))
+        found = world.detector.node_contacts(0, pts, np.arange(len(pts)), rb, margin)
+        brute = {}
+        for i, x in enumerate(pts.tolist()):
+            res = p.getClosestPoints(-1, rb.id, margin, collisionShapeA=world.detector._probe,
+                                     collisionShapePositionA=x, physicsClientId=world.client)
+            if res:
+                brute[i] = min(r[8] for r in res)
+        assert len(brute) > 50  # the test samples the margin layer, not only empty space
+        assert set(found.node.tolist()) == set(brute), rb.shape
+        if not rb.concave:
+            np.testing.assert_allclose(found.distance, [brute[i] for i in found.node.tolist()], atol=1e-12)
+        assert world.detector.last_candidates < len(pts)  # and it did cull
+        world.detector.last_candidates = 0
+    world.close()
