@@ -18,11 +18,10 @@ no extra iterations, and a node that stays in contact costs nothing after its fi
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg as sla
 
 from .linsolve import SpdSolver
 
@@ -64,32 +63,33 @@ class Preconditioner:
     eliminated: np.ndarray | None = None
     column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
     previous_velocities: np.ndarray | None = None  # at the start of the last step, for the PCG's warm start
-    _slot: dict = field(default_factory=dict)  # node -> its first column in _Y
+    _slot: np.ndarray | None = None  # (N,) first column of each node's P^-1 columns in _Y, -1: none yet
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
+    _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call
 
     def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
         """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""
         self.T, self.Q, self.eliminated = T, Q, eliminated
         self.stale = False
         self.factorizations += 1
-        self._slot, self._Y = {}, None
+        self._slot, self._Y, self._last = np.full(len(eliminated), -1), None, (None, None)
 
     def columns(self, nodes: np.ndarray) -> np.ndarray:
         """P^-1 of the unit vectors of ``nodes`` (M,), (n_dof, 3M); solves for the nodes not cached yet."""
-        new = [int(n) for n in nodes if int(n) not in self._slot]
-        if new:
+        new = nodes[self._slot[nodes] < 0]
+        if len(new):
             n_dof = self.solver.n
             E = np.zeros((n_dof, 3 * len(new)), order="F")
-            dofs = (3 * np.asarray(new)[:, None] + np.arange(3)).ravel()
-            E[dofs, np.arange(3 * len(new))] = 1.0
+            E[(3 * new[:, None] + np.arange(3)).ravel(), np.arange(3 * len(new))] = 1.0
             Ynew = np.asfortranarray(self.solver.solve(E).reshape(n_dof, -1), dtype=self.solver.dtype)
             start = 0 if self._Y is None else self._Y.shape[1]
             self._Y = Ynew if self._Y is None else np.concatenate([self._Y, Ynew], axis=1)
-            for i, n in enumerate(new):
-                self._slot[n] = start + 3 * i
+            self._slot[new] = start + 3 * np.arange(len(new))
             self.column_nodes += len(new)
-        cols = (np.array([self._slot[int(n)] for n in nodes])[:, None] + np.arange(3)).ravel()
-        return self._Y[:, cols]
+        slots = self._slot[nodes]
+        if self._last[0] is None or not np.array_equal(self._last[0], slots):  # else the same gather as last time
+            self._last = (slots, self._Y[:, (slots[:, None] + np.arange(3)).ravel()])
+        return self._last[1]
 
     def correction(self, nodes: np.ndarray, mask: np.ndarray, frames: np.ndarray) -> ConstraintCorrection:
         """The correction for constrained components ``mask`` (M, 3) of ``nodes`` (M,), whose local axes
@@ -100,9 +100,10 @@ class Preconditioner:
         M = len(nodes)
         Y = self.columns(nodes)
         rows = (3 * nodes[:, None] + np.arange(3)).ravel()
-        blocks = np.zeros((M, 3, M, 3))
-        blocks[np.arange(M), :, np.arange(M), :] = frames
-        B = blocks.reshape(3 * M, 3 * M)[:, mask.ravel()]
+        j, i = np.nonzero(mask)  # constraint c: node j[c], local axis i[c]
+        B = np.zeros((3 * M, len(j)))
+        B[3 * j[:, None] + np.arange(3), np.arange(len(j))[:, None]] = frames[j, :, i]
         S = B.T @ (Y[rows].astype(float) @ B)
-        L = sla.cho_factor(0.5 * (S + S.T))
-        return ConstraintCorrection(rows, Y, B @ sla.cho_solve(L, B.T))
+        L = np.linalg.cholesky(0.5 * (S + S.T))  # LinAlgError unless positive definite
+        X = np.linalg.solve(L, B.T)  # G = B S^-1 B^T = X^T X
+        return ConstraintCorrection(rows, Y, X.T @ X)
