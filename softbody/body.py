@@ -279,10 +279,27 @@ class FemBody:
         """M y for y (N, 3); returns (N, 3)."""
         return self._mass_csr @ y
 
-    def node_rotations(self, R: np.ndarray, tol: float = 1e-12) -> np.ndarray:
-        """Per-node rotation (N, 3, 3): polar factor (to ``tol``) of the sum of the adjacent elements' R_e (E, 3, 3)."""
+    def node_frames(self, R: np.ndarray) -> np.ndarray:
+        """Per-node rotations (N, 3, 3) close to the mean of the adjacent elements' R_e (E, 3, 3), for
+        conjugating a preconditioner: Gram-Schmidt of the first two columns of their sum S. A third of
+        the cost of S's polar factor and equal to it when the R_e agree; on the tet10 (9,9,2) sheet the
+        PCG needed 1% more iterations than with the polar factor. Nodes whose S is nearly singular
+        (adjacent elements turned far apart) get the polar factor."""
         S9 = (self._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
-        return polar_rotation_components(S9, tol=tol).T.reshape(-1, 3, 3)
+        a, b = S9[[0, 3, 6]], S9[[1, 4, 7]]  # columns 0 and 1 of every S, (3, N)
+        na = np.sqrt(np.einsum("in,in->n", a, a))
+        a = a / np.where(na > 0, na, 1.0)
+        b = b - np.einsum("in,in->n", a, b) * a
+        nb = np.sqrt(np.einsum("in,in->n", b, b))
+        b = b / np.where(nb > 0, nb, 1.0)
+        Q = np.empty((S9.shape[1], 3, 3))
+        Q[:, :, 0], Q[:, :, 1] = a.T, b.T
+        Q[:, :, 2] = np.cross(a.T, b.T)
+        scale = 1e-3 * np.sqrt(np.einsum("kn,kn->n", S9, S9))  # |S| is about sqrt(3) x adjacent elements
+        bad = (na <= scale) | (nb <= scale)
+        if bad.any():
+            Q[bad] = polar_rotation_components(S9[:, bad]).T.reshape(-1, 3, 3)
+        return Q
 
     def elastic_forces(self, x: np.ndarray | None = None) -> np.ndarray:
         """Global elastic forces (N, 3) [N] at positions x (default: current), warped if warping is on."""

@@ -431,7 +431,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         pre = body.__dict__["_preconditioner"] = Preconditioner(
             SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     with timed(timings, "rotations"):
-        Q = body.node_rotations(R, tol=1e-6) if body.warping else None
+        Q = body.node_frames(R) if body.warping else None
     # warm start: the velocity extrapolated linearly from the last two steps' (a better guess than v
     # alone when the motion is smooth: on the tet10 (9,9,2) sheet-on-sphere run, 3.3 instead of 3.6 PCG
     # iterations and a third of the refactorisations per step)

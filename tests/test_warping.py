@@ -198,3 +198,31 @@ def test_assembled_warped_stiffness_and_loads_match_rotated_element_matrices(kin
     K0, _ = plain.warped_stiffness_blocks(None)
     np.testing.assert_allclose(K0, plain.pattern.assemble(plain.Ke), rtol=0, atol=1e-12 * np.abs(K0).max())
     assert plain.warped_stiffness_blocks(None)[0] is K0 and not K0.flags.writeable
+
+
+def test_node_frames_are_rotations_that_follow_the_elements():
+    """FemBody.node_frames: proper rotations; equal to R0 when every element turns by R0; within the
+    elements' spread of the polar factor of their sum; finite where adjacent elements turn apart."""
+    from scipy.spatial.transform import Rotation
+    from softbody.rotation import polar_rotation
+
+    body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (3, 2, 2), "tet10"), softbody.LinearElastic(1e6, 0.3, 1000.0))
+    E = body.mesh.n_elements
+    R0 = Rotation.random(random_state=3).as_matrix()
+    np.testing.assert_allclose(body.node_frames(np.broadcast_to(R0, (E, 3, 3))), np.broadcast_to(R0, (body.n_nodes, 3, 3)),
+                               atol=1e-14)
+    wobble = Rotation.from_rotvec(0.01 * np.random.default_rng(4).standard_normal((E, 3))).as_matrix()
+    R = R0 @ wobble
+    Q = body.node_frames(R)
+    np.testing.assert_allclose(Q @ np.swapaxes(Q, 1, 2), np.broadcast_to(np.eye(3), Q.shape), atol=1e-13)
+    np.testing.assert_allclose(np.linalg.det(Q), 1.0, atol=1e-13)
+    S = np.zeros((body.n_nodes, 3, 3))
+    np.add.at(S, body.mesh.elements, np.repeat(R[:, None], body.mesh.elements.shape[1], axis=1))
+    assert np.abs(Q - polar_rotation(S)).max() < 0.03  # within the 0.01 rad spread, not exact
+    # a node whose two elements turn by 180 degrees apart: S is singular there
+    mesh = softbody.Mesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1.0]]),
+                   np.array([[0, 1, 2, 3], [0, 2, 1, 4]]), "tet4")
+    two = softbody.FemBody(mesh, softbody.LinearElastic(1e6, 0.3, 1000.0))
+    Q = two.node_frames(np.stack([np.eye(3), Rotation.from_euler("z", np.pi).as_matrix()]))
+    assert np.isfinite(Q).all()
+    np.testing.assert_allclose(np.linalg.det(Q), 1.0, atol=1e-12)
