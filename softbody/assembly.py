@@ -114,8 +114,8 @@ class UpperAssembly:
 
     Two input layouts, fixed at construction:
     - "pairs": the 3x3 blocks of the node pairs a < b, component-major (P, 3, 3, E) (one-point
-      elements), summed by ``np.bincount``. The diagonal blocks are not assembled: ``full`` sets each to
-      minus the sum of the other blocks of its row. That is exact for matrices whose block rows sum to
+      elements), summed by ``np.bincount``. The diagonal blocks are not assembled: each is set to minus
+      the sum of the other blocks of its block row. That is exact for matrices whose block rows sum to
       zero, as every stiffness (and Gram) matrix of shape-function gradients does (the gradients of a
       partition of unity sum to zero: translations cost no energy), and it saves 4 of tet4's 10 pairs;
     - "matrices": whole element matrices (E, 3k, 3k) (interleaved dofs), of which the pairs a <= b are
@@ -130,8 +130,10 @@ class UpperAssembly:
     scatter: np.ndarray | None  # "pairs": target in (n_upper, 9).ravel() of each contribution
     summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2)
     n_upper: int
-    upper: np.ndarray  # (nnzb,) bool: an assembled block, (A, B) with A < B ("pairs") or A <= B
-    full_from_upper: np.ndarray  # (9 nnzb,) entry of (n_upper + 1, 9).ravel() that each block entry copies
+    upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
+    diag: np.ndarray  # (N,) upper-block number of each node's diagonal block
+    row_col_sums: sp.csr_matrix | None  # "pairs": (2N, n_upper) 0/1, sums of the upper blocks per block row / column
+    full_from_upper: np.ndarray  # (9 nnzb,) entry of (n_upper, 9).ravel() that each block entry copies
 
     @classmethod
     def from_elements(cls, pattern: BlockPattern, elements: np.ndarray, layout: str) -> "UpperAssembly":
@@ -139,9 +141,8 @@ class UpperAssembly:
             raise ValueError(f"layout must be 'pairs' or 'matrices', got {layout!r}")
         E, k = elements.shape
         N = pattern.n_nodes
-        rows_sum = layout == "pairs"  # diagonal blocks from the block-row sums
-        pairs = np.stack(np.triu_indices(k, 1 if rows_sum else 0), axis=1)
-        upper = pattern.block_row < pattern.indices if rows_sum else pattern.block_row <= pattern.indices
+        pairs = np.stack(np.triu_indices(k, 1 if layout == "pairs" else 0), axis=1)
+        upper = pattern.block_row <= pattern.indices
         n_upper = int(upper.sum())
         ub = np.cumsum(upper) - 1  # upper-block number of each upper block
         a, b = elements[:, pairs[:, 0]].T, elements[:, pairs[:, 1]].T  # (P, E)
@@ -151,9 +152,12 @@ class UpperAssembly:
         i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
         entry = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
         target = 9 * blk[:, None, None, :] + entry  # (P, 3, 3, E)
-        scatter = summation = None
+        scatter = summation = sums = None
         if layout == "pairs":
             scatter = target.reshape(-1)
+            rows, cols = pattern.block_row[upper], pattern.indices[upper]
+            sums = sp.csr_matrix((np.ones(2 * n_upper), (np.r_[rows, N + cols], np.tile(np.arange(n_upper), 2))),
+                                 shape=(2 * N, n_upper))
         else:  # entry (e, 3 a + i, 3 b + j) of the element matrices
             within = (3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j  # (P, 3, 3)
             cols = (9 * k * k) * np.arange(E) + within[..., None]  # (P, 3, 3, E)
@@ -163,11 +167,9 @@ class UpperAssembly:
             summation.indptr = summation.indptr.astype(np.int32)
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
         entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
-        ub_src = ub[src]
-        if rows_sum:  # the diagonal blocks copy a zero block, then get minus their row sums
-            ub_src = np.where(pattern.block_row == pattern.indices, n_upper, ub_src)
-        full_from_upper = (9 * ub_src[:, None, None] + entry).reshape(-1)
-        return cls(pattern, layout, pairs, scatter, summation, n_upper, upper, full_from_upper)
+        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
+        return cls(pattern, layout, pairs, scatter, summation, n_upper, upper, ub[pattern.diag], sums,
+                   full_from_upper)
 
     def assemble(self, contributions: np.ndarray) -> np.ndarray:
         """Upper block data (n_upper, 9) from pair blocks (P, 3, 3, E) ("pairs") or element matrices
@@ -175,14 +177,14 @@ class UpperAssembly:
         w = contributions.reshape(-1)
         if self.summation is not None:
             return (self.summation @ w).reshape(-1, 9)
-        return np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(-1, 9)
+        U = np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(-1, 9)
+        # diagonal blocks (still zero): minus the sums of the other blocks of their row, the blocks
+        # right of it in the upper data and the transposes of those above it
+        N = self.pattern.n_nodes
+        s = self.row_col_sums @ U
+        U[self.diag] = -(s[:N] + s[N:, [0, 3, 6, 1, 4, 7, 2, 5, 8]])
+        return U
 
     def full(self, upper: np.ndarray) -> np.ndarray:
-        """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper`` (n_upper, 9)
-        (for "pairs": with zero block-row sums, and blocks above the diagonal ``upper``)."""
-        if self.layout == "matrices":
-            return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)
-        blocks = np.concatenate([upper.reshape(-1), np.zeros(9)])[self.full_from_upper].reshape(-1, 9)
-        p = self.pattern
-        blocks[p.diag] = -np.add.reduceat(blocks, p.indptr[:-1], axis=0)
-        return blocks.reshape(-1, 3, 3)
+        """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper`` (n_upper, 9)."""
+        return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)

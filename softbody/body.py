@@ -155,6 +155,7 @@ class FemBody:
         self.D = D
 
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
+        self._mass_upper = self.M_data[self._upper.upper]  # (n_upper,) on the upper blocks
         self.M_blocks = self.M_data[:, None, None] * np.eye(3)  # (nnzb, 3, 3)
         n = mesh.n_nodes
         self._mass_csr = sp.csr_matrix((self.M_data, self.pattern.indices, self.pattern.indptr), shape=(n, n))
@@ -326,6 +327,19 @@ class FemBody:
         """Assembled warped stiffness K' = sum_e R_e K_e R_e^T (block data (nnzb, 3, 3) [N/m]) and the
         warped rest loads sum_e R_e K_e X_e (N, 3) [N], so that the elastic forces are
         f = -K' (x - c) + rest loads for any point c (K' annihilates translations). R: (E, 3, 3) or None.
+        """
+        if R is None and "_rest_blocks" in self.__dict__:
+            return self._rest_blocks
+        K, load = self.warped_stiffness_upper(R)
+        K = self._upper.full(K)
+        if R is None:  # warping off: the same every step
+            K.flags.writeable = False
+            self._rest_blocks = K, load
+        return K, load
+
+    def warped_stiffness_upper(self, R: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """As ``warped_stiffness_blocks``, with K' as its upper blocks (n_upper, 9) (see
+        :class:`softbody.assembly.UpperAssembly`; ``system_blocks`` makes a system matrix of them).
 
         The material is isotropic, so R K_e(dN/dX) R^T = K_e(R dN/dX): the warped element stiffness
         is the rest formula with rotated gradients g = R dN/dX. Per quadrature point its 3x3 blocks
@@ -333,25 +347,30 @@ class FemBody:
         so only S is summed (over the pairs a <= b, into the upper blocks) and K' follows per block. Likewise
         K_e X_e = sum_q w detJ (3 lam + 2 mu) g_a (as sum_b X_b g_b^T = I), one sparse product of R.
         """
-        if R is None and "_rest_blocks" in self.__dict__:
-            return self._rest_blocks
+        if R is None and "_rest_upper" in self.__dict__:
+            return self._rest_upper
         E, q, k, _ = self._Gw.shape
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
         ua = self._upper
-        if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a <= b, (P, 3, 3, E)
+        if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
             S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
         else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
             S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        K = ua.full(S @ self._isotropic.T)
-        result = K, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        result = S @ self._isotropic.T, (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
         if R is None:  # warping off: the same every step
             for a in result:
                 a.flags.writeable = False
-            self._rest_blocks = result
+            self._rest_upper = result
         return result
+
+    def system_blocks(self, K_upper: np.ndarray, c_m: float, c_k: float) -> np.ndarray:
+        """Block data (nnzb, 3, 3) of c_m M + c_k K for K given by its upper blocks (n_upper, 9)."""
+        A = c_k * K_upper
+        A[:, [0, 4, 8]] += (c_m * self._mass_upper)[:, None]
+        return self._upper.full(A)
 
     def elastic_energy(self, x: np.ndarray | None = None) -> float:
         """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""

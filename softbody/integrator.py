@@ -2,8 +2,8 @@
 
 Data flows one way through a step:
 
-    positions -> rotations R_e -> K' = sum R K R^T assembled (FemBody.warped_stiffness_blocks)
-    -> f_el = -K' (x - c) + sum R K X,  A = (1 + h alpha) M + (h beta + h^2) K'
+    positions -> rotations R_e -> K' = sum R K R^T assembled (FemBody.warped_stiffness_upper)
+    -> A = (1 + h alpha) M + (h beta + h^2) K',  f_el = -K' (x - c) + sum R K X
     -> b = M v + h (f_el + f_ext) -> constraints (supports; contacts from the integration layer)
     -> solve A v' = b -> x' = x + h v'
 
@@ -15,8 +15,10 @@ zeroed, a scaled identity on the diagonal), so the symbolic factorisation runs o
 Two ways to solve, same answer to the stated tolerance:
 - ``DirectSystem``: factorise A every solve (the reference);
 - ``IterativeSystem``: conjugate gradients on the free components (one sparse product with A
-  per iteration), preconditioned by the last factorised system matrix (single precision),
-  conjugated with per-node rotations; it refactorises only when the iterations grow.
+  per iteration), warm-started from the velocity extrapolated from the last two steps and
+  preconditioned by the last factorised system matrix (single precision, supports eliminated),
+  conjugated with per-node rotations, with the other constrained nodes (contacts) removed exactly
+  by a Schur complement (softbody.preconditioner); it refactorises only when the iterations grow.
 """
 from __future__ import annotations
 
@@ -227,9 +229,12 @@ class IterativeSettings:
     ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
     and at once when CG fails to converge. With K' assembled every step, an iteration costs one
     sparse product and one single-precision triangular solve pair, a refactorisation one
-    single-precision numeric factorisation (about 10-20 iterations' worth on the sheet meshes).
-    Measured on the sheet-on-sphere runs, the step time is flat for refactor_after from 3 to 6:
-    fewer refactorisations are paid back in iterations one for one.
+    single-precision numeric factorisation (about 10-20 iterations' worth on the sheet meshes) plus
+    the Schur columns of the contact nodes (below). Contact changes no longer call for one, so
+    refactorisations follow the drift of K' alone. Measured on the tet10 (9,9,2) sheet-on-sphere run
+    (150 steps in contact, before the extrapolated warm start): refactor_after = 3 gave 3.3-3.6 PCG
+    iterations and 0.04-0.09 refactorisations per step, 4 gave 4.2 and 0.05, 6 and more a single
+    factorisation for the whole run and 5.7 iterations per step.
 
     The factorisation eliminates the supports only; every other constrained node (contacts) is removed
     from the preconditioner exactly by a Schur complement (softbody.preconditioner), for up to
@@ -246,16 +251,16 @@ class IterativeSystem:
     """A = c_m M + c_k K' (one assembled BSR matrix) and b (N, 3), solved by projected conjugate
     gradients preconditioned by the body's last factorised system matrix."""
 
-    def __init__(self, body: FemBody, K: np.ndarray, c_m: float, c_k: float, b: np.ndarray,
-                 x0: np.ndarray, pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
-                 Q: np.ndarray | None = None, terms: tuple[np.ndarray, ...] = ()):
+    def __init__(self, body: FemBody, A: np.ndarray, b: np.ndarray, x0: np.ndarray, pre: Preconditioner,
+                 settings: IterativeSettings, timings: Timings | None = None, Q: np.ndarray | None = None,
+                 terms: tuple[np.ndarray, ...] = (), A_op=None):
+        """A: block data (nnzb, 3, 3) of the system matrix (A_op: its BSR matrix, if already made);
+        b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3) per-node rotations for conjugating the
+        preconditioner; terms: the (N, 3) terms that sum to b, for the tolerance (IterativeSettings)."""
         self.body, self.b = body, b
-        self.terms = terms  # the (N, 3) terms that sum to b, for the scale of the tolerance (IterativeSettings)
-        with timed(timings, "assembly"):
-            self._A = c_k * K  # block data of A = c_m M + c_k K', for products and refactorisation
-            for i in range(3):  # M's blocks are multiples of I3
-                self._A[:, i, i] += c_m * body.M_data
-            self._A_op = body.pattern.to_bsr(self._A)
+        self.terms = terms
+        self._A = A
+        self._A_op = body.pattern.to_bsr(A) if A_op is None else A_op
         self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre
@@ -404,8 +409,9 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
                 settings: IterativeSettings | None = None, timings: Timings | None = None) -> LinearSystem:
     """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
 
-    K' and the warped elastic forces f_el = -K' (x - c) + sum_e R_e K_e X_e come from one assembly
-    (FemBody.warped_stiffness_blocks). method "direct" factorises A; "iterative" runs PCG (see the
+    K' (as its upper blocks, FemBody.warped_stiffness_upper) is assembled once, straight into
+    A = c_m M + c_k K'; the warped elastic forces f_el = -K' (x - c) + sum_e R_e K_e X_e take K' (x - c)
+    from A. method "direct" factorises A; "iterative" runs PCG (see the
     module doc). timings, if given, accumulates seconds per phase (rotations, assembly, forces,
     factorize, solve).
     """
@@ -413,17 +419,19 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     x, v = body.positions, body.velocities
     with timed(timings, "rotations"):
         R = body.rotations(x) if body.warping else None
+    c_m, c_k = 1.0 + h * alpha, h * beta + h * h
     with timed(timings, "assembly"):
-        K, load = body.warped_stiffness_blocks(R)
+        K, load = body.warped_stiffness_upper(R)
+        A = body.system_blocks(K, c_m, c_k)
+        A_op = body.pattern.to_bsr(A)
     with timed(timings, "forces"):
         u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
-        f_el = load - (body.pattern.to_bsr(K) @ u.reshape(-1)).reshape(-1, 3)
-        c_m, c_k = 1.0 + h * alpha, h * beta + h * h
-        terms = (body.mass_product(v), h * f_el, h * f_ext)
+        # K' u from the system matrix, (A u - c_m M u) / c_k: the round-off is that of K' u itself
+        # (both are dominated by the stiffness entries), and K' itself is never formed
+        Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+        terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
         b = terms[0] + terms[1] + terms[2]
     if method == "direct":
-        with timed(timings, "assembly"):
-            A = c_m * body.M_blocks + c_k * K
         return DirectSystem(body, A, b, solver, timings=timings)
     pre = body.__dict__.get("_preconditioner")
     if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
@@ -437,7 +445,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     # iterations and a third of the refactorisations per step)
     v_prev, pre.previous_velocities = pre.previous_velocities, v.copy()
     x0 = 2.0 * v - v_prev if v_prev is not None and v_prev.shape == v.shape else v
-    return IterativeSystem(body, K, c_m, c_k, b, x0, pre, settings or IterativeSettings(), timings, Q, terms)
+    return IterativeSystem(body, A, b, x0, pre, settings or IterativeSettings(), timings, Q, terms, A_op)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -75,10 +75,10 @@ def test_preconditioner_follows_node_rotations_and_frames_exactly():
     pre = Preconditioner(SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, precision="double"), None, None)
     b = rng.standard_normal((n, 3))
     c_m, c_k = 1.0, 1e-3
-    first = IterativeSystem(body, K0, c_m, c_k, b, np.zeros((n, 3)), pre, IterativeSettings(tol=1e-10), Q=Q0)
+    first = IterativeSystem(body, c_m * body.M_blocks + c_k * K0, b, np.zeros((n, 3)), pre, IterativeSettings(tol=1e-10), Q=Q0)
     first.solve(Constraints(nodes, mask, value, T0))
     assert pre.factorizations == 1 and not pre.stale
-    turned = IterativeSystem(body, K1, c_m, c_k, b, np.zeros((n, 3)), pre, IterativeSettings(tol=1e-10), Q=Q1)
+    turned = IterativeSystem(body, c_m * body.M_blocks + c_k * K1, b, np.zeros((n, 3)), pre, IterativeSettings(tol=1e-10), Q=Q1)
     cons = Constraints(nodes, mask, value, Qrel[nodes] @ T0)
     y, _ = turned.solve(cons)
     assert pre.factorizations == 1 and turned.stats["iterations"] == 1
@@ -102,7 +102,7 @@ def test_iterative_solve_leaves_the_warm_start_untouched():
     x0 = np.random.default_rng(6).standard_normal((n, 3))
     before = x0.copy()
     pre = Preconditioner(SpdSolver(p.up_indptr, p.up_indices, body.n_dofs), None, None)
-    system = IterativeSystem(body, K, 1.0, 1e-3, np.zeros((n, 3)), x0, pre, IterativeSettings())
+    system = IterativeSystem(body, body.M_blocks + 1e-3 * K, np.zeros((n, 3)), x0, pre, IterativeSettings())
     nodes = np.array([0, 1, 2])
     system.solve(Constraints(nodes, np.ones((3, 3), bool), np.full((3, 3), 7.0), np.broadcast_to(np.eye(3), (3, 3, 3))))
     assert np.array_equal(x0, before)
@@ -152,12 +152,13 @@ def test_contact_set_changes_need_no_refactorisation():
                            np.r_[[np.eye(3)], frames])
 
     first = contacts(np.array([0, 5, 9]), np.array([[True, False, False], [True, True, True], [True, False, True]]), 1)
-    IterativeSystem(body, K, c_m, c_k, b, np.zeros((n, 3)), pre, settings).solve(first)
+    A = c_m * body.M_blocks + c_k * K
+    IterativeSystem(body, A, b, np.zeros((n, 3)), pre, settings).solve(first)
     assert pre.factorizations == 1
     assert pre.eliminated[3] and not pre.eliminated[[0, 5, 9]].any()  # the support only
     changed = contacts(np.array([5, 9, 14, 20]), np.array([[True, True, True], [True, False, False],
                                                             [True, True, True], [True, False, False]]), 2)
-    system = IterativeSystem(body, K, c_m, c_k, b, np.zeros((n, 3)), pre, settings)
+    system = IterativeSystem(body, A, b, np.zeros((n, 3)), pre, settings)
     y, r = system.solve(changed)
     assert pre.factorizations == 1 and system.stats["iterations"] == 1
     y_direct, r_direct = _direct(body, K, c_m, c_k, b, changed)
@@ -175,7 +176,7 @@ def test_more_contacts_than_the_correction_takes_are_eliminated_in_the_factorisa
     b = rng.standard_normal((n, 3))
     nodes = np.array([1, 4, 7, 11])
     cons = Constraints(nodes, np.ones((4, 3), bool), rng.standard_normal((4, 3)))
-    system = IterativeSystem(body, K, 1.0, 1e-3, b, np.zeros((n, 3)), pre,
+    system = IterativeSystem(body, body.M_blocks + 1e-3 * K, b, np.zeros((n, 3)), pre,
                              IterativeSettings(tol=1e-10, max_corrected_nodes=2))
     y, _ = system.solve(cons)
     assert pre.factorizations == 1 and pre.eliminated[nodes].all()
