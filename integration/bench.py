@@ -16,7 +16,8 @@ process, right after the timed blocks:
   floor (median of its repeats), the headline ratio; ``floor_ms`` is the median of the blocks' floors;
 * a cProfile of ``profile_steps`` more steps (top-20 table written to ``out_dir/profiles/``), with the
   largest number of calls per step of any function, to show there is no Python loop per element or node;
-* the peak RSS of the process (``ru_maxrss``) right after the timed steps.
+* the peak RSS of the process over the build, warm-up and timed steps (Linux's VmHWM, restarted
+  after each floor timing so that the floor's own solver does not count).
 
 pybullet's own FEM soft body (neo-Hookean, tets only) runs the same sheet-on-sphere scene on the identical
 tet4 mesh in another fresh process, with k = 1, 2, 4, ... substeps of h / k per 0.01 s step, over the same
@@ -132,11 +133,29 @@ def parse_config(item) -> Config:
 # ----------------------------------------------------------------------------------------------- child processes
 
 def _rss_mb() -> float:
-    """Peak resident set size of this process so far [MB] (Linux reports KiB, macOS bytes)."""
+    """Peak resident set size of this process [MB]: since the last ``_reset_peak_rss`` where Linux's
+    VmHWM allows it, else since the start (``ru_maxrss``; Linux reports KiB, macOS bytes)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     import resource
 
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
+
+
+def _reset_peak_rss() -> None:
+    """Restart the peak RSS (VmHWM) from the current RSS (Linux >= 4.0; a no-op elsewhere), so that the
+    floor's solver, which lives only while it is timed, does not count in the step's peak."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
 
 
 def _child(conn, func_name: str, spec: dict, threads: int) -> None:
@@ -270,7 +289,9 @@ def measure_config(spec: dict) -> dict:
     try:
         for _ in range(spec["warmup"]):
             one_step()
+        peak = _rss_mb()  # build and warm-up
         floor = capture_floor(world, body) if spec.get("floor_repeats", 0) > 0 else None
+        _reset_peak_rss()
         pre_f0, pre_i0 = _pcg_counters(body)
         direct0 = direct_factorizations[0]
         blocks = []
@@ -286,9 +307,11 @@ def measure_config(spec: dict) -> dict:
             n = len(walls)
             blocks.append({"ms_per_step": 1e3 * sum(walls) / n,
                            "phases_ms": {k: 1e3 * v / n for k, v in phase_sums.items()}})
+            peak = max(peak, _rss_mb())
             if floor is not None:  # outside the timed steps; the state is not touched
                 blocks[-1]["floor"] = floor.time(spec["floor_repeats"])
-        out["peak_rss_mb"] = _rss_mb()  # import + build + warm-up + timed steps
+                _reset_peak_rss()
+        out["peak_rss_mb"] = peak  # import + build + warm-up + timed steps, without the floor's solver
         n_timed = spec["steps"] * spec["repeats"]
         pre_f1, pre_i1 = _pcg_counters(body)
         pcg_factorizations, pcg_iterations = pre_f1 - pre_f0, pre_i1 - pre_i0
@@ -317,7 +340,6 @@ def measure_config(spec: dict) -> dict:
                        floor_ms=_median([f + s for f, s in fl]), floor_factorize_ms=_median([f for f, _ in fl]),
                        floor_solve_ms=_median([s for _, s in fl]), floor_ms_blocks=[f + s for f, s in fl],
                        step_over_floor=_median([b["ms_per_step"] / (f + s) for b, (f, s) in zip(blocks, fl)]))
-        out["rss_after_floor_mb"] = _rss_mb()
         if spec.get("profile_steps", 0) > 0:
             out["profile"] = profile_steps(world, body, spec["profile_steps"], spec.get("out_dir"),
                                            Config(spec["scene"], spec["element"], tuple(spec["cells"])).slug)
@@ -332,25 +354,34 @@ def measure_config(spec: dict) -> dict:
 
 @dataclass
 class Floor:
-    """A captured step system and its fresh double-precision solver, analysed and factorised once."""
+    """A captured step system, for timing the solver floor on it."""
 
     body: object
     A: object
     b: object
     cons: object
-    solver: object
     info: dict
 
     def time(self, repeats: int) -> tuple[float, float]:
-        """Medians over ``repeats`` of one numeric refactorisation and one solve [ms]."""
+        """Medians over ``repeats`` of one numeric refactorisation and one solve [ms], by a fresh
+        double-precision solver (backend "auto": PARDISO when available) whose analysis and first
+        factorisation run untimed; the solver is released afterwards."""
         from softbody.integrator import DirectSystem
+        from softbody.linsolve import SpdSolver
 
+        pat = self.body.pattern
+        solver = SpdSolver(pat.up_indptr, pat.up_indices, self.body.n_dofs, "auto", precision="double")
+        first = {}
+        DirectSystem(self.body, self.A, self.b, solver, timings=first).solve(self.cons)  # analysis + a first factorisation
+        self.info.setdefault("floor_first_ms", 1e3 * (first.get("factorize", 0.0) + first.get("solve", 0.0)))
+        self.info["floor_backend"] = solver.backend
         fact, solv = [], []
         for _ in range(repeats):
             t = {}
-            DirectSystem(self.body, self.A, self.b, self.solver, timings=t).solve(self.cons)
+            DirectSystem(self.body, self.A, self.b, solver, timings=t).solve(self.cons)
             fact.append(t["factorize"])
             solv.append(t["solve"])
+        del solver
         return 1e3 * _median(fact), 1e3 * _median(solv)
 
 
@@ -358,12 +389,9 @@ def capture_floor(world, body) -> Floor:
     """The next step's own system matrix and constraint set, for timing the solver floor.
 
     The next step runs as usual (untimed) while its system and the last constraint set given to its
-    solve are captured; then a fresh double-precision solver (backend "auto": PARDISO when available)
-    analyses A and factorises it once (``floor_first_ms``: analysis included, for reference).
+    solve are captured (``Floor.time`` then times them; ``floor_first_ms``: the first factorisation with
+    the analysis, for reference).
     """
-    from softbody.integrator import DirectSystem
-    from softbody.linsolve import SpdSolver
-
     captured = {}
     solve_velocities = world.sim.velocity_solver
 
@@ -388,13 +416,7 @@ def capture_floor(world, body) -> Floor:
     A = getattr(system, "A", None)  # DirectSystem: the assembled block data
     if A is None:  # IterativeSystem: its assembled c_m M + c_k K'(R)
         A = system.assemble()
-    pat = body.pattern
-    solver = SpdSolver(pat.up_indptr, pat.up_indices, body.n_dofs, "auto", precision="double")
-    first = {}
-    DirectSystem(body, A, system.b, solver, timings=first).solve(cons)  # symbolic analysis + a first factorisation
-    info = {"floor_backend": solver.backend, "floor_constraints": int(len(cons)),
-            "floor_first_ms": 1e3 * (first.get("factorize", 0.0) + first.get("solve", 0.0))}
-    return Floor(body, A, system.b, cons, solver, info)
+    return Floor(body, A, system.b, cons, {"floor_constraints": int(len(cons))})
 
 
 def profile_steps(world, body, steps: int, out_dir, slug: str) -> dict:

@@ -17,7 +17,7 @@ class BlockPattern:
     n_nodes: N. Blocks are stored in block-CSR order: ``indptr`` (N+1,), ``indices`` (nnzb,).
     ``scatter`` (E, k, k) maps element block (a, b) of element e to its global block index.
     ``diag`` (N,) is the block index of each node's diagonal block; ``mirror`` (nnzb,) the index of the
-    block (B, A) for block (A, B). ``scatter_dof`` (E*3k*3k,) maps the
+    block (B, A) for block (A, B). ``scatter_dof`` (E*3k*3k,), made on first use, maps the
     entries of element matrices in their natural (E, 3k, 3k) layout to ``block_data.reshape(-1)``.
     Upper CSR (for the solver): ``up_indptr``, ``up_indices`` and ``up_gather`` (nnz_up,), the index of
     each upper-triangular scalar entry in ``block_data.reshape(-1)`` (blocks flattened row-major 3x3).
@@ -28,7 +28,6 @@ class BlockPattern:
     indptr: np.ndarray
     indices: np.ndarray
     scatter: np.ndarray
-    scatter_dof: np.ndarray
     diag: np.ndarray
     mirror: np.ndarray
     block_row: np.ndarray
@@ -59,10 +58,6 @@ class BlockPattern:
         indptr = np.cumsum(indptr)
         scatter = inv[: E * k * k].reshape(E, k, k)
         diag = inv[E * k * k:]
-        # scalar entry (e, 3a+i, 3b+j) -> 9 * block(e, a, b) + 3 i + j
-        sd = 9 * scatter[:, :, None, :, None] + (3 * np.arange(3))[None, None, :, None, None] \
-            + np.arange(3)[None, None, None, None, :]
-        scatter_dof = sd.reshape(-1)
         # scalar entries of every block, row-major within the 3x3 block
         nnzb = len(ukey)
         a, b = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
@@ -78,8 +73,18 @@ class BlockPattern:
         up_indptr = np.cumsum(up_indptr)
         up_diag = np.flatnonzero(srow == scol)
         mirror = np.searchsorted(ukey, bcol * n_nodes + brow)
-        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, scatter_dof, diag, mirror, brow.astype(np.int64),
+        return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, diag, mirror, brow.astype(np.int64),
                    up_indptr, scol.astype(np.int64), flat, srow, scol, up_diag)
+
+    @property
+    def scatter_dof(self) -> np.ndarray:
+        """(E*3k*3k,): scalar entry (e, 3a+i, 3b+j) -> 9 * block(e, a, b) + 3 i + j (made on first use:
+        only whole element matrices need it, not the step)."""
+        if "_scatter_dof" not in self.__dict__:
+            s = self.scatter
+            self._scatter_dof = (9 * s[:, :, None, :, None] + (3 * np.arange(3))[:, None, None]
+                                 + np.arange(3)).reshape(-1)
+        return self._scatter_dof
 
     def assemble(self, element_matrices: np.ndarray) -> np.ndarray:
         """Sum element matrices (E, 3k, 3k) (interleaved dofs) into block data (nnzb, 3, 3)."""
@@ -150,21 +155,26 @@ class UpperAssembly:
         key = np.where(swap, b, a).astype(np.int64) * N + np.where(swap, a, b)
         blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]  # (P, E)
         i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        entry = np.where(swap[:, None, None, :], (3 * j + i)[None, :, :, None], (3 * i + j)[None, :, :, None])
-        target = 9 * blk[:, None, None, :] + entry  # (P, 3, 3, E)
+        # target entry in (n_upper, 9).ravel() of each contribution (p, i, j, e); a swapped pair transposed
+        itype = np.int32 if 9 * max(n_upper, k * k * E) < 2**31 else np.int64
+        target = (9 * blk.astype(itype))[:, None, None, :] + (3 * i + j).astype(itype)[None, :, :, None]
+        target += np.where(swap[:, None, None, :], (2 * (j - i)).astype(itype)[None, :, :, None], itype(0))  # 3j+i
+        del blk, swap, key, a, b
         scatter = summation = sums = None
         if layout == "pairs":
             scatter = target.reshape(-1)
             rows, cols = pattern.block_row[upper], pattern.indices[upper]
             sums = sp.csr_matrix((np.ones(2 * n_upper), (np.r_[rows, N + cols], np.tile(np.arange(n_upper), 2))),
                                  shape=(2 * N, n_upper))
-        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices
-            within = (3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j  # (P, 3, 3)
-            cols = (9 * k * k) * np.arange(E) + within[..., None]  # (P, 3, 3, E)
-            summation = sp.csr_matrix((np.ones(cols.size), (target.reshape(-1), cols.reshape(-1))),
-                                      shape=(9 * n_upper, 9 * k * k * E))
-            summation.indices = summation.indices.astype(np.int32)
-            summation.indptr = summation.indptr.astype(np.int32)
+        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices; the CSR built directly, rows sorted
+            within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).astype(itype)
+            target = target.reshape(-1)
+            order = np.argsort(target, kind="stable")
+            cols = (within.reshape(-1, 1) + (9 * k * k) * np.arange(E, dtype=itype)).reshape(-1)[order]
+            indptr = np.zeros(9 * n_upper + 1, dtype=itype)
+            np.cumsum(np.bincount(target, minlength=9 * n_upper), out=indptr[1:])
+            del target, order
+            summation = sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(9 * n_upper, 9 * k * k * E))
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
         entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
         full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
