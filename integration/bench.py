@@ -148,14 +148,15 @@ def _rss_mb() -> float:
     return r / (1024.0 * 1024.0) if sys.platform == "darwin" else r / 1024.0
 
 
-def _reset_peak_rss() -> None:
-    """Restart the peak RSS (VmHWM) from the current RSS (Linux >= 4.0; a no-op elsewhere), so that the
-    floor's solver, which lives only while it is timed, does not count in the step's peak."""
+def _reset_peak_rss() -> bool:
+    """Restart the peak RSS (VmHWM) from the current RSS (Linux >= 4.0), so that the floor's solver,
+    which lives only while it is timed, does not count in the step's peak. False where that fails."""
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
+        return True
     except OSError:
-        pass
+        return False
 
 
 def _child(conn, func_name: str, spec: dict, threads: int) -> None:
@@ -291,7 +292,7 @@ def measure_config(spec: dict) -> dict:
             one_step()
         peak = _rss_mb()  # build and warm-up
         floor = capture_floor(world, body) if spec.get("floor_repeats", 0) > 0 else None
-        _reset_peak_rss()
+        peak_resets = [_reset_peak_rss()]
         pre_f0, pre_i0 = _pcg_counters(body)
         direct0 = direct_factorizations[0]
         blocks = []
@@ -310,8 +311,9 @@ def measure_config(spec: dict) -> dict:
             peak = max(peak, _rss_mb())
             if floor is not None:  # outside the timed steps; the state is not touched
                 blocks[-1]["floor"] = floor.time(spec["floor_repeats"])
-                _reset_peak_rss()
+                peak_resets.append(_reset_peak_rss())
         out["peak_rss_mb"] = peak  # import + build + warm-up + timed steps, without the floor's solver
+        out["peak_rss_excludes_floor"] = all(peak_resets)  # else (no VmHWM reset) it includes it
         n_timed = spec["steps"] * spec["repeats"]
         pre_f1, pre_i1 = _pcg_counters(body)
         pcg_factorizations, pcg_iterations = pre_f1 - pre_f0, pre_i1 - pre_i0

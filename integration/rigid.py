@@ -85,7 +85,10 @@ class RigidBody:
         return np.array(lo), np.array(hi)
 
     def bounding_radius(self) -> float:
-        """Radius [m] of a sphere about the body's origin that holds the whole shape (inf for a plane)."""
+        """Radius [m] of a sphere about the body's origin that holds the whole shape (inf for a plane).
+
+        The origin is ``pose()``'s position: the World creates every body with pybullet's default
+        inertial frame (no offset), in which the shape's parameters and mesh vertices are given."""
         if self.shape == "sphere":
             return float(self.params["radius"])
         if self.shape == "box":

@@ -366,6 +366,22 @@ class FemBody:
             self._rest_upper = result
         return result
 
+    @property
+    def diagonal_upper(self) -> np.ndarray:
+        """(N,) position of each node's diagonal block in the upper block data."""
+        return self._upper.diag
+
+    @property
+    def mass_scale(self) -> float:
+        """Largest diagonal entry of the mass matrix [kg]."""
+        if "_mass_scale" not in self.__dict__:
+            self._mass_scale = float(self.M_data[self.pattern.diag].max())
+        return self._mass_scale
+
+    def stiffness_blocks(self, K_upper: np.ndarray) -> np.ndarray:
+        """Block data (nnzb, 3, 3) of the symmetric matrix with upper blocks K_upper (n_upper, 9)."""
+        return self._upper.full(K_upper)
+
     def system_blocks(self, K_upper: np.ndarray, c_m: float, c_k: float) -> np.ndarray:
         """Block data (nnzb, 3, 3) of c_m M + c_k K for K given by its upper blocks (n_upper, 9)."""
         A = c_k * K_upper

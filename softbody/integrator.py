@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .body import FemBody
-from .errors import SolverError
+from .errors import InvalidInputError, SolverError
 from .linsolve import SpdSolver
 from .preconditioner import ConstraintCorrection, Preconditioner
 
@@ -219,11 +219,12 @@ class DirectSystem:
 class IterativeSettings:
     """tol: relative residual of the free components; max_iter per solve.
 
-    The residual r = b - A y on the free components must reach ||r|| <= tol * max(||b||, ||r0||,
-    sum_t ||t||), where r0 is the initial residual and t runs over the terms that make up b
-    (M v, h f_el, h f_ext, friction impulses), all on the free components. The last scale matters
-    at rest: there b is the small difference of large terms (gravity against elastic forces), and a
-    tolerance on ||b|| alone would ask for an accuracy far below what the terms themselves resolve.
+    The residual r = b - A y on the free components must reach ||r|| <= tol * max(||b||, sum_t ||t||),
+    where t runs over the terms that make up b (M v, h f_el, h f_ext, friction impulses), all on the
+    free components; only if both vanish (prescribed motion alone is a load) is it relative to the
+    initial residual. The terms matter at rest: there b is the small difference of large terms
+    (gravity against elastic forces), and a tolerance on ||b|| alone would ask for an accuracy far
+    below what the terms themselves resolve. The warm start does not enter the tolerance.
 
     The preconditioner is refactorised for the next solve when a solve needed more than
     ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
@@ -238,13 +239,24 @@ class IterativeSettings:
 
     The factorisation eliminates the supports only; every other constrained node (contacts) is removed
     from the preconditioner exactly by a Schur complement (softbody.preconditioner), for up to
-    ``max_corrected_nodes`` nodes. With more, the next factorisation eliminates them all.
+    ``max_corrected_nodes`` nodes. With more, the next factorisation eliminates them all; those stay
+    eliminated (in their frames of that moment) until the iteration count calls for a refactorisation,
+    and the correction's cached columns (every node corrected since the factorisation) are started
+    afresh by a refactorisation once they exceed 4 x max_corrected_nodes nodes.
     """
 
     tol: float = 1e-5
     max_iter: int = 200
     refactor_after: int = 3
     max_corrected_nodes: int = 64
+
+    def __post_init__(self):
+        if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
+            raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
+        for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and value >= least):
+                raise InvalidInputError(f"IterativeSettings.{name} must be an integer >= {least}, got {value!r}")
 
 
 class IterativeSystem:
@@ -292,7 +304,9 @@ class IterativeSystem:
         the constrained nodes that the factorisation does not eliminate (refactorising if needed)."""
         pre, limit = self.pre, self.settings.max_corrected_nodes
         constrained = mask.any(axis=1)
-        if pre.stale or np.count_nonzero(constrained & ~pre.eliminated) > limit:
+        # the columns of every node corrected since the factorisation are kept; past 4x the limit
+        # (memory n_dof x 3 per node) a refactorisation starts them afresh
+        if pre.stale or np.count_nonzero(constrained & ~pre.eliminated) > limit or pre.cached_nodes > 4 * limit:
             self._refactor(T, mask, everything=np.count_nonzero(constrained & ~self.body.supported()) > limit)
         nodes = np.flatnonzero(constrained & ~pre.eliminated)
         with timed(self.timings, "solve"):
@@ -345,11 +359,11 @@ class IterativeSystem:
         y[mask] = value[mask]
         with timed(self.timings, "solve"):
             r_full = b - A(y)
-            # tolerance relative to the load on the free components, its terms, or, if all are zero
-            # (prescribed motion alone is a load), the initial residual (see IterativeSettings)
+            # tolerance relative to the load on the free components or its terms; if both vanish
+            # (prescribed motion alone is a load), to the initial residual (see IterativeSettings)
             terms = self.terms if extra_rhs is None else (*self.terms, extra_rhs)
-            scale = sum(np.linalg.norm(to_local(T, t)[free]) for t in terms)
-            atol = self.settings.tol * max(np.linalg.norm(b[free]), np.linalg.norm(r_full[free]), scale, 1e-300)
+            scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
+            atol = self.settings.tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
             self.pre.stale = True
@@ -426,9 +440,13 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         A_op = body.pattern.to_bsr(A)
     with timed(timings, "forces"):
         u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
-        # K' u from the system matrix, (A u - c_m M u) / c_k: the round-off is that of K' u itself
-        # (both are dominated by the stiffness entries), and K' itself is never formed
-        Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+        # K' u from the system matrix, (A u - c_m M u) / c_k, so that K' is never formed whole: its
+        # round-off relative to K' u is about eps * (c_m M / c_k K'); where that exceeds 1e-12 (very
+        # soft bodies or tiny steps: c_m M over 1e4 x c_k K'), K' u comes from K' itself
+        if c_m * body.mass_scale <= 1e4 * c_k * float(np.abs(K[body.diagonal_upper][:, [0, 4, 8]]).max()):
+            Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+        else:
+            Ku = (body.pattern.to_bsr(body.stiffness_blocks(K)) @ u.reshape(-1)).reshape(-1, 3)
         terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
         b = terms[0] + terms[1] + terms[2]
     if method == "direct":

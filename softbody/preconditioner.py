@@ -67,6 +67,11 @@ class Preconditioner:
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
     _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call
 
+    @property
+    def cached_nodes(self) -> int:
+        """Nodes whose P^-1 columns are cached for the current factorisation."""
+        return 0 if self._Y is None else self._Y.shape[1] // 3
+
     def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
         """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""
         self.T, self.Q, self.eliminated = T, Q, eliminated

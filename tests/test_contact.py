@@ -233,6 +233,8 @@ def test_bounding_sphere_broad_phase_keeps_every_contact():
         assert set(found.node.tolist()) == set(brute), rb.shape
         if not rb.concave:
             np.testing.assert_allclose(found.distance, [brute[i] for i in found.node.tolist()], atol=1e-12)
-        assert world.detector.last_candidates < len(pts)  # and it did cull
+        lo_m, hi_m = lo - margin, hi + margin
+        in_aabb = int(np.all((pts >= lo_m) & (pts <= hi_m), axis=1).sum())
+        assert world.detector.last_candidates < in_aabb  # the bounding sphere culled beyond the AABB
         world.detector.last_candidates = 0
     world.close()

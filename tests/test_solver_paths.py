@@ -183,3 +183,40 @@ def test_more_contacts_than_the_correction_takes_are_eliminated_in_the_factorisa
     assert system.stats["iterations"] == 1
     y_direct, _ = _direct(body, K, 1.0, 1e-3, b, cons)
     np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-9 * np.abs(y_direct).max())
+
+
+def test_a_bad_warm_start_does_not_loosen_the_tolerance():
+    """The PCG's tolerance is relative to the load and its terms, not to the initial residual: a warm
+    start far off (a stale extrapolation, velocities reset by the user) costs iterations, not accuracy."""
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system(9)
+    n = body.n_nodes
+    terms = (rng.standard_normal((n, 3)), rng.standard_normal((n, 3)))
+    b = terms[0] + terms[1]
+    cons = Constraints(np.array([2, 6]), np.ones((2, 3), bool), np.zeros((2, 3)))
+    # factorise a stiffer matrix first, so that the preconditioner is not exact for A and PCG iterates
+    IterativeSystem(body, 30.0 * body.M_blocks + 1e-3 * K, b, np.zeros((n, 3)), pre, IterativeSettings()).solve(cons)
+    A = body.M_blocks + 1e-3 * K
+    y_direct, _ = _direct(body, K, 1.0, 1e-3, b, cons)
+    free = np.ones((n, 3), bool)
+    free[[2, 6]] = False
+    settings = IterativeSettings(tol=1e-6, refactor_after=1000)  # keep the inexact factorisation
+    for x0 in (np.zeros((n, 3)), 1e4 * rng.standard_normal((n, 3))):
+        system = IterativeSystem(body, A, b, x0, pre, settings, terms=terms)
+        y, _ = system.solve(cons)
+        assert system.stats["iterations"] > 1 and pre.factorizations == 1
+        r = (b - (body.pattern.to_bsr(A) @ y.reshape(-1)).reshape(-1, 3))[free]
+        scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(t[free]) for t in terms))
+        assert np.linalg.norm(r) <= 1.01 * settings.tol * scale
+        np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-4 * np.abs(y_direct).max())
+
+
+def test_iterative_settings_are_checked():
+    from softbody.errors import InvalidInputError
+    from softbody.integrator import IterativeSettings
+
+    for bad in (dict(tol=0.0), dict(tol=2.0), dict(max_iter=0), dict(refactor_after=-1), dict(max_corrected_nodes=-3),
+                dict(max_corrected_nodes=2.5)):
+        with pytest.raises(InvalidInputError, match="IterativeSettings"):
+            IterativeSettings(**bad)

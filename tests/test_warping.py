@@ -226,3 +226,23 @@ def test_node_frames_are_rotations_that_follow_the_elements():
     Q = two.node_frames(np.stack([np.eye(3), Rotation.from_euler("z", np.pi).as_matrix()]))
     assert np.isfinite(Q).all()
     np.testing.assert_allclose(np.linalg.det(Q), 1.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
+def test_system_blocks_and_the_force_product_taken_from_them(kind):
+    """A = c_m M + c_k K' from the upper blocks equals the sum of the whole matrices, and K' u taken from
+    A as (A u - c_m M u) / c_k (what the step does while c_m M is not over 1e4 x c_k K') matches K' u."""
+    from scipy.spatial.transform import Rotation
+
+    body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (3, 2, 2), kind), softbody.LinearElastic(1e6, 0.3, 1000.0))
+    R = Rotation.random(body.mesh.n_elements, random_state=2).as_matrix()
+    K_up, _ = body.warped_stiffness_upper(R)
+    K = body.stiffness_blocks(K_up)
+    c_m, c_k = 1.001, 1.1e-4
+    A = body.system_blocks(K_up, c_m, c_k)
+    np.testing.assert_allclose(A, c_m * body.M_blocks + c_k * K, rtol=0, atol=1e-14 * np.abs(A).max())
+    u = body.positions - body.positions.mean(axis=0)
+    Ku = (body.pattern.to_bsr(K) @ u.ravel()).reshape(-1, 3)
+    via_A = ((body.pattern.to_bsr(A) @ u.ravel()).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+    assert c_m * body.mass_scale <= 1e4 * c_k * np.abs(K_up[body.diagonal_upper][:, [0, 4, 8]]).max()
+    np.testing.assert_allclose(via_A, Ku, rtol=0, atol=1e-11 * np.abs(Ku).max())
