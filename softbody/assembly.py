@@ -114,7 +114,7 @@ class UpperAssembly:
     Only the node pairs a <= b of each element contribute: about half the entries of whole element
     matrices. The result is the upper block data (n_upper, 9), each block row-major (a pair whose
     global nodes run the other way goes in transposed), so that a per-block linear map (an isotropic
-    material's stiffness, see :func:`softbody.warping.isotropic_matrix`) is one (9, 9) matrix product.
+    material's stiffness, see :func:`softbody.warping.isotropic_blocks`) applies block by block.
     ``full`` then mirrors the upper blocks into block data (nnzb, 3, 3).
 
     Two input layouts, fixed at construction:
