@@ -16,8 +16,8 @@ from .errors import InvalidInputError
 from .material import LinearElastic
 from .mesh import Mesh
 from .rotation import polar_rotation_components
-from .warping import (deformation_gradient_operator, isotropic_blocks, rest_load_operator,
-                      rotated_gradient_operator)
+from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix,
+                      rest_load_operator, rotated_gradient_operator)
 
 Motion = Callable[[float], np.ndarray]
 
@@ -121,6 +121,7 @@ class FemBody:
         else:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         lam, mu = material.lame
+        self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
 
@@ -358,7 +359,7 @@ class FemBody:
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
             S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        result = isotropic_blocks(S, *self.material.lame), (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        result = isotropic_blocks(S, self._isotropic), (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
         if R is None:  # warping off: the same every step
             for a in result:
                 a.flags.writeable = False

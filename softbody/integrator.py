@@ -140,16 +140,12 @@ def to_global(T: Frames, y: np.ndarray) -> np.ndarray:
     return _per_node(T, y, "nij,nj->ni")
 
 
-def _frames_at(T: Frames, nodes: np.ndarray) -> np.ndarray:
-    """The frames (M, 3, 3) of ``nodes`` (M,)."""
+def _frames_at(T: Frames, nodes: np.ndarray, n_nodes: int) -> np.ndarray:
+    """The frames (M, 3, 3) of ``nodes`` (M,) among n_nodes."""
     if T is None:
         return np.broadcast_to(np.eye(3), (len(nodes), 3, 3))
     if isinstance(T, NodeFrames):
-        out = np.broadcast_to(np.eye(3), (len(nodes), 3, 3)).copy()
-        hit = np.isin(nodes, T.nodes)
-        order = np.argsort(T.nodes)
-        out[hit] = T.R[order[np.searchsorted(T.nodes, nodes[hit], sorter=order)]]
-        return out
+        T = T.dense(n_nodes)
     return T[nodes]
 
 
@@ -315,7 +311,7 @@ class IterativeSystem:
             return C, None
         with timed(self.timings, "factorize"):  # preconditioner set-up: new columns, Schur complement
             try:
-                return C, pre.correction(nodes, mask[nodes], _frames_at(C, nodes))
+                return C, pre.correction(nodes, mask[nodes], _frames_at(C, nodes, self.body.n_nodes))
             except np.linalg.LinAlgError:  # not positive definite: P is too far off for this set
                 pass
         self._refactor(T, mask, everything=True)

@@ -58,16 +58,12 @@ def rest_load_operator(elements: np.ndarray, P: np.ndarray, n_nodes: int) -> sp.
     return sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n_nodes, 9 * E))
 
 
-def isotropic_blocks(S: np.ndarray, lam: float, mu: float) -> np.ndarray:
-    """K = lam S + mu S^T + mu tr(S) I for 3x3 blocks flattened row-major, S (n, 9) -> K (n, 9).
+def isotropic_matrix(lam: float, mu: float) -> np.ndarray:
+    """The (9, 9) map L with K = L S for 3x3 blocks flattened row-major (entry 3 i + j holds (i, j)):
+    K = lam S + mu S^T + mu tr(S) I.
 
-    With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), this is the isotropic
-    small-strain stiffness block K_ab; it is linear in S, so it applies after assembly, to each
-    assembled block: K = S @ L^T with a (9, 9) matrix L. The product runs in slices of 2048 rows,
-    each below the size at which multithreaded BLAS wakes its thread pool: with the default thread
-    counts, the pool woken by one tall, thin product then competed with PARDISO's for the two cores
-    (measured: 20 against 8.7 ms per step on the tet10 (6,6,2) sheet). Elementwise operations would
-    avoid BLAS too, but their temporaries cost 2-10x the product here.
+    With S_ab = sum_q w detJ g_a g_b^T (g: shape-function gradients), K is the isotropic small-strain
+    stiffness block K_ab; it is linear in S, so it applies after assembly, to each assembled block.
     """
     L = np.zeros((9, 9))
     for i in range(3):
@@ -76,6 +72,18 @@ def isotropic_blocks(S: np.ndarray, lam: float, mu: float) -> np.ndarray:
             L[3 * i + j, 3 * j + i] += mu
         for m in range(3):
             L[4 * i, 4 * m] += mu
+    return L
+
+
+def isotropic_blocks(S: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """K = S @ L^T for blocks stacked as rows, S (n, 9) -> K (n, 9), L from ``isotropic_matrix``.
+
+    The product runs in slices of 2048 rows, each below the size at which multithreaded BLAS wakes
+    its thread pool: with the default thread counts, the pool woken by one tall, thin product then
+    competed with PARDISO's for the two cores (measured: 20 against 8.7 ms per step on the tet10
+    (6,6,2) sheet). Elementwise operations would avoid BLAS too, but their temporaries cost 2-10x the
+    product here.
+    """
     S = np.ascontiguousarray(S, dtype=float)
     K = np.empty_like(S)
     LT = L.T.copy()
