@@ -16,8 +16,8 @@ from .errors import InvalidInputError
 from .material import LinearElastic
 from .mesh import Mesh
 from .rotation import polar_rotation_components
-from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix,
-                      rest_load_operator, rotated_gradient_operator)
+from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix, rest_load_operator,
+                      rotated_gradient_operator, stress_map, warped_product)
 
 Motion = Callable[[float], np.ndarray]
 
@@ -122,6 +122,9 @@ class FemBody:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         lam, mu = material.lame
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
+        # for K' y without K' (warped_product): the weighted gradients node-major (E, k q, 3), the stress map
+        self._Gw_nodes = np.ascontiguousarray(self._Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
+        self._stress = stress_map(lam, mu, self._Gw.shape[1])
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
 
@@ -359,12 +362,41 @@ class FemBody:
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
             S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        result = isotropic_blocks(S, self._isotropic), (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        result = isotropic_blocks(S, self._isotropic), self.rest_loads(R)
         if R is None:  # warping off: the same every step
             for a in result:
                 a.flags.writeable = False
             self._rest_upper = result
         return result
+
+    def rest_loads(self, R: np.ndarray | None) -> np.ndarray:
+        """Warped rest loads sum_e R_e K_e X_e (N, 3) [N] for R (E, 3, 3) (None: K X)."""
+        E = self.mesh.n_elements
+        R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
+        return (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+
+    def rotated_gradients(self, R: np.ndarray | None) -> np.ndarray:
+        """sqrt(w detJ) R_e dN_a/dX at every quadrature point, (E, k, 3q), entry (e, a, 3 q + j) [1/m *
+        m^1.5]: what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None."""
+        E, q, k, _ = self._Gw.shape
+        if R is None:
+            return self._Gw_nodes.reshape(E, k, 3 * q)
+        RT = np.ascontiguousarray(_components(R)[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
+        return (self._Gw_nodes @ RT).reshape(E, k, 3 * q)
+
+    def warped_product(self, g: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """K' y (N, 3) [N] for y (N, 3) [m], with g = ``rotated_gradients(R)``; K' is never formed. Per
+        product this costs more than a sparse product with an assembled K', but it needs no assembly."""
+        return warped_product(g, self.mesh.elements, self._stress, self._scatter, y)
+
+    @property
+    def prefers_matrix_free(self) -> bool:
+        """Whether a step that only applies K' (IterativeSettings.operator "auto") should skip its
+        assembly and use ``warped_product``: for elements whose node pairs k (k + 1) / 2 outnumber their
+        gradient entries q k (tet10: 55 pairs against 40), where assembly dominates. One-point elements
+        (tet4) have their own cheap assembly, and hex8 (36 pairs, 64 gradients) is faster assembled."""
+        E, q, k, _ = self._Gw.shape
+        return q > 1 and k * (k + 1) // 2 > q * k
 
     @property
     def diagonal_upper(self) -> np.ndarray:

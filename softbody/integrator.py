@@ -239,14 +239,23 @@ class IterativeSettings:
     eliminated (in their frames of that moment) until the iteration count calls for a refactorisation,
     and the correction's cached columns (every node corrected since the factorisation) are started
     afresh by a refactorisation once they exceed 4 x max_corrected_nodes nodes.
+
+    ``operator``: how the PCG applies A. "assembled": K' is assembled every step (its upper blocks
+    into A's BSR data) and each product is one sparse product; "matrix-free": K' y comes element by
+    element from the rotated gradients (FemBody.warped_product), and A is assembled only when a
+    refactorisation needs it; "auto": matrix-free where FemBody.prefers_matrix_free (tet10).
     """
 
     tol: float = 1e-5
     max_iter: int = 200
     refactor_after: int = 3
     max_corrected_nodes: int = 64
+    operator: str = "auto"
 
     def __post_init__(self):
+        if self.operator not in ("auto", "assembled", "matrix-free"):
+            raise InvalidInputError("IterativeSettings.operator must be 'auto', 'assembled' or 'matrix-free', "
+                                    f"got {self.operator!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
         for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0)):
@@ -262,13 +271,17 @@ class IterativeSystem:
     def __init__(self, body: FemBody, A: np.ndarray, b: np.ndarray, x0: np.ndarray, pre: Preconditioner,
                  settings: IterativeSettings, timings: Timings | None = None, Q: np.ndarray | None = None,
                  terms: tuple[np.ndarray, ...] = (), A_op=None):
-        """A: block data (nnzb, 3, 3) of the system matrix (A_op: its BSR matrix, if already made);
-        b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3) per-node rotations for conjugating the
-        preconditioner; terms: the (N, 3) terms that sum to b, for the tolerance (IterativeSettings)."""
+        """A: block data (nnzb, 3, 3) of the system matrix, or a function that assembles it (called
+        only if a refactorisation needs it); A_op: the product y (N, 3) -> A y (N, 3), as a function or
+        a sparse matrix (default: A's BSR matrix); b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3)
+        per-node rotations for conjugating the preconditioner; terms: the (N, 3) terms that sum to b,
+        for the tolerance (IterativeSettings)."""
         self.body, self.b = body, b
         self.terms = terms
         self._A = A
-        self._A_op = body.pattern.to_bsr(A) if A_op is None else A_op
+        if A_op is None:
+            A_op = body.pattern.to_bsr(self.assemble())
+        self._product = A_op if callable(A_op) else (lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3))
         self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre
@@ -279,10 +292,12 @@ class IterativeSystem:
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
-        return (self._A_op @ y.reshape(-1)).reshape(-1, 3)
+        return self._product(y)
 
     def assemble(self) -> np.ndarray:
-        """Block data of A (for refactorisation)."""
+        """Block data (nnzb, 3, 3) of A (for refactorisation), assembled at the first call if need be."""
+        if callable(self._A):
+            self._A = self._A()
         return self._A
 
     def _refactor(self, T: NodeFrames | None, mask: np.ndarray, everything: bool = False) -> None:
@@ -430,19 +445,34 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     with timed(timings, "rotations"):
         R = body.rotations(x) if body.warping else None
     c_m, c_k = 1.0 + h * alpha, h * beta + h * h
-    with timed(timings, "assembly"):
-        K, load = body.warped_stiffness_upper(R)
-        A = body.system_blocks(K, c_m, c_k)
-        A_op = body.pattern.to_bsr(A)
+    settings = settings or IterativeSettings()
+    operator = settings.operator
+    if operator == "auto":
+        operator = "matrix-free" if body.prefers_matrix_free else "assembled"
+    matrix_free = method != "direct" and operator == "matrix-free"
+    u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
+    if matrix_free:  # K' y element by element; A assembled only if a refactorisation asks for it
+        with timed(timings, "assembly"):
+            g = body.rotated_gradients(R)
+            load = body.rest_loads(R)
+        with timed(timings, "forces"):
+            Ku = body.warped_product(g, u)
+        A = lambda: body.system_blocks(body.warped_stiffness_upper(R)[0], c_m, c_k)  # noqa: E731
+        A_op = lambda y: c_m * body.mass_product(y) + c_k * body.warped_product(g, y)  # noqa: E731
+    else:
+        with timed(timings, "assembly"):
+            K, load = body.warped_stiffness_upper(R)
+            A = body.system_blocks(K, c_m, c_k)
+            A_op = body.pattern.to_bsr(A)
+        with timed(timings, "forces"):
+            # K' u from the system matrix, (A u - c_m M u) / c_k, so that K' is never formed whole: its
+            # round-off relative to K' u is about eps * (c_m M / c_k K'); where that exceeds 1e-12 (very
+            # soft bodies or tiny steps: c_m M over 1e4 x c_k K'), K' u comes from K' itself
+            if c_m * body.mass_scale <= 1e4 * c_k * float(np.abs(K[body.diagonal_upper][:, [0, 4, 8]]).max()):
+                Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+            else:
+                Ku = (body.pattern.to_bsr(body.stiffness_blocks(K)) @ u.reshape(-1)).reshape(-1, 3)
     with timed(timings, "forces"):
-        u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
-        # K' u from the system matrix, (A u - c_m M u) / c_k, so that K' is never formed whole: its
-        # round-off relative to K' u is about eps * (c_m M / c_k K'); where that exceeds 1e-12 (very
-        # soft bodies or tiny steps: c_m M over 1e4 x c_k K'), K' u comes from K' itself
-        if c_m * body.mass_scale <= 1e4 * c_k * float(np.abs(K[body.diagonal_upper][:, [0, 4, 8]]).max()):
-            Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
-        else:
-            Ku = (body.pattern.to_bsr(body.stiffness_blocks(K)) @ u.reshape(-1)).reshape(-1, 3)
         terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
         b = terms[0] + terms[1] + terms[2]
     if method == "direct":
@@ -459,7 +489,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     # iterations and a third of the refactorisations per step)
     v_prev, pre.previous_velocities = pre.previous_velocities, v.copy()
     x0 = 2.0 * v - v_prev if v_prev is not None and v_prev.shape == v.shape else v
-    return IterativeSystem(body, A, b, x0, pre, settings or IterativeSettings(), timings, Q, terms, A_op)
+    return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, A_op)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

@@ -84,9 +84,45 @@ def isotropic_blocks(S: np.ndarray, L: np.ndarray) -> np.ndarray:
     (6,6,2) sheet). Elementwise operations would avoid BLAS too, but their temporaries cost 2-10x the
     product here.
     """
-    S = np.ascontiguousarray(S, dtype=float)
-    K = np.empty_like(S)
-    LT = L.T.copy()
-    for start in range(0, len(S), 2048):
-        np.matmul(S[start:start + 2048], LT, out=K[start:start + 2048])
-    return K
+    return sliced_matmul(np.ascontiguousarray(S, dtype=float), L.T.copy())
+
+
+def sliced_matmul(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A @ B for a tall A (n, m) and a small B (m, p), in slices of 2048 rows: below the size at which
+    multithreaded BLAS wakes its thread pool (see ``isotropic_blocks``)."""
+    out = np.empty((len(A), B.shape[1]))
+    for start in range(0, len(A), 2048):
+        np.matmul(A[start:start + 2048], B, out=out[start:start + 2048])
+    return out
+
+
+def stress_map(lam: float, mu: float, q: int) -> np.ndarray:
+    """(9q, 9q) matrix S with sigma = H @ S for the displacement gradients H of one element at its q
+    quadrature points, flattened (i, q, j) (entry H_q,ij), into the stresses flattened (q, j, i):
+    sigma_q = lam tr(H_q) I + mu (H_q + H_q^T), the isotropic small-strain stress (symmetric, so
+    the (q, j, i) layout is also sigma_q,ij)."""
+    S = np.zeros((3, q, 3, q, 3, 3))  # [i, q, j] in, [q', j', i'] out
+    for p in range(q):
+        for i in range(3):
+            for j in range(3):
+                S[i, p, j, p, j, i] += mu
+                S[j, p, i, p, j, i] += mu
+            for m in range(3):
+                S[m, p, m, p, i, i] += lam
+    return S.reshape(9 * q, 9 * q)
+
+
+def warped_product(g: np.ndarray, elements: np.ndarray, stress: np.ndarray, scatter: sp.csr_matrix,
+                   y: np.ndarray) -> np.ndarray:
+    """K' y (N, 3) for y (N, 3), K' = sum_e R_e K_e R_e^T, without forming K'.
+
+    g: (E, k, 3q) rotated weighted gradients sqrt(w detJ) R_e dN_a/dX at each quadrature point, entry
+    (e, a, 3 q + j); elements (E, k); stress: ``stress_map`` (9q, 9q); scatter: the 0/1 (N, E k) sum of
+    element-node vectors into nodes. Per element: H = Y^T g (the rotated displacement gradients,
+    weighted), sigma = H S, f = g sigma: two small batched matmuls and one product with a (9q, 9q).
+    """
+    E, k, _ = g.shape
+    Y = np.take(y, elements, axis=0)  # (E, k, 3)
+    H = np.swapaxes(Y, 1, 2) @ g  # (E, 3, 3q)
+    sigma = sliced_matmul(H.reshape(E, -1), stress).reshape(E, -1, 3)  # (E, 3q, 3)
+    return scatter @ (g @ sigma).reshape(-1, 3)

@@ -200,6 +200,35 @@ def test_assembled_warped_stiffness_and_loads_match_rotated_element_matrices(kin
     assert plain.warped_stiffness_blocks(None)[0] is K0 and not K0.flags.writeable
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_matrix_free_product_matches_rotated_element_matrices(kind):
+    """FemBody.warped_product (stresses from rotated gradients, no K') applies sum_e R_e K_e R_e^T as
+    assembled from the element matrices K_e = sum_q B^T D B (an independent code path), for a bent,
+    rotated state and for R = None (K); the rest loads likewise come out as sum_e R_e K_e X_e."""
+    mesh = distorted_box(kind, cells=(2, 2, 2), size=SIZE, seed=5)
+    body = softbody.FemBody(mesh, MAT, warping=True)
+    rng = np.random.default_rng(6)
+    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
+    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, 1.1).T
+    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    R = body.rotations(x)
+    assert np.ptp(R, axis=0).max() > 0.05
+    y = rng.standard_normal(mesh.nodes.shape)
+    for rot in (R, None):
+        ref = (body.pattern.to_bsr(body.pattern.assemble(body.warped_stiffness(rot))) @ y.ravel()).reshape(-1, 3)
+        got = body.warped_product(body.rotated_gradients(rot), y)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+    # symmetric (an energy's Hessian) and blind to rigid translations
+    z = rng.standard_normal(mesh.nodes.shape)
+    g = body.rotated_gradients(R)
+    assert abs(np.vdot(z, body.warped_product(g, y)) - np.vdot(y, body.warped_product(g, z))) < 1e-12 * np.abs(
+        ref).max() * np.abs(z).sum()
+    np.testing.assert_allclose(body.warped_product(g, np.broadcast_to([0.3, -1.0, 2.0], y.shape)), 0.0,
+                               atol=1e-12 * np.abs(ref).max())
+    np.testing.assert_allclose(body.rest_loads(R), body.warped_stiffness_blocks(R)[1], rtol=0, atol=1e-12 * np.abs(
+        body.rest_loads(R)).max())
+
+
 def test_node_frames_are_rotations_that_follow_the_elements():
     """FemBody.node_frames: proper rotations; equal to R0 when every element turns by R0; within the
     elements' spread of the polar factor of their sum; finite where adjacent elements turn apart."""
