@@ -7,6 +7,9 @@ Data flows one way through a step:
     -> b = M v + h (f_el + f_ext) -> constraints (supports; contacts from the integration layer)
     -> solve A v' = b -> x' = x + h v'
 
+(The iterative solve only needs products with A; for tet10 it takes K' y element by element from
+the rotated gradients instead of assembling K', see IterativeSettings.operator.)
+
 Constraints are per-node velocity conditions in a node frame T (columns = local axes): the
 components picked by a mask are set exactly (a fixed node: all three, identity frame; a contact:
 the normal component). They are eliminated inside the fixed sparsity pattern (rows and columns
