@@ -58,6 +58,12 @@ def test_run_bench_tiny_writes_json_markdown_plot_profile_and_pybullet(tmp_path)
         assert (t["ms_per_step"] is None) == (not t["stable"])
     if pb["k"] is not None:
         assert _number(pb["ms_per_step"]) and _number(r["ours_over_pybullet"])
+        # ours/pybullet from our blocks alternating with pybullet's in one process: one pair per block
+        stable = next(t for t in pb["tried"] if t["k"] == pb["k"])
+        assert len(stable["paired_ours_ms"]) == len(stable["paired_pybullet_ms"]) == 2
+        assert r["ours_over_pybullet"] == pb["paired_ratio"] == pytest.approx(np.median(
+            np.array(stable["paired_ours_ms"]) / np.array(stable["paired_pybullet_ms"])), rel=1e-12)
+        assert _number(r["ours_over_pybullet_cross_process"])
     md = (tmp_path / "bench.md").read_text()
     header = next(line for line in md.splitlines() if line.startswith("| config | elements"))
     cells = [c.strip() for c in header.strip("|").split("|")]
