@@ -227,8 +227,8 @@ class IterativeSettings:
 
     The preconditioner is refactorised for the next solve when a solve needed more than
     ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
-    and at once when CG fails to converge. With K' assembled every step, an iteration costs one
-    sparse product and one single-precision triangular solve pair, a refactorisation one
+    and at once when CG fails to converge. An iteration costs one product with A (sparse, or
+    matrix-free, see ``operator``) and one single-precision triangular solve pair, a refactorisation one
     single-precision numeric factorisation (about 10-20 iterations' worth on the sheet meshes) plus
     the Schur columns of the contact nodes (below). Contact changes no longer call for one, so
     refactorisations follow the drift of K' alone. Measured on the tet10 (9,9,2) sheet-on-sphere run
@@ -246,7 +246,13 @@ class IterativeSettings:
     ``operator``: how the PCG applies A. "assembled": K' is assembled every step (its upper blocks
     into A's BSR data) and each product is one sparse product; "matrix-free": K' y comes element by
     element from the rotated gradients (FemBody.warped_product), and A is assembled only when a
-    refactorisation needs it; "auto": matrix-free where FemBody.prefers_matrix_free (tet10).
+    refactorisation needs it; "auto": matrix-free where FemBody.prefers_matrix_free (tet10) as long
+    as the last step took at most ``matrix_free_max_products`` products with A (one for the forces,
+    one per solve and one per PCG iteration), else assembled. A matrix-free product costs about 2.5x
+    a sparse one, and skipping the assembly saves about 10 sparse products' worth: measured on the
+    tet10 sheet-on-sphere run (the step, alternating assembled and matrix-free in one process,
+    benchmarks/operator_ab.py), matrix-free took 0.73x the time at (9,9,2) (3.3 iterations per step)
+    and 0.94x at (14,14,3) during the impact (6.5 iterations), but 1.07x at (24,24,5) (10 iterations).
     """
 
     tol: float = 1e-5
@@ -254,6 +260,7 @@ class IterativeSettings:
     refactor_after: int = 3
     max_corrected_nodes: int = 64
     operator: str = "auto"
+    matrix_free_max_products: int = 10
 
     def __post_init__(self):
         if self.operator not in ("auto", "assembled", "matrix-free"):
@@ -261,7 +268,8 @@ class IterativeSettings:
                                     f"got {self.operator!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
-        for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0)):
+        for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0),
+                            ("matrix_free_max_products", 0)):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and value >= least):
                 raise InvalidInputError(f"IterativeSettings.{name} must be an integer >= {least}, got {value!r}")
@@ -284,7 +292,8 @@ class IterativeSystem:
         self._A = A
         if A_op is None:
             A_op = body.pattern.to_bsr(self.assemble())
-        self._product = A_op if callable(A_op) else (lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3))
+        self.matrix_free = callable(A_op)  # a function (FemBody.warped_product), not a matrix
+        self._product = A_op if self.matrix_free else (lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3))
         self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre
@@ -379,11 +388,13 @@ class IterativeSystem:
             scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
             atol = self.settings.tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
+        self.pre.products += 1 + its  # the initial residual and one per iteration
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
             self.pre.stale = True
             C, fix = self._prepared(T, mask)
             with timed(self.timings, "solve"):
                 y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
+            self.pre.products += its
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
@@ -449,10 +460,20 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         R = body.rotations(x) if body.warping else None
     c_m, c_k = 1.0 + h * alpha, h * beta + h * h
     settings = settings or IterativeSettings()
+    pre = None
+    if method != "direct":
+        pre = body.__dict__.get("_preconditioner")
+        if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
+            p = body.pattern
+            pre = body.__dict__["_preconditioner"] = Preconditioner(
+                SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     operator = settings.operator
     if operator == "auto":
-        operator = "matrix-free" if body.prefers_matrix_free else "assembled"
-    matrix_free = method != "direct" and operator == "matrix-free"
+        operator = ("matrix-free" if body.prefers_matrix_free and pre is not None
+                    and pre.products <= settings.matrix_free_max_products else "assembled")
+    matrix_free = pre is not None and operator == "matrix-free"
+    if pre is not None:
+        pre.products = 1  # K' u for the forces; IterativeSystem.solve counts the rest
     u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
     if matrix_free:  # K' y element by element; A assembled only if a refactorisation asks for it
         with timed(timings, "assembly"):
@@ -478,13 +499,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     with timed(timings, "forces"):
         terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
         b = terms[0] + terms[1] + terms[2]
-    if method == "direct":
+    if pre is None:
         return DirectSystem(body, A, b, solver, timings=timings)
-    pre = body.__dict__.get("_preconditioner")
-    if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
-        p = body.pattern
-        pre = body.__dict__["_preconditioner"] = Preconditioner(
-            SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     with timed(timings, "rotations"):
         Q = body.node_frames(R) if body.warping else None
     # warm start: the velocity extrapolated linearly from the last two steps' (a better guess than v

@@ -63,6 +63,7 @@ class Preconditioner:
     eliminated: np.ndarray | None = None
     column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
     previous_velocities: np.ndarray | None = None  # at the start of the last step, for the PCG's warm start
+    products: int = 0  # products with A in the current (after it: the last) step, for IterativeSettings.operator
     _slot: np.ndarray | None = None  # (N,) first column of each node's P^-1 columns in _Y, -1: none yet
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
     _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call

@@ -223,6 +223,47 @@ def test_iterative_settings_are_checked():
     from softbody.integrator import IterativeSettings
 
     for bad in (dict(tol=0.0), dict(tol=2.0), dict(max_iter=0), dict(refactor_after=-1), dict(max_corrected_nodes=-3),
-                dict(max_corrected_nodes=2.5), dict(operator="dense")):
+                dict(max_corrected_nodes=2.5), dict(operator="dense"), dict(matrix_free_max_products=-1)):
         with pytest.raises(InvalidInputError, match="IterativeSettings"):
             IterativeSettings(**bad)
+
+
+def test_auto_operator_is_matrix_free_for_tet10_until_the_products_grow():
+    """IterativeSettings.operator "auto": matrix-free for tet10 (FemBody.prefers_matrix_free) while the
+    last step took at most matrix_free_max_products products with A, assembled after a costlier step;
+    tet4 and hex8 assembled; "matrix-free" and "assembled" force either. The products are counted: one
+    for the forces, then one per solve and one per PCG iteration."""
+    import softbody
+    from softbody.integrator import Constraints, IterativeSettings, step_system
+    from softbody.linsolve import SpdSolver
+
+    def system(kind, settings, products=None):
+        body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (2, 2, 1), kind), softbody.LinearElastic(1e6, 0.3, 1000.0))
+        p = body.pattern
+        solver = SpdSolver(p.up_indptr, p.up_indices, body.n_dofs)
+        if products is not None:  # as if a step had run
+            step_system(body, 0.01, np.zeros((body.n_nodes, 3)), solver, "iterative", settings)
+            body._preconditioner.products = products
+        return body, step_system(body, 0.01, np.zeros((body.n_nodes, 3)), solver, "iterative", settings)
+
+    auto = IterativeSettings()
+    assert system("tet10", auto)[1].matrix_free
+    assert system("tet10", auto, products=auto.matrix_free_max_products)[1].matrix_free
+    assert not system("tet10", auto, products=auto.matrix_free_max_products + 1)[1].matrix_free
+    assert not system("tet4", auto)[1].matrix_free and not system("hex8", auto)[1].matrix_free
+    assert system("hex8", IterativeSettings(operator="matrix-free"), products=100)[1].matrix_free
+    assert not system("tet10", IterativeSettings(operator="assembled"))[1].matrix_free
+    # the count: 1 (forces) + 1 (initial residual) + the iterations of the one solve
+    body, _ = system("tet10", auto)
+    body.positions = body.positions + 1e-3 * np.random.default_rng(0).standard_normal(body.positions.shape)
+    p = body.pattern
+    moved = step_system(body, 0.01, np.zeros((body.n_nodes, 3)), SpdSolver(p.up_indptr, p.up_indices, body.n_dofs),
+                        "iterative", auto)
+    before = body._preconditioner.iterations
+    moved.solve(Constraints.full(np.array([0]), np.zeros((1, 3))))
+    assert body._preconditioner.iterations > before
+    assert body._preconditioner.products == 2 + body._preconditioner.iterations - before
+    # the matrix-free system still assembles A for a refactorisation, equal to the assembled one's
+    _, mf = system("tet10", IterativeSettings(operator="matrix-free"))
+    _, asm = system("tet10", IterativeSettings(operator="assembled"))
+    np.testing.assert_allclose(mf.assemble(), asm.assemble(), rtol=0, atol=1e-12 * np.abs(asm.assemble()).max())
