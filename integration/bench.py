@@ -11,9 +11,10 @@ process, right after the timed blocks:
   matrix A = c_m M + c_k K'(R), with its constraint set (supports and active contacts), by a fresh
   PARDISO (double precision, backend "auto") solver whose symbolic analysis was done beforehand. The
   system is captured from the step right after the warm-up (run untimed), and ``floor_repeats``
-  refactorisations + solves of it are timed after every block, so that each block has a floor taken
-  seconds apart from it: ``step / floor`` is the median over blocks of block ms/step / that block's
-  floor (median of its repeats), the headline ratio; ``floor_ms`` is the median of the blocks' floors;
+  refactorisations + solves of it are timed within every block, one after each of ``floor_repeats``
+  equal parts of its steps (outside the timed steps), so that each block has a floor taken over the
+  same seconds: ``step / floor`` is the median over blocks of block ms/step / that block's floor
+  (median of its repeats), the headline ratio; ``floor_ms`` is the median of the blocks' floors;
 * a cProfile of ``profile_steps`` more steps (top-20 table written to ``out_dir/profiles/``), with the
   largest number of calls per step of any function, to show there is no Python loop per element or node;
 * the peak RSS of the process over the build, warm-up and timed steps (Linux's VmHWM, restarted
@@ -30,7 +31,9 @@ same process a fresh build of our scene takes its warm-up after pybullet's and t
 ``steps`` steps after each of pybullet's timed blocks: ``ours / pybullet`` is the median over these
 block pairs of our ms/step over pybullet's ms per 0.01 s, taken seconds apart like step/floor (our
 ms/step from the configuration's own process over pybullet's, minutes apart, is kept as
-``ours_over_pybullet_cross_process``).
+``ours_over_pybullet_cross_process``, and used if the pairs failed: ``ours_over_pybullet_source``). The
+paired steps are ``world.step()`` alone (no recorder, even with ``record``). pybullet's process holds
+our scene too, so its peak RSS is not pybullet's alone.
 
 ``run_bench`` writes ``bench.json`` and ``bench.md`` (or ``scaling.*`` for the scaling ladder) and
 ``scaling.png`` (ms per step and peak memory against nodes, log-log, with fitted exponents, from every
@@ -302,21 +305,29 @@ def measure_config(spec: dict) -> dict:
         direct0 = direct_factorizations[0]
         blocks = []
         contacts = []
+        # the floor's timings are spread over each block: one after each of floor_repeats equal parts
+        # of it (outside the timed steps; the state is not touched), so that they sample the machine's
+        # speed over the same seconds as the block's steps
+        n_floor = spec.get("floor_repeats", 0) if floor is not None else 0
+        floor_after = {round((j + 1) * spec["steps"] / n_floor) for j in range(n_floor)} if n_floor else set()
         for _ in range(spec["repeats"]):
-            walls, phase_sums = [], {}
-            for _ in range(spec["steps"]):
+            walls, phase_sums, floors = [], {}, []
+            for i in range(spec["steps"]):
                 wall, phases, active = one_step()
                 walls.append(wall)
                 contacts.append(active)
                 for k, v in phases.items():
                     phase_sums[k] = phase_sums.get(k, 0.0) + v
+                if i + 1 in floor_after:
+                    peak = max(peak, _rss_mb())
+                    floors.append(floor.time(1))
+                    peak_resets.append(_reset_peak_rss())
             n = len(walls)
             blocks.append({"ms_per_step": 1e3 * sum(walls) / n,
                            "phases_ms": {k: 1e3 * v / n for k, v in phase_sums.items()}})
             peak = max(peak, _rss_mb())
-            if floor is not None:  # outside the timed steps; the state is not touched
-                blocks[-1]["floor"] = floor.time(spec["floor_repeats"])
-                peak_resets.append(_reset_peak_rss())
+            if floors:
+                blocks[-1]["floor"] = (_median([f for f, _ in floors]), _median([s_ for _, s_ in floors]))
         out["peak_rss_mb"] = peak  # import + build + warm-up + timed steps, without the floor's solver
         out["peak_rss_excludes_floor"] = all(peak_resets)  # else (no VmHWM reset) it includes it
         n_timed = spec["steps"] * spec["repeats"]
@@ -546,10 +557,12 @@ def _pybullet_run(p, vtk: str, spec: dict, nodes, k: int, n_steps: int, timed_fr
         zc0 = x0[:, 2].mean()
         xp = x0
         wall, reason, max_disp, max_ke, steps_done = 0.0, "", 0.0, 0.0, 0
-        block, pb_blocks, our_blocks = 0.0, [], []
+        block, pb_blocks, our_blocks, paired_error = 0.0, [], [], None
         for s in range(n_steps):
-            if ours is not None and s == timed_from and s > 0:
-                ours.run(timed_from)  # our warm-up, untimed, right before the timed blocks
+            if ours is not None and s == timed_from:
+                # our warm-up, untimed, right before the timed blocks (at least one step: the first
+                # carries the symbolic analysis and the first factorisation)
+                ours.run(max(timed_from, 1))
             tic = time.perf_counter()
             for _ in range(k):
                 p.stepSimulation(physicsClientId=cid)
@@ -578,9 +591,13 @@ def _pybullet_run(p, vtk: str, spec: dict, nodes, k: int, n_steps: int, timed_fr
                 pb_blocks.append(1e3 * block / spec["steps"])
                 block = 0.0
                 if ours is not None:
-                    our_blocks.append(ours.run(spec["steps"]))
+                    try:
+                        our_blocks.append(ours.run(spec["steps"]))
+                    except Exception as exc:  # keep pybullet's measurement; no pairs
+                        ours, our_blocks = None, []
+                        paired_error = f"our scene failed: {type(exc).__name__}: {exc}"
         timed = max(steps_done - timed_from, 0)
-        paired = {}
+        paired = {"paired_error": paired_error} if paired_error else {}
         if our_blocks and not reason:
             ratios = [o / b for o, b in zip(our_blocks, pb_blocks)]
             paired = {"paired_ratio": float(np.median(ratios)), "paired_ratios": ratios,
@@ -622,6 +639,7 @@ def measure_pybullet(spec: dict) -> dict:
                 r = _pybullet_run(p, str(vtk), run_spec, nodes, k, n_steps, spec["warmup"], ours)
             finally:
                 ours.close()
+                ours = None  # released before the next k's scene is built
             tried.append(r)
             if r["on_sphere"]:
                 break
@@ -723,6 +741,7 @@ def run_bench(configs: Iterable = DEFAULT_CONFIGS, steps: int = 50, repeats: int
             if pb.get("ms_per_step") and r.get("ms_per_step"):
                 r["ours_over_pybullet_cross_process"] = r["ms_per_step"] / pb["ms_per_step"]
                 r["ours_over_pybullet"] = pb.get("paired_ratio") or r["ours_over_pybullet_cross_process"]
+                r["ours_over_pybullet_source"] = "paired" if pb.get("paired_ratio") else "cross-process"
             if pb.get("ms_per_step_on_sphere") and r.get("ms_per_step"):
                 r["ours_over_pybullet_on_sphere"] = (pb.get("paired_ratio_on_sphere")
                                                      or r["ms_per_step"] / pb["ms_per_step_on_sphere"])

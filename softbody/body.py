@@ -122,9 +122,7 @@ class FemBody:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         lam, mu = material.lame
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
-        # for K' y without K' (warped_product): the weighted gradients node-major (E, k q, 3), the stress map
-        self._Gw_nodes = np.ascontiguousarray(self._Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
-        self._stress = stress_map(lam, mu, self._Gw.shape[1])
+        self._lame = (lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
 
@@ -370,33 +368,53 @@ class FemBody:
         return result
 
     def rest_loads(self, R: np.ndarray | None) -> np.ndarray:
-        """Warped rest loads sum_e R_e K_e X_e (N, 3) [N] for R (E, 3, 3) (None: K X)."""
+        """Warped rest loads sum_e R_e K_e X_e (N, 3) [N] for R (E, 3, 3) (None: K X, computed once)."""
+        if R is None and "_rest_loads0" in self.__dict__:
+            return self._rest_loads0
         E = self.mesh.n_elements
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
-        return (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        loads = (self._rest_load @ R9.reshape(-1)).reshape(-1, 3)
+        if R is None:
+            loads.flags.writeable = False
+            self._rest_loads0 = loads
+        return loads
+
+    def _matrix_free_data(self) -> tuple[np.ndarray, np.ndarray]:
+        """The weighted gradients node-major (E, k q, 3) and the stress map (9q, 9q), made at first use."""
+        if "_Gw_nodes" not in self.__dict__:
+            E, q = self._Gw.shape[:2]
+            G = np.ascontiguousarray(self._Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
+            G.flags.writeable = False
+            self._Gw_nodes, self._stress = G, stress_map(*self._lame, q)
+        return self._Gw_nodes, self._stress
 
     def rotated_gradients(self, R: np.ndarray | None) -> np.ndarray:
-        """sqrt(w detJ) R_e dN_a/dX at every quadrature point, (E, k, 3q), entry (e, a, 3 q + j) [1/m *
-        m^1.5]: what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None."""
+        """sqrt(w detJ) R_e dN_a/dX at every quadrature point, (E, k, 3q), entry (e, a, 3 q + j) [m^0.5]:
+        what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None (read-only then)."""
         E, q, k, _ = self._Gw.shape
+        G, _ = self._matrix_free_data()
         if R is None:
-            return self._Gw_nodes.reshape(E, k, 3 * q)
-        RT = np.ascontiguousarray(_components(R)[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
-        return (self._Gw_nodes @ RT).reshape(E, k, 3 * q)
+            return G.reshape(E, k, 3 * q)
+        return (G @ np.swapaxes(R, 1, 2)).reshape(E, k, 3 * q)
 
     def warped_product(self, g: np.ndarray, y: np.ndarray) -> np.ndarray:
         """K' y (N, 3) [N] for y (N, 3) [m], with g = ``rotated_gradients(R)``; K' is never formed. Per
         product this costs more than a sparse product with an assembled K', but it needs no assembly."""
-        return warped_product(g, self.mesh.elements, self._stress, self._scatter, y)
+        E, q, k, _ = self._Gw.shape
+        if np.shape(g) != (E, k, 3 * q) or np.shape(y) != (self.n_nodes, 3):
+            raise InvalidInputError(f"warped_product needs g of shape {(E, k, 3 * q)} (rotated_gradients) and y of "
+                                    f"shape {(self.n_nodes, 3)}, got {np.shape(g)} and {np.shape(y)}")
+        return warped_product(g, self.mesh.elements, self._matrix_free_data()[1], self._scatter, y)
 
     @property
     def prefers_matrix_free(self) -> bool:
         """Whether a step that only applies K' (IterativeSettings.operator "auto") should skip its
-        assembly and use ``warped_product``: for elements whose node pairs k (k + 1) / 2 outnumber their
-        gradient entries q k (tet10: 55 pairs against 40), where assembly dominates. One-point elements
-        (tet4) have their own cheap assembly, and hex8 (36 pairs, 64 gradients) is faster assembled."""
+        assembly and use ``warped_product``: with warping on (else K' is assembled once and kept), for
+        elements whose node pairs k (k + 1) / 2 outnumber their gradient entries q k (tet10: 55 pairs
+        against 40), where assembly dominates. One-point elements (tet4) have their own cheap assembly,
+        and hex8 (36 pairs, 64 gradients) is faster assembled."""
         E, q, k, _ = self._Gw.shape
-        return q > 1 and k * (k + 1) // 2 > q * k
+        return self.warping and q > 1 and k * (k + 1) // 2 > q * k
 
     @property
     def diagonal_upper(self) -> np.ndarray:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -246,20 +247,20 @@ class IterativeSettings:
     ``operator``: how the PCG applies A. "assembled": K' is assembled every step (its upper blocks
     into A's BSR data) and each product is one sparse product; "matrix-free": K' y comes element by
     element from the rotated gradients (FemBody.warped_product), and A is assembled only when a
-    refactorisation needs it; "auto": matrix-free where FemBody.prefers_matrix_free (tet10) as long
-    as the last step took at most ``matrix_free_max_products`` products with A (one for the forces,
-    one per solve and one per PCG iteration), else assembled. A matrix-free product costs about 2.5x
-    a sparse one, and skipping the assembly saves about 10 sparse products' worth: measured on the
-    tet10 sheet-on-sphere run (the step, alternating assembled and matrix-free in one process,
-    benchmarks/operator_ab.py), matrix-free took 0.73x the time at (9,9,2) (3.3 iterations per step)
-    and 0.94x at (14,14,3) during the impact (6.5 iterations), but 1.07x at (24,24,5) (10 iterations).
+    refactorisation needs it; "auto": matrix-free where FemBody.prefers_matrix_free (tet10 with
+    warping) as long as the last step took at most ``matrix_free_max_products`` products with A (one
+    for the forces, one per solve and one per PCG iteration) and no refactorisation is due, else
+    assembled. The threshold is empirical, from the tet10 sheet-on-sphere run (the step, alternating
+    assembled and matrix-free in one process, benchmarks/operator_ab.py): matrix-free took 0.73x the
+    time at (9,9,2) (3.3 iterations per step), 0.94x at (14,14,3) during the impact (6.5 iterations,
+    about 9.5 products), but 1.07x at (24,24,5) (10 iterations, about 13 products).
     """
 
     tol: float = 1e-5
     max_iter: int = 200
     refactor_after: int = 3
     max_corrected_nodes: int = 64
-    operator: str = "auto"
+    operator: Literal["auto", "assembled", "matrix-free"] = "auto"
     matrix_free_max_products: int = 10
 
     def __post_init__(self):
@@ -276,8 +277,8 @@ class IterativeSettings:
 
 
 class IterativeSystem:
-    """A = c_m M + c_k K' (one assembled BSR matrix) and b (N, 3), solved by projected conjugate
-    gradients preconditioned by the body's last factorised system matrix."""
+    """A = c_m M + c_k K' (an assembled BSR matrix or a matrix-free product) and b (N, 3), solved by
+    projected conjugate gradients preconditioned by the body's last factorised system matrix."""
 
     def __init__(self, body: FemBody, A: np.ndarray, b: np.ndarray, x0: np.ndarray, pre: Preconditioner,
                  settings: IterativeSettings, timings: Timings | None = None, Q: np.ndarray | None = None,
@@ -317,6 +318,9 @@ class IterativeSystem:
         ``everything``, all constrained components)."""
         with timed(self.timings, "assembly"):
             A = self.assemble()
+            if self.matrix_free:  # A exists now: its sparse product is the cheaper one for the rest of the step
+                A_op = self.body.pattern.to_bsr(A)
+                self._product = lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3)
         keep = mask if everything else mask & self.body.supported()[:, None]
         factorize_constrained(self.body, A, T, keep, self.pre.solver, self.timings)
         self.pre.factorized(T, self.Q, keep.any(axis=1))
@@ -450,7 +454,9 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
 
     K' (as its upper blocks, FemBody.warped_stiffness_upper) is assembled once, straight into
     A = c_m M + c_k K'; the warped elastic forces f_el = -K' (x - c) + sum_e R_e K_e X_e take K' (x - c)
-    from A. method "direct" factorises A; "iterative" runs PCG (see the
+    from A. Or, on the iterative path with a matrix-free operator (IterativeSettings.operator), K' is
+    not assembled: K' y comes from FemBody.warped_product, and A is assembled only if the
+    preconditioner is refactorised. method "direct" factorises A; "iterative" runs PCG (see the
     module doc). timings, if given, accumulates seconds per phase (rotations, assembly, forces,
     factorize, solve).
     """
@@ -469,7 +475,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
                 SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
     operator = settings.operator
     if operator == "auto":
-        operator = ("matrix-free" if body.prefers_matrix_free and pre is not None
+        # matrix-free saves the assembly only if no refactorisation is due (stale: it needs A anyway)
+        operator = ("matrix-free" if body.prefers_matrix_free and pre is not None and not pre.stale
                     and pre.products <= settings.matrix_free_max_products else "assembled")
     matrix_free = pre is not None and operator == "matrix-free"
     if pre is not None:

@@ -41,13 +41,14 @@ def _trajectory(kind, cells, method, operator="auto"):
 
 @pytest.mark.parametrize("kind, cells", [("tet4", (4, 4, 2)), ("hex8", (4, 4, 2)), ("tet10", (2, 2, 1))])
 def test_iterative_and_direct_solves_give_the_same_sheet_trajectory(kind, cells):
-    """For both ways the PCG applies A: K' assembled, and matrix-free (FemBody.warped_product)."""
+    """For both ways the PCG applies A: K' assembled, and matrix-free (FemBody.warped_product), and for
+    the default "auto", which switches between them from step to step."""
     direct, contacts, pre_direct = _trajectory(kind, cells, "direct")
     assert pre_direct is None  # the direct run never touched the iterative path
     assert contacts > 0  # the comparison covers the contact solve
     moved = np.abs(direct[-1] - direct[0]).max()
     assert moved > 0.03  # the sheet fell and draped: not a trivial comparison
-    for operator in ("assembled", "matrix-free"):
+    for operator in ("assembled", "matrix-free", "auto"):
         iterative, _, pre = _trajectory(kind, cells, "iterative", operator)
         assert pre is not None and pre.iterations > 0  # the fast run really iterated
         assert pre.factorizations < len(iterative)  # reusing its preconditioner, not refactorising every step
@@ -229,41 +230,84 @@ def test_iterative_settings_are_checked():
 
 
 def test_auto_operator_is_matrix_free_for_tet10_until_the_products_grow():
-    """IterativeSettings.operator "auto": matrix-free for tet10 (FemBody.prefers_matrix_free) while the
-    last step took at most matrix_free_max_products products with A, assembled after a costlier step;
-    tet4 and hex8 assembled; "matrix-free" and "assembled" force either. The products are counted: one
-    for the forces, then one per solve and one per PCG iteration."""
+    """IterativeSettings.operator "auto": matrix-free for tet10 with warping (FemBody.prefers_matrix_free)
+    while the last step took at most matrix_free_max_products products with A and no refactorisation is
+    due, assembled otherwise; tet4, hex8 and tet10 without warping assembled; "matrix-free" and
+    "assembled" force either. The products are counted: one for the forces, then one per solve (its
+    initial residual) and one per PCG iteration."""
     import softbody
     from softbody.integrator import Constraints, IterativeSettings, step_system
     from softbody.linsolve import SpdSolver
 
-    def system(kind, settings, products=None):
-        body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (2, 2, 1), kind), softbody.LinearElastic(1e6, 0.3, 1000.0))
+    fixed = Constraints.full(np.array([0]), np.zeros((1, 3)))
+
+    def step(body, settings):
         p = body.pattern
-        solver = SpdSolver(p.up_indptr, p.up_indices, body.n_dofs)
-        if products is not None:  # as if a step had run
-            step_system(body, 0.01, np.zeros((body.n_nodes, 3)), solver, "iterative", settings)
+        return step_system(body, 0.01, np.zeros((body.n_nodes, 3)), SpdSolver(p.up_indptr, p.up_indices, body.n_dofs),
+                           "iterative", settings)
+
+    def system(kind, settings, products=None, warping=True):
+        body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (2, 2, 1), kind), softbody.LinearElastic(1e6, 0.3, 1000.0),
+                                warping=warping)
+        if products is not None:  # as if a step had run: factorised, and that many products
+            step(body, settings).solve(fixed)
             body._preconditioner.products = products
-        return body, step_system(body, 0.01, np.zeros((body.n_nodes, 3)), solver, "iterative", settings)
+        return body, step(body, settings)
 
     auto = IterativeSettings()
-    assert system("tet10", auto)[1].matrix_free
+    assert not system("tet10", auto)[1].matrix_free  # the first step factorises: it needs A anyway
     assert system("tet10", auto, products=auto.matrix_free_max_products)[1].matrix_free
     assert not system("tet10", auto, products=auto.matrix_free_max_products + 1)[1].matrix_free
-    assert not system("tet4", auto)[1].matrix_free and not system("hex8", auto)[1].matrix_free
+    assert not system("tet10", auto, products=1, warping=False)[1].matrix_free  # K' assembled once, kept
+    assert not system("tet4", auto, products=1)[1].matrix_free and not system("hex8", auto, products=1)[1].matrix_free
     assert system("hex8", IterativeSettings(operator="matrix-free"), products=100)[1].matrix_free
-    assert not system("tet10", IterativeSettings(operator="assembled"))[1].matrix_free
+    assert not system("tet10", IterativeSettings(operator="assembled"), products=1)[1].matrix_free
+    # a refactorisation due (stale) -> assembled
+    body, _ = system("tet10", auto, products=1)
+    body._preconditioner.stale = True
+    assert not step(body, auto).matrix_free
     # the count: 1 (forces) + 1 (initial residual) + the iterations of the one solve
-    body, _ = system("tet10", auto)
+    body, _ = system("tet10", auto, products=1)
     body.positions = body.positions + 1e-3 * np.random.default_rng(0).standard_normal(body.positions.shape)
-    p = body.pattern
-    moved = step_system(body, 0.01, np.zeros((body.n_nodes, 3)), SpdSolver(p.up_indptr, p.up_indices, body.n_dofs),
-                        "iterative", auto)
+    moved = step(body, auto)
+    assert moved.matrix_free
     before = body._preconditioner.iterations
-    moved.solve(Constraints.full(np.array([0]), np.zeros((1, 3))))
+    moved.solve(fixed)
     assert body._preconditioner.iterations > before
     assert body._preconditioner.products == 2 + body._preconditioner.iterations - before
-    # the matrix-free system still assembles A for a refactorisation, equal to the assembled one's
-    _, mf = system("tet10", IterativeSettings(operator="matrix-free"))
-    _, asm = system("tet10", IterativeSettings(operator="assembled"))
+
+
+@pytest.mark.parametrize("warping, mass", [(True, "consistent"), (False, "lumped")])
+def test_matrix_free_and_assembled_step_systems_agree(warping, mass):
+    """The same step (tet10, a bent and moving state) built matrix-free and assembled: the same
+    right-hand side, the same products with A, the same A when assembled for a refactorisation, and the
+    same solution; also without warping and with lumped mass."""
+    import softbody
+    from softbody.integrator import Constraints, IterativeSettings, step_system
+    from softbody.linsolve import SpdSolver
+
+    rng = np.random.default_rng(7)
+    systems = {}
+    for op in ("matrix-free", "assembled"):
+        body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (2, 2, 1), "tet10"),
+                                softbody.LinearElastic(1e6, 0.3, 1000.0), warping=warping, mass=mass)
+        gen = np.random.default_rng(8)
+        body.positions = body.positions + 0.02 * gen.standard_normal(body.positions.shape)
+        body.velocities = 0.1 * gen.standard_normal(body.positions.shape)
+        p = body.pattern
+        systems[op] = step_system(body, 0.01, np.tile([0.0, 0.0, -9.81], (body.n_nodes, 1)),
+                                  SpdSolver(p.up_indptr, p.up_indices, body.n_dofs), "iterative",
+                                  IterativeSettings(operator=op, tol=1e-12))
+    mf, asm = systems["matrix-free"], systems["assembled"]
+    assert mf.matrix_free and not asm.matrix_free
+    scale = np.abs(asm.b).max()
+    np.testing.assert_allclose(mf.b, asm.b, rtol=0, atol=1e-12 * scale)
+    y = rng.standard_normal(asm.b.shape)
+    Ay = asm.apply(y)
+    np.testing.assert_allclose(mf.apply(y), Ay, rtol=0, atol=1e-12 * np.abs(Ay).max())
     np.testing.assert_allclose(mf.assemble(), asm.assemble(), rtol=0, atol=1e-12 * np.abs(asm.assemble()).max())
+    fixed = Constraints.full(np.array([0, 1]), np.zeros((2, 3)))
+    v_mf, r_mf = mf.solve(fixed)
+    v_asm, r_asm = asm.solve(fixed)
+    np.testing.assert_allclose(v_mf, v_asm, rtol=0, atol=1e-9 * np.abs(v_asm).max())
+    np.testing.assert_allclose(r_mf, r_asm, rtol=0, atol=1e-9 * np.abs(r_asm).max())
