@@ -28,9 +28,10 @@ from __future__ import annotations
 import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Callable, Literal
 
 import numpy as np
+import scipy.sparse as sp
 
 from .body import FemBody
 from .errors import InvalidInputError, SolverError
@@ -280,9 +281,10 @@ class IterativeSystem:
     """A = c_m M + c_k K' (an assembled BSR matrix or a matrix-free product) and b (N, 3), solved by
     projected conjugate gradients preconditioned by the body's last factorised system matrix."""
 
-    def __init__(self, body: FemBody, A: np.ndarray, b: np.ndarray, x0: np.ndarray, pre: Preconditioner,
-                 settings: IterativeSettings, timings: Timings | None = None, Q: np.ndarray | None = None,
-                 terms: tuple[np.ndarray, ...] = (), A_op=None):
+    def __init__(self, body: FemBody, A: np.ndarray | Callable[[], np.ndarray], b: np.ndarray, x0: np.ndarray,
+                 pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
+                 Q: np.ndarray | None = None, terms: tuple[np.ndarray, ...] = (),
+                 A_op: Callable[[np.ndarray], np.ndarray] | sp.spmatrix | None = None):
         """A: block data (nnzb, 3, 3) of the system matrix, or a function that assembles it (called
         only if a refactorisation needs it); A_op: the product y (N, 3) -> A y (N, 3), as a function or
         a sparse matrix (default: A's BSR matrix); b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3)
