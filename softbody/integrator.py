@@ -277,6 +277,11 @@ class IterativeSettings:
                 raise InvalidInputError(f"IterativeSettings.{name} must be an integer >= {least}, got {value!r}")
 
 
+def _product_of(matrix: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray]:
+    """y (N, 3) -> matrix @ y (N, 3) for a sparse (3N, 3N) matrix."""
+    return lambda y: (matrix @ y.reshape(-1)).reshape(-1, 3)
+
+
 class IterativeSystem:
     """A = c_m M + c_k K' (an assembled BSR matrix or a matrix-free product) and b (N, 3), solved by
     projected conjugate gradients preconditioned by the body's last factorised system matrix."""
@@ -296,7 +301,7 @@ class IterativeSystem:
         if A_op is None:
             A_op = body.pattern.to_bsr(self.assemble())
         self.matrix_free = callable(A_op)  # a function (FemBody.warped_product), not a matrix
-        self._product = A_op if self.matrix_free else (lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3))
+        self._product = A_op if self.matrix_free else _product_of(A_op)
         self._G = None  # (factorisation count, per-node frames of the factorised matrix), see _preconditioner_frames
         self.x0 = x0
         self.pre = pre
@@ -321,8 +326,7 @@ class IterativeSystem:
         with timed(self.timings, "assembly"):
             A = self.assemble()
             if self.matrix_free:  # A exists now: its sparse product is the cheaper one for the rest of the step
-                A_op = self.body.pattern.to_bsr(A)
-                self._product = lambda y: (A_op @ y.reshape(-1)).reshape(-1, 3)
+                self._product = _product_of(self.body.pattern.to_bsr(A))
         keep = mask if everything else mask & self.body.supported()[:, None]
         factorize_constrained(self.body, A, T, keep, self.pre.solver, self.timings)
         self.pre.factorized(T, self.Q, keep.any(axis=1))
