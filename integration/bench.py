@@ -413,17 +413,19 @@ def capture_floor(world, body) -> Floor:
     captured = {}
     solve_velocities = world.sim.velocity_solver
 
-    def capture(b, system, supports, t_next):
-        inner = system.solve
+    def capture(bodies, systems, supports, t_next):
+        for b, system in zip(bodies, systems):
+            inner = system.solve
 
-        def solve(cons, *a, **kw):
-            captured[id(b)] = (system, cons)
-            return inner(cons, *a, **kw)
+            def solve(cons, *a, _b=b, _system=system, _inner=inner, **kw):
+                if not kw.get("homogeneous"):
+                    captured[id(_b)] = (_system, cons)
+                return _inner(cons, *a, **kw)
 
-        system.solve = solve
+            system.solve = solve
         if solve_velocities is None:
-            return system.solve(supports)[0]
-        return solve_velocities(b, system, supports, t_next)
+            return [system.solve(cons)[0] for system, cons in zip(systems, supports)]
+        return solve_velocities(bodies, systems, supports, t_next)
 
     world.sim.velocity_solver = capture
     try:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
-from .rigid import RigidBody
+from .rigid import RigidLink
 
 
 @dataclass
@@ -24,7 +24,7 @@ class Contacts:
 
     body: soft body index; node: node index; rigid: pybullet body id; point (m, 3): closest point on the
     rigid [m]; normal (m, 3): unit normal out of the rigid towards the node; distance (m,): signed
-    distance [m], negative when the node penetrates.
+    distance [m], negative when the node penetrates; link (m,): the rigid's link index (-1: base).
     """
 
     body: np.ndarray
@@ -33,26 +33,31 @@ class Contacts:
     point: np.ndarray
     normal: np.ndarray
     distance: np.ndarray
+    link: np.ndarray | None = None
+
+    FIELDS = ("body", "node", "rigid", "point", "normal", "distance", "link")
+
+    def __post_init__(self):
+        if self.link is None:
+            self.link = np.full(len(self.node), -1, dtype=np.int64)
 
     @classmethod
     def empty(cls) -> "Contacts":
         z = np.zeros(0, dtype=np.int64)
-        return cls(z, z.copy(), z.copy(), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        return cls(z, z.copy(), z.copy(), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), z.copy())
 
     def __len__(self) -> int:
         return len(self.node)
 
     def select(self, mask: np.ndarray) -> "Contacts":
-        return Contacts(self.body[mask], self.node[mask], self.rigid[mask], self.point[mask],
-                        self.normal[mask], self.distance[mask])
+        return Contacts(*(getattr(self, f)[mask] for f in self.FIELDS))
 
     @classmethod
     def concat(cls, parts: list["Contacts"]) -> "Contacts":
         parts = [c for c in parts if len(c)]
         if not parts:
             return cls.empty()
-        return cls(*(np.concatenate([getattr(c, f) for c in parts]) for f in
-                     ("body", "node", "rigid", "point", "normal", "distance")))
+        return cls(*(np.concatenate([getattr(c, f) for c in parts]) for f in cls.FIELDS))
 
 
 class CollisionDetector:
@@ -64,7 +69,7 @@ class CollisionDetector:
         self.last_candidates = 0
 
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
-                      rigid: RigidBody, margin: float) -> Contacts:
+                      rigid: RigidLink, margin: float) -> Contacts:
         """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body."""
         x = positions[surface_nodes]
         lo, hi = rigid.aabb()
@@ -79,7 +84,7 @@ class CollisionDetector:
             return Contacts.empty()
         rows = []
         for node, xi in zip(cand.tolist(), positions[cand].tolist()):
-            res = p.getClosestPoints(-1, rigid.id, margin, collisionShapeA=self._probe,
+            res = p.getClosestPoints(-1, rigid.id, margin, linkIndexB=rigid.link, collisionShapeA=self._probe,
                                      collisionShapePositionA=xi, physicsClientId=self.client)
             if res:
                 best = min(res, key=lambda r: r[8])
@@ -94,11 +99,12 @@ class CollisionDetector:
             normal = np.where(inside_mesh[:, None], -normal, normal)
             dist = np.where(inside_mesh, -dist, dist)
         n = len(node)
-        return Contacts(np.full(n, body_index), node, np.full(n, rigid.id), point, normal, dist)
+        return Contacts(np.full(n, body_index), node, np.full(n, rigid.id), point, normal, dist,
+                        np.full(n, rigid.link))
 
     @staticmethod
     def vertex_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
-                        rigid: RigidBody, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                        rigid: RigidLink, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Sharp rigid vertices that touch or penetrate the soft surface.
 
         Returns (vertex (m, 3), triangle index (m,), barycentric (m, 3), signed distance (m,)) for every

@@ -264,7 +264,7 @@ class Recorder:
         return out
 
     def _attachments(self) -> list[tuple[FemBody, np.ndarray]]:
-        return [(body, np.asarray(ids)) for body, ids, _ in getattr(self.target, "attachments", [])]
+        return [(a.body, np.asarray(a.nodes)) for a in getattr(self.target, "attachments", [])]
 
     def _node_label(self, b: int, n: int) -> str:
         return f"node{n}" if len(self._soft) == 1 else f"body{b}_node{n}"

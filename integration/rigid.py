@@ -1,32 +1,42 @@
-"""Rigid bodies owned by pybullet: shape, mode (fixed / dynamic / kinematic) and pose."""
+"""Rigid links owned by pybullet: a body's base (link -1) or one of its links, with its shapes, mode
+(fixed / dynamic / kinematic) and pose.
+
+A World made of its own primitives (add_sphere, add_box, ...) has one link per body, the base; a
+URDF robot in the user's client has one per link that carries a collision shape.
+"""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-import pybullet as p
 
 from softbody.errors import InvalidInputError
+
+from .bullet import BASE, BulletAdapter, Shape, quat_matrix
 
 # A kinematic pose script: t [s] -> (position (3,), quaternion xyzw (4,)) or just a position.
 PoseScript = Callable[[float], object]
 
-SHAPES = ("sphere", "box", "plane", "mesh")
+SHAPES = ("sphere", "box", "plane", "mesh", "urdf")
 
 
 @dataclass
-class RigidBody:
-    """A rigid body in the pybullet world.
+class RigidLink:
+    """One rigid link in the pybullet world.
 
-    id: pybullet body id; shape: one of SHAPES; params: the shape's size (radius, half_extents,
-    normal, or vertices/faces of a mesh in the body frame); mass: 0 for fixed and kinematic bodies;
-    motion: pose script for kinematic bodies; name: for logs and recordings.
+    id: pybullet body id; link: link index (-1: the base); shape: one of SHAPES ("urdf": a link of a body
+    the World did not create, with ``shapes`` from pybullet); params: a primitive's size (radius,
+    half_extents, normal, or vertices/faces of a mesh in the body frame); mass [kg] (0: fixed or
+    kinematic); motion: pose script of a kinematic body; name: for logs and recordings; friction: the
+    Coulomb coefficient against soft bodies (None: the soft body's own); movable: pybullet integrates the
+    link's body (a free base or movable joints), so it takes part in the coupled solve.
     """
 
     id: int
-    client: int
+    adapter: BulletAdapter
     shape: str
     params: dict
     mass: float
@@ -35,38 +45,47 @@ class RigidBody:
     friction: float | None = None
     concave: bool = False
     _trimesh: object = field(default=None, repr=False)
+    link: int = BASE
+    movable: bool = False
+    shapes: list[Shape] = field(default_factory=list)
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return (self.id, self.link)
+
+    @property
+    def client(self) -> int:
+        return self.adapter.client
 
     @property
     def mode(self) -> str:
-        return "kinematic" if self.motion is not None else ("dynamic" if self.mass > 0 else "fixed")
+        if self.motion is not None:
+            return "kinematic"
+        return "dynamic" if self.movable else "fixed"
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """Current position (3,) [m] and orientation quaternion (x, y, z, w)."""
-        pos, orn = p.getBasePositionAndOrientation(self.id, physicsClientId=self.client)
-        return np.array(pos), np.array(orn)
+        """Current position (3,) [m] of the link's centre of mass and orientation (x, y, z, w)."""
+        return self.adapter.pose(self.id, self.link)
 
     def rotation(self) -> np.ndarray:
-        _, q = self.pose()
-        return np.array(p.getMatrixFromQuaternion(q.tolist())).reshape(3, 3)
+        return quat_matrix(self.pose()[1])
 
     def velocity(self) -> tuple[np.ndarray, np.ndarray]:
         """Linear velocity of the centre of mass (3,) [m/s] and angular velocity (3,) [rad/s]."""
-        v, w = p.getBaseVelocity(self.id, physicsClientId=self.client)
-        return np.array(v), np.array(w)
+        return self.adapter.velocity(self.id, self.link)
 
     def point_velocity(self, points: np.ndarray) -> np.ndarray:
-        """Velocity (m, 3) of material points of the body at world positions (m, 3)."""
-        v, w = self.velocity()
-        c, _ = self.pose()
+        """Velocity (m, 3) of material points of the link at world positions (m, 3)."""
+        c, _, v, w = self.adapter.state(self.id, self.link)
         return v + np.cross(w, np.asarray(points) - c)
 
     def to_world(self, local: np.ndarray) -> np.ndarray:
-        c, _ = self.pose()
-        return local @ self.rotation().T + c
+        c, q = self.pose()
+        return local @ quat_matrix(q).T + c
 
     def to_local(self, world: np.ndarray) -> np.ndarray:
-        c, _ = self.pose()
-        return (world - c) @ self.rotation()
+        c, q = self.pose()
+        return (world - c) @ quat_matrix(q)
 
     def scripted_pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose of a kinematic body at time t from its script."""
@@ -81,33 +100,65 @@ class RigidBody:
         return pos, orn / np.linalg.norm(orn)
 
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = p.getAABB(self.id, physicsClientId=self.client)
-        return np.array(lo), np.array(hi)
+        return self.adapter.aabb(self.id, self.link)
 
     def bounding_radius(self) -> float:
-        """Radius [m] of a sphere about the body's origin that holds the whole shape (inf for a plane).
+        """Radius [m] of a sphere about the link's centre of mass that holds all its shapes (inf for a plane).
 
-        The origin is ``pose()``'s position: the World creates every body with pybullet's default
-        inertial frame (no offset), in which the shape's parameters and mesh vertices are given."""
-        if self.shape == "sphere":
-            return float(self.params["radius"])
-        if self.shape == "box":
-            return float(np.linalg.norm(self.params["half_extents"]))
-        if self.shape == "mesh":
-            if "_bounding_radius" not in self.__dict__:
-                self._bounding_radius = float(np.linalg.norm(np.asarray(self.params["vertices"]), axis=1).max())
+        A World's own primitives are created with pybullet's default inertial frame (no offset), in which
+        the shape's parameters and mesh vertices are given; a URDF link's radius comes from its shapes,
+        or from its axis-aligned box when a shape's extent is unknown (a mesh)."""
+        if "_bounding_radius" in self.__dict__:
             return self._bounding_radius
-        return float("inf")
+        if self.shape == "sphere":
+            r = float(self.params["radius"])
+        elif self.shape == "box":
+            r = float(np.linalg.norm(self.params["half_extents"]))
+        elif self.shape == "mesh":
+            r = float(np.linalg.norm(np.asarray(self.params["vertices"]), axis=1).max())
+        elif self.shape == "plane" or any(s.kind == "plane" for s in self.shapes):
+            r = math.inf
+        else:
+            r = max((np.linalg.norm(s.position) + s.bounding_radius() for s in self.shapes), default=math.inf)
+            if not math.isfinite(r):  # a mesh: bound it by the box pybullet keeps around the link
+                lo, hi = self.aabb()
+                c, _ = self.pose()
+                r = float(np.linalg.norm(0.5 * (lo + hi) - c) + 0.5 * np.linalg.norm(hi - lo))
+        self._bounding_radius = r
+        return r
+
+    def local_vertices(self) -> np.ndarray:
+        """The sharp vertices of the link's shapes (box corners, mesh vertices) in its inertial frame (m, 3)."""
+        if "_local_vertices" in self.__dict__:
+            return self._local_vertices
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        if self.shape == "box":
+            verts = corners * np.asarray(self.params["half_extents"])
+        elif self.shape == "mesh":
+            verts = np.asarray(self.params["vertices"], float)
+        elif self.shape == "urdf":
+            parts = []
+            for s in self.shapes:
+                if s.kind == "box":
+                    local = corners * np.asarray(s.size)
+                elif s.kind == "mesh" and s.mesh_file and Path(s.mesh_file).exists():
+                    local = np.asarray(load_trimesh(s.mesh_file).convex_hull.vertices) * np.asarray(s.size)
+                else:
+                    continue
+                parts.append(local @ quat_matrix(s.quaternion).T + np.asarray(s.position))
+            verts = np.concatenate(parts) if parts else np.zeros((0, 3))
+        else:
+            verts = np.zeros((0, 3))
+        self._local_vertices = verts
+        return verts
 
     def surface_vertices(self) -> np.ndarray:
         """World positions of the shape's sharp vertices (box corners, mesh vertices); (0, 3) for smooth shapes."""
-        if self.shape == "box":
-            h = np.asarray(self.params["half_extents"])
-            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * h
-            return self.to_world(corners)
-        if self.shape == "mesh":
-            return self.to_world(np.asarray(self.params["vertices"]))
-        return np.zeros((0, 3))
+        verts = self.local_vertices()
+        return self.to_world(verts) if len(verts) else verts
+
+
+RigidBody = RigidLink  # the name of a World's own single-link bodies
 
 
 def load_trimesh(mesh) -> "object":

@@ -1,33 +1,44 @@
-"""World: a pybullet connection for the rigid side, a softbody.Simulation for the soft side,
-and the coupling between them (contacts, attachments, reaction forces).
+"""World: soft bodies (a softbody.Simulation) in a pybullet rigid-body scene, the coupling between them.
+
+A World opens a pybullet client of its own, or joins the user's (``World(client=cid)``): then every
+body in that client, loaded before or after, is a rigid obstacle, link by link, and the user's own
+calls between steps (motor commands, constraints, forces) keep working.
 
 One step of length h, in order:
-  1. kinematic rigid bodies get their scripted velocity over [t, t + h];
-  2. soft surface nodes near rigid bodies are queried against them (collision.py);
-  3. each soft body takes one implicit step with its supports, attachments and contacts (contact.py);
-  4. the contact reactions act on dynamic rigid bodies, equal and opposite, and pybullet steps;
-  5. kinematic bodies are moved to their scripted pose at t + h.
-A scene without rigid bodies costs no pybullet work; a soft body far from every rigid AABB costs
-no collision query.
+  1. new or removed pybullet bodies are picked up; kinematic bodies get their scripted velocity;
+  2. soft surface nodes near rigid links are queried against them (collision.py), at the start pose;
+  3. movable rigid bodies in contact with (or attached to) a soft body give their mass matrix and the
+     Jacobians of the contact points (bullet.py), at the start configuration;
+  4. pybullet steps once (``stepSimulation``): the rigid bodies' free motion over the step, with the
+     user's motors, forces and rigid contacts;
+  5. every soft body takes one implicit step with its supports, attachments and contacts, solved
+     together with the rigid bodies' velocity change du (contact.py, coupling.py);
+  6. du goes back to pybullet (velocity and position of the step just taken), the soft states are
+     committed, kinematic bodies are moved to their scripted pose at t + h.
+A divergence (non-finite state, or energy above ``max_energy``) raises SimulationDiverged before 6
+and leaves soft and rigid bodies as they were before the step.
 """
 from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections import defaultdict
-from typing import Callable
+from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 import pybullet as p
 
 from softbody import FemBody, Simulation
-from softbody.simulation import run_steps
-from softbody.errors import InvalidInputError, finite_number
+from softbody.errors import InvalidInputError, SimulationDiverged, finite_number
 from softbody.integrator import Constraints, LinearSystem
+from softbody.simulation import run_steps
 
+from .bullet import BASE, BodyDynamics, BulletAdapter, quat_matrix
 from .collision import CollisionDetector, Contacts
-from .contact import ContactResult, ContactSolver, NodeContacts
-from .rigid import PoseScript, RigidBody, load_trimesh
+from .contact import Attachments, BodyStep, ContactResult, ContactSolver, NodeContacts
+from .rigid import PoseScript, RigidLink, load_trimesh
 
 
 def _quat(orientation) -> list[float]:
@@ -50,39 +61,127 @@ def _positive(v, name: str) -> float:
     return finite_number(v, name, 0.0)
 
 
+def _friction(value, name: str = "friction") -> float:
+    if not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+            and math.isfinite(value) and value >= 0):
+        raise InvalidInputError(f"{name} must be a finite number >= 0, got {value!r}")
+    return float(value)
+
+
+@dataclass
+class Attachment:
+    """Nodes of a soft body held to a rigid link: ``local`` (m, 3) their positions in the link's frame;
+    coupled: the link is movable and the attachment is solved two-way (else the nodes are prescribed)."""
+
+    body: FemBody
+    nodes: np.ndarray
+    rigid: RigidLink
+    local: np.ndarray
+    coupled: bool
+
+
+@dataclass
+class _Coupling:
+    """The movable rigid bodies of one step: their dynamics at the start, their slices of du, and the
+    block-diagonal mass matrix."""
+
+    dynamics: dict[int, BodyDynamics]
+    offset: dict[int, int]
+    n: int
+
+    @classmethod
+    def of(cls, dynamics: dict[int, BodyDynamics]) -> "_Coupling":
+        offset, n = {}, 0
+        for b, dyn in dynamics.items():
+            offset[b] = n
+            n += dyn.n
+        return cls(dynamics, offset, n)
+
+    def mass_matrix(self) -> np.ndarray:
+        M = np.zeros((self.n, self.n))
+        for b, dyn in self.dynamics.items():
+            o = self.offset[b]
+            M[o:o + dyn.n, o:o + dyn.n] = dyn.M
+        return M
+
+    def jacobians(self, adapter: BulletAdapter, rigid: np.ndarray, link: np.ndarray,
+                  points: np.ndarray) -> np.ndarray:
+        """Point Jacobians (m, 3, n) of rigid points (body ids (m,), links (m,), world points (m, 3));
+        zero rows for points on bodies that are not coupled."""
+        J = np.zeros((len(rigid), 3, self.n))
+        for b, dyn in self.dynamics.items():
+            o = self.offset[b]
+            on_body = rigid == b
+            for lk in np.unique(link[on_body]).tolist():
+                sel = on_body & (link == lk)
+                J[sel, :, o:o + dyn.n] = adapter.point_jacobians(dyn, lk, points[sel])
+        return J
+
+
 class World:
     """Soft bodies (softbody.FemBody) in a pybullet rigid-body scene.
 
-    dt: step [s]; gravity [m/s^2]; gui: open pybullet's GUI instead of DIRECT; solver: linear solver
-    backend of the soft bodies; contact_margin [m]: nodes closer than this to a rigid body become
-    contact candidates (grown automatically with the surface speed).
+    dt: step [s]; gravity [m/s^2]: both default to the joined client's (see ``client``), else 0.01 s and
+    (0, 0, -9.81); given explicitly they are also set on the client. gui: open pybullet's GUI instead of
+    DIRECT (own client only); solver: linear solver backend of the soft bodies; contact_margin [m]:
+    nodes closer than this to a rigid link become contact candidates (grown with the speeds);
+    client: the id of the user's pybullet client to join (its bodies become rigid obstacles, link by
+    link; :meth:`close` leaves it connected); max_energy [J]: bound on the scene's total energy
+    (kinetic and elastic energy of the soft bodies, kinetic energy of the movable rigid bodies, and the
+    gravitational potential of both, zero at the world origin), above which a step raises
+    SimulationDiverged with the state kept at the last good step; method: the soft bodies' linear
+    solve ("auto", "direct", "iterative").
     """
 
-    def __init__(self, dt: float = 0.01, gravity=(0.0, 0.0, -9.81), gui: bool = False,
-                 solver: str = "auto", contact_margin: float = 0.005):
-        self.sim = Simulation([], dt, gravity, solver=solver)
-        self.dt = self.sim.dt
-        self.gravity = self.sim.gravity
-        self.client = p.connect(p.GUI if gui else p.DIRECT)
-        p.setGravity(*self.gravity.tolist(), physicsClientId=self.client)
-        p.setTimeStep(self.dt, physicsClientId=self.client)
-        self.contact_margin = _positive(contact_margin, "contact_margin")
-        self.rigids: dict[int, RigidBody] = {}
+    def __init__(self, dt: float | None = None, gravity=None, gui: bool = False, solver: str = "auto",
+                 contact_margin: float = 0.005, client: int | None = None, max_energy: float | None = None,
+                 method: str = "auto"):
+        if client is not None and gui:
+            raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
+        self.adapter = BulletAdapter(client, gui)
+        try:
+            if client is not None:
+                dt0, g0 = self.adapter.parameters()
+                dt = dt0 if dt is None else dt
+                gravity = g0 if gravity is None else gravity
+            self.sim = Simulation([], 0.01 if dt is None else dt, (0.0, 0.0, -9.81) if gravity is None else gravity,
+                                  solver=solver, max_energy=max_energy, method=method)
+            self.dt = self.sim.dt
+            self.gravity = self.sim.gravity
+            self.adapter.set_parameters(self.dt, self.gravity)
+            self.contact_margin = _positive(contact_margin, "contact_margin")
+        except Exception:
+            self.adapter.close()
+            raise
+        self.max_energy = self.sim.max_energy
+        self.sim.max_energy = None  # the World checks the whole scene's energy, rigid bodies included
+        self.rigids: dict[tuple[int, int], RigidLink] = {}
         self.friction: dict[int, float] = {}  # id(body) -> mu
-        self.attachments: list[tuple[FemBody, np.ndarray, RigidBody]] = []
+        self.attachments: list[Attachment] = []
         self.detector = CollisionDetector(self.client)
         self.contact_solver = ContactSolver()
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}
+        self.attachment_forces: list[tuple[Attachment, np.ndarray]] = []  # forces on the soft nodes [N], last step
         # seconds spent in the last step, by disjoint phase: collision (queries), the core's rotations,
         # forces, assembly, factorize, solve (linear algebra), contact (the contact loop's own work),
-        # other (rest of the FEM step), rigid (pybullet); "total" is their sum
+        # other (rest of the FEM step), rigid (pybullet and the coupling's rigid side); "total" is their sum
         self.timings: dict[str, float] = defaultdict(float)
         self._surface: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._ignore: dict[int, set] = {}  # id(body) -> {(body id, link or None)}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._known: set[int] = set()
+        self._one_way: set[int] = set()  # bodies pybullet moves but the coupled solve cannot (unsupported joints)
+        self._warned: set = set()
+        self._lagged: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (body, link, force, point) for the next step
         self.sim.velocity_solver = self._solve_velocities
+        self._sync()
 
     # ------------------------------------------------------------------ properties
+    @property
+    def client(self) -> int | None:
+        return self.adapter.client
+
     @property
     def t(self) -> float:
         return self.sim.t
@@ -92,9 +191,8 @@ class World:
         return self.sim.bodies
 
     def close(self) -> None:
-        if self.client is not None and p.isConnected(self.client):
-            p.disconnect(self.client)
-        self.client = None
+        """Disconnect the World's own pybullet client; a joined client stays connected."""
+        self.adapter.close()
 
     def __enter__(self) -> "World":
         return self
@@ -103,9 +201,52 @@ class World:
         self.close()
 
     # ------------------------------------------------------------------ rigid bodies
+    def _warn_once(self, key, message: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            warnings.warn(message, stacklevel=3)
+
+    def _sync(self) -> None:
+        """Pick up the client's bodies that appeared since the last step (each link with a collision shape
+        becomes a rigid link) and drop the removed ones."""
+        ids = self.adapter.body_ids()
+        current = set(ids)
+        if current == self._known:
+            return
+        for gone in self._known - current:
+            for key in [k for k in self.rigids if k[0] == gone]:
+                del self.rigids[key]
+            self._one_way.discard(gone)
+        for b in ids:
+            if b not in self._known:
+                self._register(b)
+        self._known = current
+
+    def _register(self, b: int) -> None:
+        """Make every link of pybullet body b that has a collision shape a rigid link."""
+        ad = self.adapter
+        _, unsupported = ad.joints(b)
+        movable = ad.movable(b)
+        if movable and unsupported:
+            self._warn_once(("joints", b), f"body {b} ({ad.body_name(b)!r}) has spherical or planar joints "
+                            f"{unsupported}: the coupled solve handles revolute and prismatic joints only, so the "
+                            "soft bodies' reactions reach this body one step late (as forces)")
+            movable = False
+        for link in range(BASE, ad.num_links(b)):
+            if (b, link) in self.rigids:
+                continue
+            shapes = ad.collision_shapes(b, link)
+            if not shapes:
+                continue
+            name = ad.body_name(b) if link == BASE else f"{ad.body_name(b)}/{ad.link_name(b, link)}"
+            self.rigids[(b, link)] = RigidLink(b, ad, "urdf", {}, ad.mass(b, link), name=name, link=link,
+                                               movable=movable, shapes=shapes)
+        if ad.movable(b) and unsupported:
+            self._one_way.add(b)
+
     def _add(self, shape: str, col: int, params: dict, position, orientation, mass: float,
              motion: PoseScript | None, name: str, friction: float | None, concave: bool = False,
-             tm=None) -> RigidBody:
+             tm=None) -> RigidLink:
         mass = float(mass)
         if not math.isfinite(mass) or mass < 0:
             raise InvalidInputError(f"mass must be >= 0 (0: fixed or kinematic), got {mass!r}")
@@ -113,30 +254,30 @@ class World:
             raise InvalidInputError("a kinematic body (with a motion script) must have mass 0")
         if motion is not None and not callable(motion):
             raise InvalidInputError("motion must be a function of time returning a pose")
-        if friction is not None and not (isinstance(friction, (int, float, np.number))
-                                         and math.isfinite(friction) and friction >= 0):
-            raise InvalidInputError(f"friction must be >= 0, got {friction!r}")
+        if friction is not None:
+            friction = _friction(friction)
         bid = p.createMultiBody(mass, col, basePosition=_vec3(position, "position"),
                                 baseOrientation=_quat(orientation), physicsClientId=self.client)
         if mass > 0:  # pybullet damps velocities by default (0.04); physical bodies keep their momentum
             p.changeDynamics(bid, -1, linearDamping=0.0, angularDamping=0.0, physicsClientId=self.client)
-        body = RigidBody(bid, self.client, shape, params, mass, motion, name or f"{shape}{bid}",
-                         friction, concave, tm)
+        body = RigidLink(bid, self.adapter, shape, params, mass, motion, name or f"{shape}{bid}", friction, concave, tm,
+                         movable=mass > 0, shapes=self.adapter.collision_shapes(bid, BASE))
         if motion is not None:
             pos, orn = body.scripted_pose(self.t)
-            p.resetBasePositionAndOrientation(bid, pos.tolist(), orn.tolist(), physicsClientId=self.client)
-        self.rigids[bid] = body
+            self.adapter.reset_pose(bid, pos.tolist(), orn.tolist())
+        self.rigids[(bid, BASE)] = body
+        self._known.add(bid)
         return body
 
     def add_sphere(self, radius: float, position=(0, 0, 0), mass: float = 0.0, motion: PoseScript | None = None,
-                   name: str = "", friction: float | None = None) -> RigidBody:
+                   name: str = "", friction: float | None = None) -> RigidLink:
         """A sphere of ``radius`` [m]: fixed (mass 0), dynamic (mass > 0 [kg]) or kinematic (motion script)."""
         r = _positive(radius, "radius")
         col = p.createCollisionShape(p.GEOM_SPHERE, radius=r, physicsClientId=self.client)
         return self._add("sphere", col, {"radius": r}, position, None, mass, motion, name, friction)
 
     def add_box(self, half_extents, position=(0, 0, 0), orientation=None, mass: float = 0.0,
-                motion: PoseScript | None = None, name: str = "", friction: float | None = None) -> RigidBody:
+                motion: PoseScript | None = None, name: str = "", friction: float | None = None) -> RigidLink:
         """A box with ``half_extents`` (3,) [m]."""
         he = np.asarray(half_extents, dtype=float)
         if he.shape != (3,) or not np.isfinite(he).all() or (he <= 0).any():
@@ -145,7 +286,7 @@ class World:
         return self._add("box", col, {"half_extents": he}, position, orientation, mass, motion, name, friction)
 
     def add_plane(self, normal=(0, 0, 1), point=(0, 0, 0), name: str = "", friction: float | None = None,
-                  motion: PoseScript | None = None) -> RigidBody:
+                  motion: PoseScript | None = None) -> RigidLink:
         """An infinite fixed plane through ``point`` with outward ``normal``."""
         nrm = np.asarray(_vec3(normal, "normal"))
         if np.linalg.norm(nrm) == 0:
@@ -156,7 +297,7 @@ class World:
 
     def add_mesh(self, mesh, position=(0, 0, 0), orientation=None, mass: float = 0.0, scale: float = 1.0,
                  motion: PoseScript | None = None, name: str = "", friction: float | None = None,
-                 convex: bool | None = None) -> RigidBody:
+                 convex: bool | None = None) -> RigidLink:
         """A triangle mesh (a trimesh.Trimesh or a file trimesh reads), in the body frame.
 
         convex: None decides from the mesh (trimesh's is_convex). A concave mesh is exact but must be
@@ -179,61 +320,117 @@ class World:
         return self._add("mesh", col, {"vertices": np.asarray(tm.vertices), "faces": np.asarray(tm.faces)},
                          position, orientation, mass, motion, name, friction, concave=not convex, tm=tm)
 
-    def rigid(self, body_id: int) -> RigidBody:
-        if body_id not in self.rigids:
-            raise InvalidInputError(f"unknown rigid body id {body_id!r}; known ids: {sorted(self.rigids)}")
-        return self.rigids[body_id]
+    def rigid(self, body_id: int, link: int = BASE) -> RigidLink:
+        """The rigid link ``link`` (-1: the base) of pybullet body ``body_id``."""
+        self._sync()
+        if (body_id, link) not in self.rigids:
+            known = sorted({k[0] for k in self.rigids})
+            if body_id in known:
+                links = sorted(k[1] for k in self.rigids if k[0] == body_id)
+                raise InvalidInputError(f"rigid body {body_id} has no link {link!r} with a collision shape; "
+                                        f"its links: {links}")
+            raise InvalidInputError(f"unknown rigid body id {body_id!r}; known ids: {known}")
+        return self.rigids[(body_id, link)]
+
+    def _link_of(self, rigid, link: int | None) -> RigidLink:
+        if isinstance(rigid, RigidLink):
+            if link is not None and link != rigid.link:
+                return self.rigid(rigid.id, link)
+            return rigid
+        return self.rigid(rigid, BASE if link is None else link)
+
+    def set_friction(self, rigid, mu: float | None, link: int | None = None) -> None:
+        """Coulomb coefficient of a rigid body (all its links, or one ``link``) against soft bodies; None:
+        the soft body's own."""
+        mu = None if mu is None else _friction(mu)
+        bid = rigid.id if isinstance(rigid, RigidLink) else rigid
+        if link is not None or not any(k[0] == bid for k in self.rigids):
+            self.rigid(bid, BASE if link is None else link)  # a clear error for an unknown body or link
+        for key, rb in self.rigids.items():
+            if key[0] == bid and (link is None or key[1] == link):
+                rb.friction = mu
 
     # ------------------------------------------------------------------ soft bodies
-    def add_soft(self, body: FemBody, friction: float = 0.0) -> FemBody:
-        """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0)."""
+    def add_soft(self, body: FemBody, friction: float = 0.0, ignore: Iterable = ()) -> FemBody:
+        """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0);
+        ``ignore``: rigid bodies (ids or RigidLinks) or (body id, link) pairs it does not collide with."""
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
         friction = finite_number(friction, "friction", 0.0, strict=False)
         if any(b is body for b in self.sim.bodies):
             raise InvalidInputError("this soft body is already in the world")
+        skip = set()
+        for item in ignore:
+            if isinstance(item, RigidLink):
+                skip.add(item.key)
+            elif isinstance(item, tuple) and len(item) == 2:
+                skip.add((int(item[0]), int(item[1])))
+            elif isinstance(item, (int, np.integer)):
+                skip.add((int(item), None))
+            else:
+                raise InvalidInputError(f"ignore: expected rigid body ids, RigidLinks or (body id, link) pairs, "
+                                        f"got {item!r}")
         self.sim.bodies.append(body)
         self.friction[id(body)] = friction
+        self._ignore[id(body)] = skip
         tris = body.mesh.surface_triangles()
         self._surface[id(body)] = (np.unique(tris), tris)
         return body
 
-    def attach(self, body: FemBody, node_ids, rigid: RigidBody | int) -> None:
-        """Make nodes of a soft body follow a rigid body's pose exactly (rigidly attached)."""
+    def attach(self, body: FemBody, node_ids, rigid: RigidLink | int, link: int | None = None,
+               collide: bool = False) -> Attachment:
+        """Hold nodes of a soft body to a rigid link where they are now (rigidly attached).
+
+        rigid: a RigidLink or a pybullet body id, with ``link`` (default: the base, -1). On a movable link
+        (a dynamic body or a robot's link) the attachment is two-way: the nodes and the rigid point move
+        together, the soft body's weight and inertia load the rigid body. On a fixed or kinematic one the
+        nodes follow its pose. collide: keep the contacts between this soft body and that link (off by
+        default: a body attached flush against a link would otherwise push against it)."""
         if not any(b is body for b in self.sim.bodies):
             raise InvalidInputError("attach: add the soft body to the world first (add_soft)")
-        rb = self.rigid(rigid.id if isinstance(rigid, RigidBody) else rigid)
+        rb = self._link_of(rigid, link)
         ids = body._node_ids(node_ids, "attach")
         local = rb.to_local(body.positions[ids])
+        coupled = rb.movable and rb.motion is None
+        if not coupled:
+            body.prescribe(ids, self._follow(rb, local))
+        if not collide:
+            self._ignore[id(body)].add(rb.key)
+        att = Attachment(body, ids, rb, local, coupled)
+        self.attachments.append(att)
+        return att
 
+    def _follow(self, rb: RigidLink, local: np.ndarray) -> Callable[[float], np.ndarray]:
+        """The positions of rigid points ``local`` (m, 3) at time t, for nodes held to a link that the
+        coupled solve does not move (scripted: its pose at t; otherwise its motion extrapolated)."""
         def motion(t: float) -> np.ndarray:
             if rb.motion is not None:
                 pos, orn = rb.scripted_pose(t)
-                R = np.array(p.getMatrixFromQuaternion(orn.tolist())).reshape(3, 3)
-                return local @ R.T + pos
-            if rb.mass > 0:  # dynamic: extrapolate the current motion over the step
-                c, _ = rb.pose()
-                v, w = rb.velocity()
-                dt = t - self.t
-                return rb.to_world(local) + v * dt + np.cross(w, rb.to_world(local) - c) * dt
-            return rb.to_world(local)
-
-        body.prescribe(ids, motion)
-        self.attachments.append((body, ids, rb))
+                return local @ quat_matrix(orn).T + pos
+            c, q, v, w = self.adapter.state(rb.id, rb.link)
+            x = local @ quat_matrix(q).T + c
+            dt = t - self.t
+            return x + v * dt + np.cross(w, x - c) * dt
+        return motion
 
     # ------------------------------------------------------------------ stepping
-    def _rigid_point_velocity(self, rb: RigidBody, points: np.ndarray) -> np.ndarray:
+    def _rigid_point_velocity(self, rb: RigidLink, points: np.ndarray) -> np.ndarray:
         if rb.id in self._kin_velocity:
             v, w = self._kin_velocity[rb.id]
             c, _ = rb.pose()
             return v + np.cross(w, points - c)
         return rb.point_velocity(points)
 
-    def _detect(self, i: int, body: FemBody) -> NodeContacts | None:
+    def _ignored(self, body: FemBody, rb: RigidLink) -> bool:
+        skip = self._ignore.get(id(body), ())
+        return rb.key in skip or (rb.id, None) in skip
+
+    def _detect(self, i: int, body: FemBody) -> Contacts:
+        """Contact candidates of soft body i against every rigid link near it, one per node (the deepest)."""
         surface, tris = self._surface[id(body)]
         surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
         if not len(surface):
-            return None
+            return Contacts.empty()
         x = body.positions
         xs = x[surface]
         speed = float(np.sqrt((body.velocities[surface] ** 2).sum(axis=1).max(initial=0.0)))
@@ -241,11 +438,13 @@ class World:
         lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
         parts, vparts = [], []
         for rb in self.rigids.values():
+            if self._ignored(body, rb):
+                continue
             rlo, rhi = rb.aabb()
             if np.any(rlo > hi) or np.any(rhi < lo):
                 continue  # broad phase: far apart, no query at all
             parts.append(self.detector.node_contacts(i, x, surface, rb, margin))
-            if rb.shape in ("box", "mesh"):
+            if len(rb.local_vertices()):
                 q, ti, bary, d = self.detector.vertex_contacts(i, x, tris, rb, margin)
                 if len(q):
                     # a sharp rigid vertex inside a soft triangle pushes the triangle's nodes along -n_tri
@@ -255,44 +454,114 @@ class World:
                     nodes = tris[ti].ravel()
                     vparts.append(Contacts(np.full(len(nodes), i), nodes, np.full(len(nodes), rb.id),
                                            np.repeat(q, 3, axis=0), np.repeat(-n_tri, 3, axis=0),
-                                           np.repeat(d, 3)))
+                                           np.repeat(d, 3), np.full(len(nodes), rb.link)))
         found = Contacts.concat(parts + vparts)
-        self._found.append(found)
         if not len(found):
-            return None
-        # one contact per node: the deepest
-        order = np.lexsort((found.distance, found.node))
+            return found
+        order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
         found = found.select(order)
-        first = np.r_[True, found.node[1:] != found.node[:-1]]
-        found = found.select(first)
-        mu_body = self.friction[id(body)]
+        return found.select(np.r_[True, found.node[1:] != found.node[:-1]])
+
+    def _node_contacts(self, body: FemBody, found: Contacts, coupling: _Coupling) -> NodeContacts:
+        """Contact data for the solve: the rigid points' velocities (free motion for movable bodies, filled
+        in after pybullet's step), friction, and the Jacobians of the coupled ones."""
+        mu = np.full(len(found), self.friction[id(body)])
         vr = np.zeros((len(found), 3))
-        mu = np.full(len(found), mu_body)
-        for rid in np.unique(found.rigid):
-            sel = found.rigid == rid
-            rb = self.rigids[int(rid)]
-            vr[sel] = self._rigid_point_velocity(rb, found.point[sel])
+        for key in set(zip(found.rigid.tolist(), found.link.tolist())):
+            sel = (found.rigid == key[0]) & (found.link == key[1])
+            rb = self.rigids[key]
             if rb.friction is not None:  # a rigid body's own coefficient overrides the soft body's
                 mu[sel] = rb.friction
-        return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point)
+            if key[0] not in coupling.dynamics:
+                vr[sel] = self._rigid_point_velocity(rb, found.point[sel])
+        J = coupling.jacobians(self.adapter, found.rigid, found.link, found.point) if coupling.n else None
+        return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point,
+                            found.link, J)
 
-    def _solve_velocities(self, body: FemBody, system: LinearSystem, supports: Constraints, t_next: float):
-        c = self._pending.get(id(body))
+    def _coupled_attachments(self, body: FemBody, coupling: _Coupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
+        """(attachment, start points (m, 3), Jacobians (m, 3, n)) of this body's two-way attachments."""
+        out = []
+        for att in self.attachments:
+            if att.body is body and att.coupled:
+                pts = att.rigid.to_world(att.local)
+                link = np.full(len(pts), att.rigid.link)
+                J = coupling.jacobians(self.adapter, np.full(len(pts), att.rigid.id), link, pts)
+                out.append((att, pts, J))
+        return out
+
+    def _solve_velocities(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
+                          t_next: float) -> list[np.ndarray]:
+        """The contact and coupling solve of all soft bodies (Simulation's velocity hook)."""
         core0 = sum(self.sim.timings.values())  # core phases (factorize, solve, ...) run inside this call
         t0 = time.perf_counter()
-        if c is None:
-            v, _ = system.solve(supports)
-        else:
-            v, res = self.contact_solver.solve(system, supports, c, self.dt)
-            self.contact_results[id(body)] = (c, res)
-        self.timings["velocity_solve"] += time.perf_counter() - t0 - (sum(self.sim.timings.values()) - core0)
-        return v
+        h, coupling = self.dt, self._coupling
+        u_free = {b: self.adapter.generalized_velocity(dyn) for b, dyn in coupling.dynamics.items()}
+        tr = time.perf_counter()
+        steps = []
+        for body, system, sup in zip(bodies, systems, supports):
+            c = self._pending.get(id(body))
+            if c is not None and coupling.n:  # rigid velocities of the coupled points under the free motion
+                u = np.zeros(coupling.n)
+                for b, o in coupling.offset.items():
+                    u[o:o + coupling.dynamics[b].n] = u_free[b]
+                on = np.isin(c.rigid, list(coupling.dynamics))
+                c.rigid_velocity[on] = c.jacobian[on] @ u
+            att = None
+            parts = self._attach_pending.get(id(body), [])
+            if parts:
+                nodes, target, J, rid, lid, pts = [], [], [], [], [], []
+                for a, p0, Ja in parts:
+                    end = a.rigid.to_world(a.local)  # where the points went under the free motion
+                    nodes.append(a.nodes)
+                    target.append((end - body.positions[a.nodes]) / h)
+                    J.append(Ja)
+                    rid.append(np.full(len(a.nodes), a.rigid.id))
+                    lid.append(np.full(len(a.nodes), a.rigid.link))
+                    pts.append(p0)
+                att = Attachments(*(np.concatenate(v) for v in (nodes, target, J, rid, lid, pts)))
+            steps.append(BodyStep(system, sup, c, att))
+        self._rigid_inside = time.perf_counter() - tr
+        self.timings["rigid"] += self._rigid_inside
+        sol = self.contact_solver.solve(steps, h, coupling.mass_matrix() if coupling.n else None)
+        self._solution = sol
+        self.contact_results = {id(b): (st.contacts, res) for b, st, res in zip(bodies, steps, sol.contacts)
+                                if res is not None}
+        self.attachment_forces = []
+        for body, st, f in zip(bodies, steps, sol.attachment_forces):
+            if f is None:
+                continue
+            k = 0
+            for a, _, _ in self._attach_pending.get(id(body), []):
+                self.attachment_forces.append((a, f[k:k + len(a.nodes)]))
+                k += len(a.nodes)
+        self.timings["velocity_solve"] += (time.perf_counter() - t0 - self._rigid_inside
+                                           - (sum(self.sim.timings.values()) - core0))
+        return sol.velocities
+
+    def _snapshot(self) -> list[tuple]:
+        """The state of every movable rigid body, to restore after a failed step."""
+        ad, out = self.adapter, []
+        for b in {k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way}:
+            joints, _ = ad.joints(b)
+            pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=self.client)
+            vel = p.getBaseVelocity(b, physicsClientId=self.client)
+            js = p.getJointStates(b, joints, physicsClientId=self.client) if joints else []
+            out.append((b, pos, orn, vel, joints, [(s[0], s[1]) for s in js]))
+        return out
+
+    def _restore(self, snapshot: list[tuple]) -> None:
+        for b, pos, orn, vel, joints, js in snapshot:
+            p.resetBasePositionAndOrientation(b, pos, orn, physicsClientId=self.client)
+            p.resetBaseVelocity(b, vel[0], vel[1], physicsClientId=self.client)
+            for j, (q, qd) in zip(joints, js):
+                p.resetJointState(b, j, q, qd, physicsClientId=self.client)
 
     def step(self) -> None:
-        """Advance the whole scene by dt."""
+        """Advance the whole scene by dt (pybullet steps exactly once)."""
         h, t = self.dt, self.t
         self.timings = defaultdict(float)
         tic = time.perf_counter()
+        self._sync()
         for rb in self.rigids.values():
             if rb.motion is not None:
                 p0, q0 = rb.scripted_pose(t)
@@ -301,50 +570,132 @@ class World:
                 angle = 2 * math.atan2(np.linalg.norm(dq[:3]), dq[3])
                 axis = dq[:3] / max(np.linalg.norm(dq[:3]), 1e-300)
                 self._kin_velocity[rb.id] = ((p1 - p0) / h, axis * angle / h)
-        self._pending: dict[int, NodeContacts] = {}
-        self._found: list[Contacts] = []
         self.contact_results = {}
+        self.attachment_forces = []
         self.detector.last_candidates = 0
-        if self.rigids:
-            for i, body in enumerate(self.bodies):
-                c = self._detect(i, body)
-                if c is not None:
-                    self._pending[id(body)] = c
-        self.contacts = Contacts.concat(self._found)
+        found = [self._detect(i, body) for i, body in enumerate(self.bodies)] if self.rigids else []
+        self.contacts = Contacts.concat(found)
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
-        self.sim.step()
-        fem = time.perf_counter() - tic
+        # the movable bodies in play, at the start configuration (before pybullet moves them)
+        in_play = {int(b) for b in np.unique(self.contacts.rigid)} | {a.rigid.id for a in self.attachments if a.coupled}
+        dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
+                    if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
+        self._coupling = coupling = _Coupling.of(dynamics)
+        self._check_constraints(dynamics)
+        self._pending = {id(body): self._node_contacts(body, f, coupling)
+                         for body, f in zip(self.bodies, found) if len(f)}
+        self._attach_pending = {id(body): self._coupled_attachments(body, coupling) for body in self.bodies}
+        self._rigid_inside = 0.0
+        snapshot = self._snapshot()
+        for b, lk, f, x in self._lagged:
+            self.adapter.apply_force(b, lk, f, x)
+        self.adapter.step()
+        self.timings["rigid"] = time.perf_counter() - tic
+        tic = time.perf_counter()
+        try:
+            new = self.sim.solve_step()
+            du = self._solution.du if self.bodies else np.zeros(0)
+            fem = time.perf_counter() - tic
+            tr = time.perf_counter()
+            for b, dyn in coupling.dynamics.items():
+                o = coupling.offset[b]
+                if np.any(du[o:o + dyn.n]):
+                    self.adapter.change_velocity(dyn, du[o:o + dyn.n], h)
+            self._check_energy(new)
+        except BaseException:
+            self._restore(snapshot)
+            raise
+        self.sim.commit(new)
+        for rb in self.rigids.values():
+            if rb.motion is not None:
+                pos, orn = rb.scripted_pose(self.t)
+                self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
+        self._lagged = self._one_way_reactions()
+        self.timings["rigid"] += time.perf_counter() - tr
         core = dict(self.sim.timings)
         contact = self.timings.pop("velocity_solve", 0.0)  # outside the core phases
         self.timings.update(core)
         self.timings["contact"] = max(contact, 0.0) if self._pending else 0.0
-        self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"], 0.0)
-        tic = time.perf_counter()
-        if self.rigids:
-            self._apply_reactions()
-            p.stepSimulation(physicsClientId=self.client)
-            for rb in self.rigids.values():
-                if rb.motion is not None:
-                    pos, orn = rb.scripted_pose(self.t)
-                    p.resetBasePositionAndOrientation(rb.id, pos.tolist(), orn.tolist(), physicsClientId=self.client)
-        self.timings["rigid"] = time.perf_counter() - tic
+        self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"] - self._rigid_inside, 0.0)
         self.timings["total"] = sum(self.timings.values())
 
-    def _apply_reactions(self) -> None:
-        """Equal and opposite contact forces on dynamic rigid bodies (force at the centre + torque)."""
+    def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
+        """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""
+        if not dynamics:
+            return
+        for i in range(p.getNumConstraints(physicsClientId=self.client)):
+            cid = p.getConstraintUniqueId(i, physicsClientId=self.client)
+            info = p.getConstraintInfo(cid, physicsClientId=self.client)
+            for b in (info[0], info[2]):
+                if b in dynamics:
+                    self._warn_once(("constraint", cid), f"pybullet constraint {cid} holds body {b}: the coupled "
+                                    "solve treats the body as free and pybullet enforces the constraint in its next "
+                                    "step (a joint of a multibody is coupled exactly)")
+
+    def _one_way_reactions(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """Reactions on bodies the coupled solve cannot move (unsupported joints), for pybullet's next step."""
+        lagged = self._one_way
+        if not lagged:
+            return []
+        out = []
         for c, res in self.contact_results.values():
-            for rid in np.unique(c.rigid[res.active]):
-                rb = self.rigids[int(rid)]
-                if rb.mass <= 0:
-                    continue
-                sel = res.active & (c.rigid == rid)
-                f = -res.force[sel]
-                com, _ = rb.pose()
-                torque = np.cross(c.point[sel] - com, f).sum(axis=0)
-                p.applyExternalForce(rb.id, -1, f.sum(axis=0).tolist(), com.tolist(), p.WORLD_FRAME,
-                                     physicsClientId=self.client)
-                p.applyExternalTorque(rb.id, -1, torque.tolist(), p.WORLD_FRAME, physicsClientId=self.client)
+            for i in np.flatnonzero(res.active & np.isin(c.rigid, list(lagged))):
+                out.append((int(c.rigid[i]), int(c.link[i]), -res.force[i], c.point[i]))
+        return out
+
+    # ------------------------------------------------------------------ energy and forces
+    def energy(self, states: list[tuple[np.ndarray, np.ndarray]] | None = None) -> dict[str, float]:
+        """The scene's energies [J]: soft kinetic, elastic and gravitational potential, rigid (movable
+        bodies) kinetic and gravitational potential (zero at the world origin), and their total.
+
+        states: the soft bodies' (positions, velocities) to evaluate (default: their current state)."""
+        g = self.gravity
+        soft_k = soft_e = soft_p = 0.0
+        for body, (x, v) in zip(self.bodies, states or [(b.positions, b.velocities) for b in self.bodies]):
+            soft_k += body.kinetic_energy(v)
+            soft_e += body.elastic_energy(x)
+            soft_p -= float(body.node_mass @ (x @ g))
+        rig_k = rig_p = 0.0
+        for rb in self.rigids.values():
+            if not rb.movable:
+                continue
+            c, q, v, w = self.adapter.state(rb.id, rb.link)
+            info = p.getDynamicsInfo(rb.id, rb.link, physicsClientId=self.client)
+            m, I = info[0], np.asarray(info[2])
+            R = quat_matrix(q)
+            rig_k += 0.5 * m * float(v @ v) + 0.5 * float(w @ ((R * I) @ R.T) @ w)
+            rig_p -= m * float(c @ g)
+        total = soft_k + soft_e + soft_p + rig_k + rig_p
+        return {"soft_kinetic": soft_k, "elastic": soft_e, "soft_potential": soft_p, "rigid_kinetic": rig_k,
+                "rigid_potential": rig_p, "total": total}
+
+    def _check_energy(self, new: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        if self.max_energy is None:
+            return
+        e = self.energy(new)
+        if e["total"] > self.max_energy:
+            raise SimulationDiverged(
+                f"the scene's energy {e['total']:.4g} J exceeds the bound max_energy = {self.max_energy:.4g} J at step "
+                f"{self.sim.steps + 1} (t = {self.t + self.dt:.6g} s): soft kinetic {e['soft_kinetic']:.3g}, elastic "
+                f"{e['elastic']:.3g}, rigid kinetic {e['rigid_kinetic']:.3g} J. State kept at t = {self.t:.6g} s; "
+                "try a smaller dt or more damping.", step=self.sim.steps + 1, time=self.t + self.dt)
+
+    def contact_force(self, body_id, link: int | None = None) -> np.ndarray:
+        """The total force (3,) [N] the soft bodies exerted on rigid body ``body_id`` (a RigidLink or an id;
+        all its links, or one ``link``) over the last step: contacts and attachments."""
+        if isinstance(body_id, RigidLink):
+            body_id, link = body_id.id, body_id.link if link is None else link
+        total = np.zeros(3)
+        for c, res in self.contact_results.values():
+            sel = res.active & (c.rigid == body_id)
+            if link is not None:
+                sel &= c.link == link
+            total -= res.force[sel].sum(axis=0)
+        for att, f in self.attachment_forces:
+            if att.rigid.id == body_id and (link is None or att.rigid.link == link):
+                total -= f.sum(axis=0)
+        return total
 
     def run(self, duration: float, callback: Callable[["World"], object] | None = None,
             progress: bool = False) -> None:
@@ -353,12 +704,14 @@ class World:
 
     # ------------------------------------------------------------------ diagnostics
     def max_penetration(self) -> float:
-        """Deepest penetration [m] of any soft surface node into any rigid body at the current positions."""
+        """Deepest penetration [m] of any soft surface node into any rigid link at the current positions."""
         worst = 0.0
         for i, body in enumerate(self.bodies):
             surface, _ = self._surface[id(body)]
             surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():
+                if self._ignored(body, rb):
+                    continue
                 c = self.detector.node_contacts(i, body.positions, surface, rb, 1e-3)
                 if len(c):
                     worst = max(worst, float(-c.distance.min()))

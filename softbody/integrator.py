@@ -192,17 +192,19 @@ class DirectSystem:
     timings: Timings | None = None
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
-              reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
+              reuse: bool = False, homogeneous: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Solve A y = b (+ extra_rhs, (N, 3)) with the constrained components of y fixed to their values.
 
         Returns y (N, 3) in global coordinates and the constraint reactions r = A y - b (N, 3)
         in each constrained node's local frame (zero elsewhere); for a step system r / h is the
         constraint force [N]. reuse=True keeps the last factorisation: valid when only extra_rhs
         or the constrained values changed since the previous call, not the constrained set.
+        homogeneous=True solves with b = 0 (and no extra_rhs): the response to the constrained
+        values alone, for a coupling that makes those values unknowns.
         """
         pat = self.body.pattern
         T, mask, value = cons.dense(pat.n_nodes)
-        b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        b = np.zeros_like(self.b) if homogeneous else to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
         if not reuse or getattr(self, "_rotated", None) is None:
             self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
@@ -381,20 +383,21 @@ class IterativeSystem:
         return C
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
-              reuse: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Same contract as DirectSystem.solve (``reuse`` is implied: the preconditioner is kept)."""
+              reuse: bool = False, homogeneous: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Same contract as DirectSystem.solve (``reuse`` is implied: the preconditioner is kept). A
+        homogeneous solve starts from zero and leaves the warm start of the step's next solve alone."""
         T, mask, value = cons.dense(self.body.n_nodes)
-        b = to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        b = np.zeros_like(self.b) if homogeneous else to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
         A = lambda y: to_local(T, self.apply(to_global(T, y)))
         free = ~mask
         C, fix = self._prepared(T, mask)
-        y = np.array(to_local(T, self.x0))  # a copy: x0 may be the body's velocities
+        y = np.zeros_like(self.b) if homogeneous else np.array(to_local(T, self.x0))  # a copy: x0 may be the body's velocities
         y[mask] = value[mask]
         with timed(self.timings, "solve"):
             r_full = b - A(y)
             # tolerance relative to the load on the free components or its terms; if both vanish
             # (prescribed motion alone is a load), to the initial residual (see IterativeSettings)
-            terms = self.terms if extra_rhs is None else (*self.terms, extra_rhs)
+            terms = () if homogeneous else self.terms if extra_rhs is None else (*self.terms, extra_rhs)
             scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
             atol = self.settings.tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
@@ -408,12 +411,15 @@ class IterativeSystem:
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
-        self.pre.stale = its > self.settings.refactor_after
+        if not homogeneous:  # a homogeneous solve starts cold: its count says nothing of the preconditioner's age
+            self.pre.stale = its > self.settings.refactor_after
         self.pre.iterations += its
         self.stats["iterations"] += its
-        self.x0 = to_global(T, y)  # warm start for the next solve of this step (active-set loops)
+        y = to_global(T, y)
+        if not homogeneous:
+            self.x0 = y  # warm start for the next solve of this step (active-set loops)
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
-        return self.x0, reaction
+        return y, reaction
 
     def _precondition(self, r: np.ndarray, free: np.ndarray, C: Frames, fix: ConstraintCorrection | None) -> np.ndarray:
         """z = C^T P_F^-1 C r on the free components (r, z (N, 3) in the current local frames), P_F^-1

@@ -11,8 +11,9 @@ from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
 from .linsolve import BACKENDS, SpdSolver
 
-# A hook (body, system, supports, t_next) -> velocities (N, 3); the integration layer uses it for contact.
-VelocitySolver = Callable[[FemBody, LinearSystem, Constraints, float], np.ndarray]
+# A hook (bodies, their step systems, their supports, t_next) -> the bodies' new velocities (N_i, 3); the
+# integration layer uses it to solve contacts and the coupling to rigid bodies for all bodies at once.
+VelocitySolver = Callable[[list[FemBody], list[LinearSystem], list[Constraints], float], list[np.ndarray]]
 
 
 METHODS = ("auto", "direct", "iterative")
@@ -79,8 +80,8 @@ class Simulation:
         for b in bodies:
             body_solver(b, solver)  # fail early on a bad backend
 
-    def _step_body(self, body: FemBody, t_next: float) -> tuple[np.ndarray, np.ndarray]:
-        h = self.dt
+    def system(self, body: FemBody) -> LinearSystem:
+        """The backward Euler system of ``body`` for the next step (gravity and external_forces as loads)."""
         f_ext = body.node_mass[:, None] * self.gravity
         extra = self.external_forces.get(id(body))
         if extra is not None:
@@ -88,27 +89,35 @@ class Simulation:
         method = self.method
         if method == "auto":
             method = "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
-        system = step_system(body, h, f_ext, body_solver(body, self.solver_backend), method, self.settings,
-                             self.timings)
-        supports = support_constraints(body, t_next, h)
+        return step_system(body, self.dt, f_ext, body_solver(body, self.solver_backend), method, self.settings,
+                           self.timings)
+
+    def solve_step(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The new (positions, velocities) of every body after one step, checked (SimulationDiverged) but not
+        yet applied: :meth:`commit` applies them. :meth:`step` is both."""
+        t_next = self.t + self.dt
+        self.timings = {}
+        systems = [self.system(b) for b in self.bodies]
+        supports = [support_constraints(b, t_next, self.dt) for b in self.bodies]
         if self.velocity_solver is not None:
-            v = self.velocity_solver(body, system, supports, t_next)
+            vs = self.velocity_solver(self.bodies, systems, supports, t_next)
         else:
-            v, _ = system.solve(supports)
-        x = body.positions + h * v
-        return x, v
+            vs = [system.solve(cons)[0] for system, cons in zip(systems, supports)]
+        new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]
+        for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
+            self._check(i, b, x, v)
+        return new
+
+    def commit(self, new: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Apply the states of :meth:`solve_step` and advance the time by dt."""
+        for b, (x, v) in zip(self.bodies, new):
+            b.positions, b.velocities = x, v
+        self.t += self.dt
+        self.steps += 1
 
     def step(self) -> None:
         """Advance every body by dt. On divergence raises SimulationDiverged and leaves the state untouched."""
-        t_next = self.t + self.dt
-        self.timings = {}
-        new = [self._step_body(b, t_next) for b in self.bodies]
-        for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
-            self._check(i, b, x, v)
-        for b, (x, v) in zip(self.bodies, new):
-            b.positions, b.velocities = x, v
-        self.t = t_next
-        self.steps += 1
+        self.commit(self.solve_step())
 
     def _check(self, i: int, body: FemBody, x: np.ndarray, v: np.ndarray) -> None:
         bad = ~(np.isfinite(x).all(axis=1) & np.isfinite(v).all(axis=1))

@@ -214,7 +214,7 @@ def test_rigid_shapes_attachments_and_two_recordings(tmp_path):
     assert len(data[platform]["Transform3D:translation"]) == 6
     np.testing.assert_allclose(data[platform]["Transform3D:translation"][-1][0], tube.world.rigid(0).pose()[0], atol=1e-6)
     attached = data["/world/attachments"]["Points3D:positions"][-1]
-    ids = tube.world.attachments[0][1]
+    ids = tube.world.attachments[0].nodes
     np.testing.assert_allclose(attached, tube.body.positions[ids], atol=1e-6)
     data2, _ = read(r2.path)
     assert sorted(data2) == ["/world/soft/body0"]
