@@ -103,37 +103,189 @@ class CollisionDetector:
                         np.full(n, rigid.link))
 
     @staticmethod
-    def vertex_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
-                        rigid: RigidLink, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Sharp rigid vertices that touch or penetrate the soft surface.
+    def face_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink,
+                      margin: float, touching: np.ndarray | None = None,
+                      touch_normal: np.ndarray | None = None) -> "FaceHits":
+        """Points of a rigid link inside (or within ``margin`` of) soft surface triangles, between their nodes.
 
-        Returns (vertex (m, 3), triangle index (m,), barycentric (m, 3), signed distance (m,)) for every
-        rigid vertex within ``margin`` of the plane of a soft triangle it projects into, on its inner side
-        or less than margin outside.
+        The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
+        near the link, the points of its round parts deepest into the triangle's plane (support points
+        along the inward normal: a sphere's, and both ends' of a capsule or cylinder). A candidate counts
+        if it projects into the triangle (barycentric weights >= 0, none above 0.99: a point at a node is
+        that node's contact), lies within ``margin`` of the plane on either side, and the triangle is the
+        soft surface nearest to it (so a rigid point above a soft body's top face never counts against its
+        side faces).
+
+        ``touching`` (N,) bool marks the nodes resting on the link and supports, ``touch_normal`` (N, 3) the
+        normals of those node contacts. A triangle whose nodes all rest on one face of the link (one
+        normal, facing the triangle) follows the link through their node contacts: a corner on a facet
+        lying flat on a box face adds nothing. A smooth part (sphere, capsule) counts only on triangles
+        none of whose nodes touches it: with a node on it, the facet's chord under the curved surface is
+        the discretisation, not a penetration, and a second constraint on nearly the same spot would only
+        make the contact forces ill-determined. Sharp parts (box corners, cylinder rims, mesh vertices)
+        count on partly touching triangles too: they poke between nodes that rest on the part's faces.
         """
-        verts = rigid.surface_vertices()
-        empty = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0))
-        if not len(verts) or not len(triangles):
-            return empty
         xt = positions[triangles]  # (T, 3, 3)
-        lo, hi = xt.min(axis=(0, 1)) - margin, xt.max(axis=(0, 1)) + margin
-        verts = verts[np.all((verts >= lo) & (verts <= hi), axis=1)]
-        if not len(verts):
-            return empty
+        rlo, rhi = rigid.aabb()
         tlo, thi = xt.min(axis=1) - margin, xt.max(axis=1) + margin
-        near = np.all((verts[:, None] >= tlo[None]) & (verts[:, None] <= thi[None]), axis=2)
-        vi, ti = np.nonzero(near)
-        if not len(vi):
-            return empty
-        a, b, c = xt[ti, 0], xt[ti, 1], xt[ti, 2]
+        around = np.flatnonzero(np.all((thi >= rlo) & (tlo <= rhi), axis=1))
+        if not len(around):
+            return FaceHits.empty()
+        a, b, c = xt[around, 0], xt[around, 1], xt[around, 2]
         nrm = np.cross(b - a, c - a)
         area2 = np.linalg.norm(nrm, axis=1)
         nrm /= area2[:, None]
-        q = verts[vi]
-        d = np.einsum("ij,ij->i", q - a, nrm)  # > 0 outside the soft body (outward triangles)
-        proj = q - d[:, None] * nrm
-        w_a = np.einsum("ij,ij->i", np.cross(c - b, proj - b), nrm) / area2
-        w_b = np.einsum("ij,ij->i", np.cross(a - c, proj - c), nrm) / area2
+        if touching is not None:  # facets lying flat on a face of the link
+            flat = touching[triangles[around]].all(axis=1)
+            if touch_normal is not None:
+                facing = np.einsum("tki,ti->tk", touch_normal[triangles[around]], -nrm)
+                flat &= (facing > 1.0 - 1e-6).all(axis=1)
+            keep = ~flat
+            around_all, around = around, around[keep]
+            a, b, c, nrm, area2 = a[keep], b[keep], c[keep], nrm[keep], area2[keep]
+        else:
+            around_all = around
+        near = around
+        if not len(near):
+            return FaceHits.empty()
+        pts = rigid.support_points(-nrm)  # (T, S, 3): round parts, one point per triangle
+        S = pts.shape[1]
+        ti = np.repeat(np.arange(len(near)), S)
+        q = pts.reshape(-1, 3)
+        group = np.arange(len(ti))  # the rigid point's identity: every support point is its own
+        feature = np.tile(np.arange(S), len(near))  # which part or corner, the same from step to step
+        if touching is not None and len(ti):  # a smooth part reaches between nodes only where none touches it
+            keep = ~np.tile(rigid.round_parts(), len(near)) | ~touching[triangles[near[ti]]].any(axis=1)
+            ti, q, group, feature = ti[keep], q[keep], group[keep], feature[keep]
+        corners = rigid.corner_points()
+        if len(corners):  # corners, each against the triangles whose boxes hold it
+            inside = np.all((corners[:, None] >= tlo[near][None]) & (corners[:, None] <= thi[near][None]), axis=2)
+            vi, vt = np.nonzero(inside)
+            ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
+            group = np.concatenate([group, len(near) * S + vi])
+            feature = np.concatenate([feature, S + vi])
+        if not len(ti):
+            return FaceHits.empty()
+        A, B, C, n = a[ti], b[ti], c[ti], nrm[ti]
+        d = np.einsum("ij,ij->i", q - A, n)  # > 0 outside the soft body (outward triangles)
+        proj = q - d[:, None] * n
+        w_a = np.einsum("ij,ij->i", np.cross(C - B, proj - B), n) / area2[ti]
+        w_b = np.einsum("ij,ij->i", np.cross(A - C, proj - C), n) / area2[ti]
         bary = np.column_stack([w_a, w_b, 1 - w_a - w_b])
-        ok = (bary >= -1e-9).all(axis=1) & (d < margin) & (d > -margin)
-        return q[ok], ti[ok], bary[ok], d[ok]
+        closest = closest_on_triangles(q, A, B, C)
+        reach = np.linalg.norm(q - closest, axis=1)
+        inside = (bary >= -1e-9).all(axis=1)
+        ok = (np.abs(d) < margin) & (reach < margin) & ~(inside & (bary.max(axis=1) >= 0.99))
+        if not ok.any():
+            return FaceHits.empty()
+        ti, q, d, bary, group, inside, closest, feature = (ti[ok], q[ok], d[ok], bary[ok], group[ok], inside[ok],
+                                                           closest[ok], feature[ok])
+        # a point inside a triangle counts there only if that triangle is the soft surface nearest to it (of
+        # all triangles around the link); one such triangle per rigid point
+        xa = xt[around_all]
+        nearest = closest_on_triangles(q[:, None], xa[None, :, 0], xa[None, :, 1], xa[None, :, 2])  # (P, T, 3)
+        dist = np.linalg.norm(nearest - q[:, None], axis=2).min(axis=1)
+        primary = inside & (np.abs(d) <= dist + 1e-9)
+        order = np.lexsort((~primary, group))
+        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        primary[order[~first]] = False
+        # neighbours: triangles the point is not on now but may cross into (or come nearest to) within the
+        # step; their weights are those of the triangle's point nearest to the rigid point
+        out = ~primary
+        if out.any():
+            bary[out] = barycentric(closest[out], a[ti[out]], b[ti[out]], c[ti[out]])
+        tri = near[ti]
+        m = len(tri)
+        # a key that names the same contact in the next step: triangle, feature, rigid link
+        key = (tri.astype(np.int64) << 28) | ((feature % 4096) << 16) | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)
+        return FaceHits(np.full(m, body_index), tri, triangles[tri], bary, q, -nrm[ti], d, np.full(m, rigid.id),
+                        np.full(m, rigid.link), group, primary, key)
+
+
+def barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (m, 3) of points p (m, 3) in the planes of triangles (a, b, c) (m, 3 each)."""
+    n = np.cross(b - a, c - a)
+    nn = np.einsum("ij,ij->i", n, n)
+    w_a = np.einsum("ij,ij->i", np.cross(c - b, p - b), n) / nn
+    w_b = np.einsum("ij,ij->i", np.cross(a - c, p - c), n) / nn
+    return np.column_stack([w_a, w_b, 1.0 - w_a - w_b])
+
+
+def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Closest points on triangles (a, b, c) to points p, all (..., 3) broadcast together (Ericson,
+    Real-Time Collision Detection, 5.1.5, by Voronoi regions)."""
+    p, a, b, c = np.broadcast_arrays(p, a, b, c)
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = (ab * ap).sum(-1), (ac * ap).sum(-1)
+    bp = p - b
+    d3, d4 = (ab * bp).sum(-1), (ac * bp).sum(-1)
+    cp = p - c
+    d5, d6 = (ab * cp).sum(-1), (ac * cp).sum(-1)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        denom = va + vb + vc
+        v = np.where(denom != 0, vb / denom, 0.0)
+        w = np.where(denom != 0, vc / denom, 0.0)
+        out = a + v[..., None] * ab + w[..., None] * ac  # inside the face
+        # edges
+        t_ab = np.where(d1 - d3 != 0, d1 / (d1 - d3), 0.0)
+        t_ac = np.where(d2 - d6 != 0, d2 / (d2 - d6), 0.0)
+        t_bc = np.where((d4 - d3) + (d5 - d6) != 0, (d4 - d3) / ((d4 - d3) + (d5 - d6)), 0.0)
+    on_bc = (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0)
+    out = np.where(on_bc[..., None], b + t_bc[..., None] * (c - b), out)
+    on_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
+    out = np.where(on_ac[..., None], a + t_ac[..., None] * ac, out)
+    on_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
+    out = np.where(on_ab[..., None], a + t_ab[..., None] * ab, out)
+    # vertices
+    out = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, out)
+    out = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, out)
+    out = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, out)
+    return out
+
+
+@dataclass
+class FaceHits:
+    """Rigid points on soft triangles (m entries): body (soft body index), triangle (index into the body's
+    surface triangles), nodes (m, 3) its nodes, weights (m, 3) barycentric, point (m, 3) the rigid point,
+    normal (m, 3) unit, out of the rigid towards the soft body (minus the triangle's outward normal),
+    distance (m,) signed (negative: inside the soft body), rigid (m,) and link (m,); group (m,): which
+    rigid point (entries of one group are one point against several triangles); primary (m,): the
+    point projects into this triangle, the soft surface nearest to it (else a neighbour it may cross
+    into within the step, with the weights of the triangle's point nearest to it); key (m,): names the
+    same contact (triangle, corner or part, link) from step to step."""
+
+    body: np.ndarray
+    triangle: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    point: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+    rigid: np.ndarray
+    link: np.ndarray
+    group: np.ndarray
+    primary: np.ndarray
+    key: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "FaceHits":
+        z = np.zeros(0, dtype=np.int64)
+        return cls(z, z.copy(), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
+                   np.zeros(0), z.copy(), z.copy(), z.copy(), np.zeros(0, bool), z.copy())
+
+    def __len__(self) -> int:
+        return len(self.triangle)
+
+    @classmethod
+    def concat(cls, parts: list["FaceHits"]) -> "FaceHits":
+        """The hits of several links (or bodies) in one, their groups kept apart."""
+        parts = [h for h in parts if len(h)]
+        if not parts:
+            return cls.empty()
+        offsets = np.cumsum([0] + [int(h.group.max()) + 1 for h in parts[:-1]])
+        fields = {f: np.concatenate([getattr(h, f) for h in parts]) for f in cls.__dataclass_fields__}
+        fields["group"] = np.concatenate([h.group + o for h, o in zip(parts, offsets)])
+        return cls(**fields)

@@ -1,17 +1,18 @@
 """Unilateral contact with Coulomb friction inside the implicit step.
 
-Each contact is a condition on one soft node's velocity at the end of the step, in a frame
-(n, t1, t2) with n the rigid's outward normal:
+Each contact is a condition on the velocity, at the end of the step, of one soft point (a node, or a
+point of a surface triangle with barycentric weights), in a frame (n, t1, t2) with n the rigid's
+outward normal:
 
     non-penetration   n . (v - v_rigid) >= -d / h      (the gap d closes to zero, never below)
-    separation        the normal force lam = r_n / h must be >= 0, else the contact is released
+    separation        the normal force lam must be >= 0, else the contact is released
     Coulomb friction  stick: t . (v - v_rigid) = 0 while |f_t| <= mu lam;
                       slip: a force mu lam opposite to the sliding direction.
 
-An active-set loop solves the step systems of all soft bodies exactly under the current set (the
-constrained components are eliminated, see softbody.integrator), releases pulling contacts, adds
-violated ones and switches stick/slip until nothing changes. Changing only the slip forces reuses the
-factorisation.
+An active-set loop solves the step systems of all soft bodies exactly under the current set, releases
+pulling contacts, adds violated ones and switches stick/slip until nothing changes. A contact at a node
+is eliminated in the node's frame (softbody.integrator); a contact at a point of a triangle is a
+constraint row with a multiplier (coupling.py). Changing only the slip forces reuses the factorisation.
 
 A contact or attachment on a link of a movable rigid body moves with that body, whose velocity
 change du is found in the same solve (coupling.py): v_rigid = v_free + J du, with J the point
@@ -26,7 +27,8 @@ import numpy as np
 
 from softbody.integrator import Constraints, LinearSystem
 
-from .coupling import CoupledPart, CoupledSolver
+from .collision import barycentric, closest_on_triangles
+from .coupling import CoupledPart, CoupledSolver, Rows
 
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
@@ -40,8 +42,6 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     a, b, c = t1.T
     t2 = np.stack([y * c - z * b, z * a - x * c, x * b - y * a], axis=1)
     return np.stack([n, t1, t2], axis=2)
-
-
 
 
 @dataclass
@@ -72,8 +72,24 @@ class NodeContacts:
         return len(self.node)
 
     def select(self, keep: np.ndarray) -> "NodeContacts":
-        return NodeContacts(*(None if getattr(self, f) is None else getattr(self, f)[keep]
-                              for f in NodeContacts.__dataclass_fields__))
+        return type(self)(*(None if getattr(self, f) is None else getattr(self, f)[keep]
+                            for f in self.__dataclass_fields__))
+
+
+@dataclass
+class FaceContacts(NodeContacts):
+    """Contacts at points of soft surface triangles (one entry per rigid point on a triangle).
+
+    As NodeContacts, with node (m,) a key of the triangle and the rigid link (for the warm start of the
+    next step), nodes (m, 3), weights (m, 3) the triangle's nodes and the point's barycentric weights,
+    group (m,) the rigid point (one point may face several triangles), primary (m,) whether the point
+    projects into the triangle at the start of the step (the others are neighbours it may cross into:
+    they take part only if it does, see collision.FaceHits)."""
+
+    nodes: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    group: np.ndarray | None = None
+    primary: np.ndarray | None = None
 
 
 @dataclass
@@ -97,7 +113,7 @@ class Attachments:
 
 @dataclass
 class ContactResult:
-    """Outcome of one contact solve: per contact entry, world force on the soft node [N], flags."""
+    """Outcome of one contact solve: per contact entry, world force on the soft point [N], flags."""
 
     force: np.ndarray
     active: np.ndarray
@@ -110,21 +126,25 @@ class ContactResult:
 
 @dataclass
 class BodyStep:
-    """One soft body's part of a step: its step system, supports, contacts and coupled attachments."""
+    """One soft body's part of a step: its step system, supports, node contacts, face contacts and
+    coupled attachments."""
 
     system: LinearSystem
     supports: Constraints
     contacts: NodeContacts | None = None
     attachments: Attachments | None = None
+    faces: FaceContacts | None = None
 
 
 @dataclass
 class StepSolution:
-    """What the contact solve found: per body the velocities (N, 3), the contact result (or None) and the
-    attachment forces on the soft nodes (m, 3) [N] (or None); du (n,) the rigid velocity change."""
+    """What the contact solve found: per body the velocities (N, 3), the node and face contact results
+    (or None) and the attachment forces on the soft nodes (m, 3) [N] (or None); du (n,) the rigid
+    velocity change."""
 
     velocities: list[np.ndarray]
     contacts: list[ContactResult | None]
+    faces: list[ContactResult | None]
     attachment_forces: list[np.ndarray | None]
     du: np.ndarray
     iterations: int
@@ -142,12 +162,14 @@ def _stack(parts: list[Constraints]) -> Constraints:
                        np.concatenate([c.value for c in parts]), np.concatenate([eye(c) for c in parts]))
 
 
-class _ActiveSet:
-    """The contacts of one soft body within one step's active-set loop: which are active, which stick,
-    the sliding friction forces, and the switching rules of :class:`ContactSolver`."""
+class _ContactSet:
+    """The contacts of one kind on one soft body within one step's active-set loop: which are active,
+    which stick, the sliding friction forces, and the switching rules of :class:`ContactSolver`.
+    ``keys`` (m,) identify contacts from one step to the next (nodes, or triangles)."""
 
-    def __init__(self, solver: "ContactSolver", c: NodeContacts, previous: tuple, h: float, n_nodes: int):
-        self.solver, self.c, self.h, self.n_nodes = solver, c, h, n_nodes
+    def __init__(self, solver: "ContactSolver", c: NodeContacts, keys: np.ndarray, previous: tuple, h: float,
+                 may_start: np.ndarray | None = None):
+        self.solver, self.c, self.h = solver, c, h
         m = len(c)
         self.frames = tangent_frames(c.normal)
         self.vr_free = np.einsum("mji,mj->mi", self.frames, c.rigid_velocity)  # rigid velocity in (n, t1, t2)
@@ -156,57 +178,58 @@ class _ActiveSet:
         self.target = self.vr_free.copy()
         self.target[:, 0] -= c.distance / h
         prev_active, prev_stick, prev_slip = previous
-        self.active = (c.distance <= 0) | np.isin(c.node, list(prev_active))
+        self.keys = keys
+        touching = c.distance <= 0 if may_start is None else (c.distance <= 0) & may_start
+        self.active = touching | np.isin(keys, list(prev_active))
         self.friction = c.mu > 0
-        self.stick = self.friction & (np.isin(c.node, list(prev_stick)) | ~np.isin(c.node, list(prev_active)))
+        self.stick = self.friction & (np.isin(keys, list(prev_stick)) | ~np.isin(keys, list(prev_active)))
         self.slip_force = np.zeros((m, 3))  # local frame, tangential components only
-        carried = [i for i, n in enumerate(c.node.tolist()) if n in prev_slip and not self.stick[i]]
+        carried = [i for i, k in enumerate(keys.tolist()) if k in prev_slip and not self.stick[i]]
         if carried:  # last step's sliding friction, in this step's tangent plane
-            f_prev = np.array([prev_slip[int(c.node[i])] for i in carried])
+            f_prev = np.array([prev_slip[int(keys[i])] for i in carried])
             self.slip_force[carried, 1:] = np.einsum("mji,mj->mi", self.frames[carried], f_prev)[:, 1:]
         self.released = np.zeros(m, dtype=bool)  # a contact released once this step is not released again
         self.factorizations = 0
         self.last_key = None
+        self.reuse = False
         self.want_slip = self.want_stick = np.zeros(m, dtype=bool)
         self.rl = np.zeros((m, 3))
         self.gap_rate = np.zeros(m)
         self.mag = np.zeros((m, 1))
         self.d_stick = self.new_slip = np.zeros((m, 2))
 
-    def constraints(self) -> tuple[Constraints, np.ndarray | None, np.ndarray | None, np.ndarray | None]:
-        """The active contacts as constraints (values at du = 0), their G rows, the sliding friction as an
-        extra right-hand side (N, 3), and its generalized impulse on the rigid side (n,) (None if none)."""
-        c, h = self.c, self.h
-        mask = np.zeros((len(c), 3), dtype=bool)
+    def mask(self) -> np.ndarray:
+        """(m, 3): the constrained local components (normal if active, tangents if also sticking)."""
+        mask = np.zeros((len(self.c), 3), dtype=bool)
         mask[:, 0] = self.active
         mask[:, 1:] = (self.active & self.stick)[:, None]
-        sel = mask.any(axis=1)
-        cons = Constraints(c.node[sel], mask[sel], self.target[sel], self.frames[sel])
-        key = (c.node[sel].tobytes(), mask[sel].tobytes())
-        self.reuse = key == self.last_key
-        self.factorizations += not self.reuse
-        self.last_key = key
-        extra = slip = None
-        slipping = self.active & ~self.stick & self.friction
-        if slipping.any():
-            extra = np.zeros((self.n_nodes, 3))
-            np.add.at(extra, c.node[slipping], h * np.einsum("mij,mj->mi", self.frames[slipping],
-                                                             self.slip_force[slipping]))
-            if self.G is not None:  # the opposite impulse on the rigid side
-                slip = -h * np.einsum("mk,mkn->n", self.slip_force[slipping], self.G[slipping])
-        return cons, None if self.G is None else self.G[sel], extra, slip
+        return mask
 
-    def update(self, v: np.ndarray, r: np.ndarray, du: np.ndarray, it: int) -> bool:
-        """Read a solve (v (N, 3), reactions r (N, 3) local, du (n,)) and switch the set; True if it changed."""
-        s, c, h = self.solver, self.c, self.h
+    def slipping(self) -> np.ndarray:
+        return self.active & ~self.stick & self.friction
+
+    def slip_impulse(self) -> np.ndarray | None:
+        """Generalized impulse (n,) on the rigid side of the sliding friction (None if none or uncoupled)."""
+        s = self.slipping()
+        if self.G is None or not s.any():
+            return None
+        return -self.h * np.einsum("mk,mkn->n", self.slip_force[s], self.G[s])
+
+    def update(self, rl: np.ndarray, v_soft: np.ndarray, du: np.ndarray, it: int,
+               eligible: np.ndarray | None = None) -> bool:
+        """Read a solve: the contact forces rl (m, 3) [N] and the soft points' velocities v_soft (m, 3) in the
+        contact frames, du (n,); switch the set and return True if it changed. Only ``eligible`` (m,)
+        contacts may be added."""
+        s, c = self.solver, self.c
         vr_local = self.vr_free if self.G is None or not len(du) else self.vr_free + self.G @ du
-        rl = r[c.node] / h  # reaction force in the local frame [N]
         lam = rl[:, 0]
-        vrel = np.einsum("mji,mj->mi", self.frames, v[c.node]) - vr_local
-        gap_rate = vrel[:, 0] + c.distance / h
+        vrel = v_soft - vr_local
+        gap_rate = vrel[:, 0] + c.distance / self.h
         active, stick = self.active, self.stick
         release = active & (lam < 0) & ~self.released
         add = ~active & (gap_rate < -s.velocity_tol)
+        if eligible is not None:
+            add &= eligible
         self.released |= release
         changed = release.any() or add.any()
         # friction: stick -> slip when the needed force leaves the cone; slip -> stick when sliding stops
@@ -243,7 +266,7 @@ class _ActiveSet:
 
     def result(self, iterations: int) -> tuple[ContactResult, tuple]:
         """The contact result of the final solve, and the friction state for the next step."""
-        c, active, stick, m = self.c, self.active, self.stick, len(self.c)
+        keys, active, stick, m = self.keys, self.active, self.stick, len(self.c)
         force_local = np.where(active[:, None], self.rl, 0.0)
         slipping = active & ~stick & self.friction
         force_local[slipping, 1:] = self.slip_force[slipping, 1:]
@@ -255,15 +278,112 @@ class _ActiveSet:
         slip_world = np.einsum("mij,mj->mi", self.frames,
                                np.where(self.want_slip[:, None], np.c_[np.zeros(m), self.mag * self.d_stick],
                                         np.c_[np.zeros(m), self.new_slip]))
-        previous = (set(c.node[active].tolist()), set(c.node[next_stick].tolist()),
-                    {int(n): f for n, f in zip(c.node[next_slip], slip_world[next_slip])})
+        previous = (set(keys[active].tolist()), set(keys[next_stick].tolist()),
+                    {int(k): f for k, f in zip(keys[next_slip], slip_world[next_slip])})
         viol = float(np.max(-(self.gap_rate * self.h), initial=0.0))
         return ContactResult(force, active.copy(), stick & active, iterations, self.factorizations, viol), previous
 
 
+class _NodeSet(_ContactSet):
+    """Node contacts: eliminated in each node's contact frame."""
+
+    def __init__(self, solver, c: NodeContacts, previous: tuple, h: float, n_nodes: int):
+        super().__init__(solver, c, c.node, previous, h)
+        self.n_nodes = n_nodes
+
+    def constraints(self) -> tuple[Constraints, np.ndarray | None, np.ndarray | None]:
+        """The active contacts as constraints (values at du = 0), their G rows, and the sliding friction as
+        an extra right-hand side (N, 3) (None if nothing slides)."""
+        c, h = self.c, self.h
+        mask = self.mask()
+        sel = mask.any(axis=1)
+        cons = Constraints(c.node[sel], mask[sel], self.target[sel], self.frames[sel])
+        key = (c.node[sel].tobytes(), mask[sel].tobytes())
+        self.reuse = key == self.last_key
+        self.factorizations += not self.reuse
+        self.last_key = key
+        extra = None
+        slipping = self.slipping()
+        if slipping.any():
+            extra = np.zeros((self.n_nodes, 3))
+            np.add.at(extra, c.node[slipping], h * np.einsum("mij,mj->mi", self.frames[slipping],
+                                                             self.slip_force[slipping]))
+        return cons, None if self.G is None else self.G[sel], extra
+
+    def read(self, v: np.ndarray, r: np.ndarray, du: np.ndarray, it: int) -> bool:
+        """Update from the body's solve: v (N, 3), reactions r (N, 3) in the contact frames."""
+        nodes = self.c.node
+        return self.update(r[nodes] / self.h, np.einsum("mji,mj->mi", self.frames, v[nodes]), du, it)
+
+
+class _FaceSet(_ContactSet):
+    """Contacts at points of one soft body's triangles: constraint rows with multipliers."""
+
+    def __init__(self, solver, c: FaceContacts, part: int, previous: tuple, h: float, positions: np.ndarray):
+        super().__init__(solver, c, c.node, previous, h, c.primary)
+        self.part, self.n_nodes = part, len(positions)
+        # one active contact per rigid point to start with (its primary, else the first)
+        idx = np.flatnonzero(self.active)
+        order = idx[np.lexsort((~c.primary[idx], c.group[idx]))]
+        dup = np.zeros(len(order), dtype=bool)
+        dup[1:] = c.group[order][1:] == c.group[order][:-1]
+        self.active[order[dup]] = False
+        self.x_tri = positions[c.nodes]  # (m, 3, 3) at the start of the step
+
+    def rows(self, n: int) -> tuple[Rows, np.ndarray, np.ndarray | None]:
+        """The active contacts' rows (values at du = 0), each row's (contact, axis), and the sliding friction
+        as an extra right-hand side (N, 3) of the body (None if nothing slides)."""
+        c, h = self.c, self.h
+        ci, ax = np.nonzero(self.mask())
+        self.row_index = (ci, ax)
+        direction = self.frames[ci, :, ax]
+        g = np.einsum("mi,min->mn", direction, c.jacobian[ci]) if c.jacobian is not None and n else np.zeros((len(ci), n))
+        rows = Rows(np.full((len(ci), 3), self.part), c.nodes[ci], c.weights[ci], direction, g, self.target[ci, ax])
+        extra = None
+        slipping = self.slipping()
+        if slipping.any():
+            extra = np.zeros((self.n_nodes, 3))
+            f = h * np.einsum("mij,mj->mi", self.frames[slipping], self.slip_force[slipping])
+            np.add.at(extra, c.nodes[slipping].ravel(), (c.weights[slipping][:, :, None] * f[:, None, :]).reshape(-1, 3))
+        return rows, extra
+
+    def read(self, v: np.ndarray, lam: np.ndarray, du: np.ndarray, it: int) -> bool:
+        """Update from the body's velocities v (N, 3) and the impulses lam of this set's rows."""
+        c = self.c
+        rl = np.zeros((len(c), 3))
+        ci, ax = self.row_index
+        rl[ci, ax] = lam / self.h
+        v_point = np.einsum("ms,msi->mi", c.weights, v[c.nodes])
+        return self.update(rl, np.einsum("mji,mj->mi", self.frames, v_point), du, it, self.eligible(v, du))
+
+    def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray:
+        """(m,) which contacts may be added after a solve with velocities v (N, 3) and du: those whose rigid
+        point, at the end of the step, projects into its triangle and has it as the nearest of its group,
+        one per rigid point (none while another contact of that point is active)."""
+        c, h = self.c, self.h
+        x_end = self.x_tri + h * v[c.nodes]
+        vr = c.rigid_velocity if c.jacobian is None or not len(du) else c.rigid_velocity + c.jacobian @ du
+        q_end = c.point + h * vr
+        inside = (barycentric(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]) >= -1e-9).all(axis=1)
+        dist = np.linalg.norm(q_end - closest_on_triangles(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]), axis=1)
+        groups = int(c.group.max()) + 1
+        nearest = np.full(groups, np.inf)
+        np.minimum.at(nearest, c.group, dist)
+        ok = inside & (dist <= nearest[c.group] + 1e-9)
+        # one contact per rigid point: none while another of its group is active, the first of ties
+        taken = np.zeros(groups, dtype=bool)
+        taken[c.group[self.active]] = True
+        ok &= ~taken[c.group]
+        first = np.zeros(len(ok), dtype=bool)
+        idx = np.flatnonzero(ok)
+        _, pick = np.unique(c.group[idx], return_index=True)
+        first[idx[pick]] = True
+        return first
+
+
 class ContactSolver:
-    """Active-set solver for unilateral node contacts with Coulomb friction, for all soft bodies of a
-    step at once (coupled through movable rigid bodies, see coupling.py).
+    """Active-set solver for unilateral contacts with Coulomb friction, for all soft bodies of a step at
+    once (coupled through movable rigid bodies and constraint rows, see coupling.py).
 
     max_iterations bounds the active-set loop; velocity_tol [m/s] is the threshold for adding contacts
     and for a slide to count as stopped; slip_tol the relative change of sliding forces that still
@@ -276,20 +396,26 @@ class ContactSolver:
         self.velocity_tol = velocity_tol
         self.slip_tol = slip_tol
         # stick/slip may change only in the first friction_switches iterations of a step; later changes
-        # are carried to the next step (lagged friction: a node on the cone's edge would otherwise
+        # are carried to the next step (lagged friction: a contact on the cone's edge would otherwise
         # flip forever, and each flip costs a solve). Non-penetration stays exact in every iteration.
         self.friction_switches = friction_switches
         self.cone_tol = cone_tol
-        # id(body) -> (active nodes, sticking nodes, {slipping node: friction force (3,) world [N]})
-        self.previous: dict[int, tuple[set, set, dict]] = {}
+        # (kind, id(body)) -> (active keys, sticking keys, {slipping key: friction force (3,) world [N]})
+        self.previous: dict[tuple[str, int], tuple[set, set, dict]] = {}
+
+    def _set(self, kind: str, body, c, make):
+        if c is None or not len(c):
+            self.previous[(kind, id(body))] = (set(), set(), {})
+            return None
+        return make(self.previous.get((kind, id(body)), (set(), set(), {})))
 
     def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None) -> StepSolution:
         """Solve one step of every body in ``steps``; ``mass_matrix`` (n, n): the movable rigid bodies' mass
         matrix for the coupled velocity change du (None: no rigid body is coupled)."""
         coupled = CoupledSolver(mass_matrix)
         n = coupled.n
-        base, base_G, sets = [], [], []
-        for st in steps:
+        base, base_G, nodes, faces = [], [], [], []
+        for i, st in enumerate(steps):
             body = st.system.body
             held = st.supports.nodes
             cons, G = [st.supports], [np.zeros((len(st.supports), 3, n))]
@@ -304,41 +430,56 @@ class ContactSolver:
             c = st.contacts
             if c is not None and len(c):
                 c = c.select(~np.isin(c.node, held))
-            if c is None or not len(c):
-                self.previous[id(body)] = (set(), set(), {})
-                sets.append(None)
-            else:
-                sets.append(_ActiveSet(self, c, self.previous.get(id(body), (set(), set(), {})), h, body.n_nodes))
+            nodes.append(self._set("node", body, c, lambda prev: _NodeSet(self, c, prev, h, body.n_nodes)))
+            f = st.faces
+            if f is not None and len(f):  # a point on a triangle of held nodes only is held already
+                f = f.select(~np.isin(f.nodes, held).all(axis=1))
+            faces.append(self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h, body.positions)))
         it = 0
         for it in range(1, self.max_iterations + 1):
-            parts, slip = [], np.zeros(n)
-            for st, b_cons, b_G, aset in zip(steps, base, base_G, sets):
-                if aset is None:
-                    parts.append(CoupledPart(st.system, b_cons, b_G, None, reuse=it > 1))
-                    continue
-                c_cons, c_G, extra, s = aset.constraints()
-                cons = _stack([b_cons, c_cons])
-                G = None
-                if n:
-                    G = np.concatenate([b_G, c_G if c_G is not None else np.zeros((len(c_cons), 3, n))])
-                parts.append(CoupledPart(st.system, cons, G, extra, aset.reuse))
-                if s is not None:
-                    slip += s
-            out, du = coupled.solve(parts, slip if n else None)
-            changed = False
-            for aset, (v, r) in zip(sets, out):
-                if aset is not None:
-                    changed |= aset.update(v, r, du, it)
+            parts, slip, row_parts = [], np.zeros(n), []
+            for st, b_cons, b_G, nset, fset in zip(steps, base, base_G, nodes, faces):
+                extra, cons, G, reuse = None, b_cons, b_G, it > 1
+                if nset is not None:
+                    c_cons, c_G, extra = nset.constraints()
+                    cons = _stack([b_cons, c_cons])
+                    if n:
+                        G = np.concatenate([b_G, c_G if c_G is not None else np.zeros((len(c_cons), 3, n))])
+                    reuse = nset.reuse
+                    s = nset.slip_impulse()
+                    if s is not None:
+                        slip += s
+                if fset is not None:
+                    rows, f_extra = fset.rows(n)
+                    row_parts.append(rows)
+                    if f_extra is not None:
+                        extra = f_extra if extra is None else extra + f_extra
+                    s = fset.slip_impulse()
+                    if s is not None:
+                        slip += s
+                parts.append(CoupledPart(st.system, cons, G, extra, reuse))
+            rows = Rows.concat(row_parts, n) if row_parts else None
+            out, du, lam = coupled.solve(parts, rows, slip if n else None)
+            changed, k = False, 0
+            for (v, r), nset, fset in zip(out, nodes, faces):
+                if nset is not None:
+                    changed |= nset.read(v, r, du, it)
+                if fset is not None:
+                    m = len(fset.row_index[0])
+                    changed |= fset.read(v, lam[k:k + m], du, it)
+                    k += m
             if not changed:
                 break
-        velocities, results, attach = [], [], []
-        for st, aset, (v, r), part in zip(steps, sets, out, parts):
+        velocities, results, face_results, attach = [], [], [], []
+        for st, nset, fset, (v, r), part in zip(steps, nodes, faces, out, parts):
+            body = st.system.body
             velocities.append(v)
-            if aset is None:
-                results.append(None)
-            else:
-                res, self.previous[id(st.system.body)] = aset.result(it)
-                results.append(res)
+            for kind, cset, store in (("node", nset, results), ("face", fset, face_results)):
+                if cset is None:
+                    store.append(None)
+                else:
+                    res, self.previous[(kind, id(body))] = cset.result(it)
+                    store.append(res)
             a = st.attachments
             if a is not None and len(a):
                 f = np.zeros((len(a), 3))
@@ -347,4 +488,4 @@ class ContactSolver:
                 attach.append(f)
             else:
                 attach.append(None)
-        return StepSolution(velocities, results, attach, du, it)
+        return StepSolution(velocities, results, face_results, attach, du, it)

@@ -1,24 +1,35 @@
-"""Two-way coupling of soft bodies and movable rigid bodies, solved in one implicit step.
+"""Two-way coupling of soft bodies, movable rigid bodies and constraint rows, solved in one implicit step.
 
-For a given constraint set (supports, attachments, the active contacts), every constrained velocity
-component k of soft body b takes the value c_k = c0_k + G_bk du, where du (n,) is the change of the
-movable rigid bodies' generalized velocities (stacked) against their free motion over the step, and
-G_b (rows of the constraints' point Jacobians in the constraints' local frames) says how the rigid
-point moves. Then
+Two kinds of constraints meet here:
 
-    A_b v_b = b_b + r_b                      soft: the step system, r_b the constraint impulses
-    M du    = s - sum_b G_b^T r_b            rigid: the impulses back, s the sliding friction's
+- *eliminated* node constraints (supports, attachments, node contacts): each constrained velocity
+  component k of soft body b takes the value c_k = c0_k + G_bk du, where du (n,) is the change of the
+  movable rigid bodies' generalized velocities (stacked) against their free motion over the step, and
+  G_b (rows of the point Jacobians in the constraints' local frames) says how the rigid point moves;
+- *rows* with multipliers (a rigid feature on a soft triangle, a soft node on another soft body's
+  triangle): row k asks sum_i w_ki t_k . v[node_ki] - g_k . du = target_k over nodes of one or two
+  soft bodies (barycentric weights w, direction t_k, g_k = J_k^T t_k the rigid point's generalized
+  direction), with impulse lambda_k: + w_ki lambda_k t_k on the soft nodes, - lambda_k t_k on the rigid.
 
-The soft solve is linear in the constrained values, so v_b = y0_b + Y_b du and r_b = r0_b + R_b du,
-with (y0, r0) the solve at du = 0 and the columns of (Y, R) homogeneous solves (b = 0) with the values
-G_b e_j; only columns that some constraint of b touches are solved for. Eliminating v and r,
+The equations of the step:
 
-    (M + sum_b G_b^T R_b) du = s - sum_b G_b^T r0_b,
+    A_b v_b = b_b + r_b + C_b^T lambda        soft: the step system; r_b the eliminated constraints' impulses
+    M du    = s - sum_b G_b^T r_b - g^T lambda  rigid: the impulses back; s the sliding friction's
+    C v - g du = target                         the rows
 
-whose matrix is M plus the soft bodies' stiffness seen at the constraints (symmetric positive
-definite): a Schur complement of the whole system, as ArtiSynth and SOFA solve rigid and FEM bodies
-together. Both sides then agree on every impulse, so momentum is exchanged exactly and the step is the
-implicit step of one mechanical system: light rigid bodies are not overshot.
+Each soft solve is linear in its constrained values and loads, so v_b = y0_b + Y_b du + Z_b lambda and
+r_b = r0_b + R_b du + Q_b lambda, with (y0, r0) the solve at du = 0, lambda = 0, and the columns of (Y, R)
+and (Z, Q) homogeneous solves (the step's load dropped) with the values G_b e_j, or the load C_b^T e_k;
+only columns that touch b are solved for. Eliminating v and r leaves a small dense system in
+(du, lambda):
+
+    [ M + G^T R    G^T Q + g^T ] [du    ]   [ s - G^T r0        ]
+    [ C Y - g      C Z         ] [lambda] = [ target - C y0     ]
+
+(by reciprocity C Y = -(G^T Q)^T: it is a saddle point problem of the whole system's energy), as ArtiSynth
+and SOFA solve rigid and FEM bodies together. Both sides agree on every impulse, so momentum is
+exchanged exactly and the step is the implicit step of one mechanical system: light rigid bodies are not
+overshot.
 """
 from __future__ import annotations
 
@@ -28,14 +39,18 @@ import numpy as np
 
 from softbody.integrator import Constraints, LinearSystem
 
+# compliance of the rows relative to their diagonal: keeps the dense system regular when two rows (or a
+# row and an eliminated node constraint) hold the same motion, at no visible cost in accuracy
+ROW_COMPLIANCE = 1e-9
+
 
 @dataclass
 class CoupledPart:
-    """One soft body's constraint set for a coupled solve.
+    """One soft body's eliminated constraints for a coupled solve.
 
-    cons: its constraints (supports, attachments, contacts), values at du = 0; G (len(cons), 3, n): the
-    derivative of each constrained node's local values with respect to du (None: not coupled); extra
-    (N, 3): an extra right-hand side (sliding friction impulses) or None; reuse: the system may keep
+    cons: its constraints (supports, attachments, node contacts), values at du = 0; G (len(cons), 3, n):
+    the derivative of each constrained node's local values with respect to du (None: not coupled);
+    extra (N, 3): an extra right-hand side (sliding friction impulses) or None; reuse: the system may keep
     its last factorisation (only values or extra changed since its last solve)."""
 
     system: LinearSystem
@@ -49,6 +64,62 @@ class CoupledPart:
         return self.cons.nodes.tobytes(), self.cons.mask.tobytes(), frames
 
 
+@dataclass
+class Rows:
+    """Constraint rows with multipliers (m rows, s node slots each).
+
+    part (m, s): index of the soft body (CoupledPart) of each slot, -1 for an unused slot; node (m, s);
+    weight (m, s): the slot's weight (barycentric, negative on the second body of a soft-soft row);
+    direction (m, 3): unit t_k; g (m, n): J_k^T t_k of the rigid point (zeros if none is coupled);
+    target (m,): the row's value [m/s] at du = 0."""
+
+    part: np.ndarray
+    node: np.ndarray
+    weight: np.ndarray
+    direction: np.ndarray
+    g: np.ndarray
+    target: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.target)
+
+    @classmethod
+    def empty(cls, n: int = 0, slots: int = 3) -> "Rows":
+        return cls(np.zeros((0, slots), np.int64), np.zeros((0, slots), np.int64), np.zeros((0, slots)),
+                   np.zeros((0, 3)), np.zeros((0, n)), np.zeros(0))
+
+    @classmethod
+    def concat(cls, parts: list["Rows"], n: int) -> "Rows":
+        parts = [r for r in parts if r is not None and len(r)]
+        if not parts:
+            return cls.empty(n)
+        s = max(r.part.shape[1] for r in parts)
+
+        def pad(a, fill):
+            return np.pad(a, ((0, 0), (0, s - a.shape[1])), constant_values=fill)
+
+        return cls(np.concatenate([pad(r.part, -1) for r in parts]), np.concatenate([pad(r.node, 0) for r in parts]),
+                   np.concatenate([pad(r.weight, 0.0) for r in parts]), np.concatenate([r.direction for r in parts]),
+                   np.concatenate([r.g for r in parts]), np.concatenate([r.target for r in parts]))
+
+    def values(self, part: int, v: np.ndarray) -> np.ndarray:
+        """C_part v (m,) for the soft velocities v (N, 3) of one part."""
+        on = self.part == part
+        terms = np.einsum("msi,mi->ms", v[np.where(on, self.node, 0)], self.direction)
+        return np.where(on, self.weight * terms, 0.0).sum(axis=1)
+
+    def load(self, k: int, part: int, n_nodes: int) -> np.ndarray:
+        """C_part^T e_k (N, 3): the unit impulse of row k on the nodes of ``part``."""
+        f = np.zeros((n_nodes, 3))
+        sel = self.part[k] == part
+        np.add.at(f, self.node[k, sel], self.weight[k, sel, None] * self.direction[k])
+        return f
+
+    def signature(self, k: int, part: int) -> bytes:
+        sel = self.part[k] == part
+        return self.node[k, sel].tobytes() + self.weight[k, sel].tobytes() + self.direction[k].tobytes()
+
+
 def generalized(cons: Constraints, r: np.ndarray, G: np.ndarray) -> np.ndarray:
     """G^T r (n,): the generalized impulse of the reactions r (N, 3, local frames) of the constrained
     components of ``cons`` through G (len(cons), 3, n)."""
@@ -57,7 +128,7 @@ def generalized(cons: Constraints, r: np.ndarray, G: np.ndarray) -> np.ndarray:
 
 class CoupledSolver:
     """Solves the constraint sets of several soft bodies at once, coupled through movable rigid bodies
-    with mass matrix M (n, n) (None or n = 0: nothing is coupled, each body is solved alone).
+    with mass matrix M (n, n) (None or n = 0: none) and through constraint rows.
 
     Lives for one step: it keeps each body's solve while its constraints, values and loads are unchanged,
     and its homogeneous responses while its constraint set is unchanged, so an active-set iteration costs
@@ -66,54 +137,64 @@ class CoupledSolver:
 
     def __init__(self, M: np.ndarray | None = None):
         self.M = None if M is None or not M.size else np.asarray(M, float)
-        self._responses: dict[int, tuple] = {}  # part index -> (key, columns, Y (k, N, 3), R (k, N, 3), system)
-        self._bases: dict[int, tuple] = {}  # part index -> (signature, system, (y0, r0))
+        self._bases: dict[int, tuple] = {}  # part -> (signature, system, (y0, r0))
+        self._responses: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}  # (part, part key, column key) -> (y, r)
         self.homogeneous_solves = 0
 
     @property
     def n(self) -> int:
         return 0 if self.M is None else len(self.M)
 
-    def solve(self, parts: list[CoupledPart], slip: np.ndarray | None = None
-              ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray]:
-        """Velocities and reactions (v (N, 3), r (N, 3) local) per part, and du (n,).
+    def solve(self, parts: list[CoupledPart], rows: Rows | None = None, slip: np.ndarray | None = None
+              ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
+        """Velocities and reactions (v (N, 3), r (N, 3) local) per part, du (n,) and the rows' impulses (m,).
 
-        slip (n,): the generalized impulse s of forces on the rigid side that do not depend on du."""
+        slip (n,): the generalized impulse s of forces on the rigid side that do not depend on du or lambda."""
         out = [self._base(i, part) for i, part in enumerate(parts)]
-        du = np.zeros(self.n)
-        if self.M is None:
-            return out, du
-        K = self.M.copy()
-        rhs = np.zeros(self.n) if slip is None else np.array(slip, dtype=float)
-        responses = []
+        n, m = self.n, 0 if rows is None else len(rows)
+        if n + m == 0:
+            return out, np.zeros(0), np.zeros(0)
+        H = np.zeros((n + m, n + m))
+        rhs = np.zeros(n + m)
+        if n:
+            H[:n, :n] = self.M
+            if slip is not None:
+                rhs[:n] = slip
+        if m:
+            H[n:, :n] = -rows.g
+            H[:n, n:] = rows.g.T
+            rhs[n:] = rows.target
+        columns = []  # per part: (column indices into (du, lambda), Y (k, N, 3), R (k, N, 3))
         for i, (part, (y0, r0)) in enumerate(zip(parts, out)):
-            if part.G is None or not len(part.cons):
-                responses.append(None)
-                continue
-            cols, Y, R = self._response(i, part)
-            responses.append((cols, Y, R))
-            if not len(cols):
-                continue
-            rhs -= generalized(part.cons, r0, part.G)
+            cols, Y, R = self._columns(i, part, rows)
+            columns.append((cols, Y, R))
+            coupled = part.G is not None and len(part.cons)
+            if coupled:
+                rhs[:n] -= generalized(part.cons, r0, part.G)
+            if m:
+                rhs[n:] -= rows.values(i, y0)
             for k, j in enumerate(cols):
-                K[:, j] += generalized(part.cons, R[k], part.G)
-        K = 0.5 * (K + K.T)
+                if coupled:
+                    H[:n, j] += generalized(part.cons, R[k], part.G)
+                if m:
+                    H[n:, j] += rows.values(i, Y[k])
+        if m:  # a tiny compliance on the rows keeps H regular where rows repeat a constraint
+            d = float(np.abs(np.diag(H)[n:]).max(initial=0.0))
+            H[n:, n:] += ROW_COMPLIANCE * max(d, 1e-300) * np.eye(m)
         try:
-            L = np.linalg.cholesky(K)
-            du = np.linalg.solve(L.T, np.linalg.solve(L, rhs))
+            z = np.linalg.solve(H, rhs)
         except np.linalg.LinAlgError:  # a massless direction no constraint holds: the least-squares answer
-            du = np.linalg.lstsq(K, rhs, rcond=None)[0]
-        for i, resp in enumerate(responses):
-            if resp is None or not len(resp[0]):
-                continue
-            cols, Y, R = resp
-            y0, r0 = out[i]
-            w = du[cols]
-            out[i] = (y0 + np.tensordot(w, Y, axes=1), r0 + np.tensordot(w, R, axes=1))
-        return out, du
+            z = np.linalg.lstsq(H, rhs, rcond=None)[0]
+        for i, (cols, Y, R) in enumerate(columns):
+            if len(cols):
+                y0, r0 = out[i]
+                w = z[cols]
+                out[i] = (y0 + np.tensordot(w, Y, axes=1), r0 + np.tensordot(w, R, axes=1))
+        return out, z[:n], z[n:]
 
     def _base(self, i: int, part: CoupledPart) -> tuple[np.ndarray, np.ndarray]:
-        """The solve of part i at du = 0, repeated only if its constraints, values or extra load changed."""
+        """The solve of part i at du = 0 and lambda = 0, repeated only if its constraints, values or extra
+        load changed."""
         sig = (part.key(), part.cons.value.tobytes(), None if part.extra is None else part.extra.tobytes())
         cached = self._bases.get(i)
         if cached is not None and cached[0] == sig and cached[1] is part.system:
@@ -122,20 +203,35 @@ class CoupledSolver:
         self._bases[i] = (sig, part.system, out)
         return out
 
-    def _response(self, i: int, part: CoupledPart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The homogeneous responses (columns, Y (k, N, 3), R (k, N, 3)) of part i, solved anew only when its
-        constraint set changed."""
-        key = part.key()
-        cached = self._responses.get(i)
-        if cached is not None and cached[0] == key and cached[4] is part.system:
-            return cached[1], cached[2], cached[3]
-        G = np.where(part.cons.mask[:, :, None], part.G, 0.0)
-        cols = np.flatnonzero(np.abs(G).max(axis=(0, 1), initial=0.0) > 0)
-        N = part.system.body.n_nodes
-        Y, R = np.zeros((len(cols), N, 3)), np.zeros((len(cols), N, 3))
-        for k, j in enumerate(cols):
-            cons = Constraints(part.cons.nodes, part.cons.mask, G[:, :, j], part.cons.frames)
-            Y[k], R[k] = part.system.solve(cons, reuse=True, homogeneous=True)
-            self.homogeneous_solves += 1
-        self._responses[i] = (key, cols, Y, R, part.system)
-        return cols, Y, R
+    def _columns(self, i: int, part: CoupledPart, rows: Rows | None) -> tuple[list[int], np.ndarray, np.ndarray]:
+        """The columns of (du, lambda) that touch part i and its homogeneous responses to each (Y, R (k, N, 3)),
+        solved anew only for columns not seen with the same constraint set."""
+        n, key, N = self.n, part.key(), part.system.body.n_nodes
+        cols, Ys, Rs = [], [], []
+        if part.G is not None and n and len(part.cons):
+            G = np.where(part.cons.mask[:, :, None], part.G, 0.0)
+            for j in np.flatnonzero(np.abs(G).max(axis=(0, 1), initial=0.0) > 0).tolist():
+                ck = (i, key, ("du", G[:, :, j].tobytes()))
+                if ck not in self._responses:
+                    cons = Constraints(part.cons.nodes, part.cons.mask, G[:, :, j], part.cons.frames)
+                    self._responses[ck] = part.system.solve(cons, reuse=True, homogeneous=True)
+                    self.homogeneous_solves += 1
+                cols.append(j)
+                Ys.append(self._responses[ck][0])
+                Rs.append(self._responses[ck][1])
+        if rows is not None and len(rows):
+            zero = None
+            for k in np.flatnonzero((rows.part == i).any(axis=1)).tolist():
+                ck = (i, key, ("row", rows.signature(k, i)))
+                if ck not in self._responses:
+                    if zero is None:
+                        zero = Constraints(part.cons.nodes, part.cons.mask, np.zeros_like(part.cons.value),
+                                           part.cons.frames)
+                    self._responses[ck] = part.system.solve(zero, rows.load(k, i, N), reuse=True, homogeneous=True)
+                    self.homogeneous_solves += 1
+                cols.append(n + k)
+                Ys.append(self._responses[ck][0])
+                Rs.append(self._responses[ck][1])
+        if not cols:
+            return [], np.zeros((0, N, 3)), np.zeros((0, N, 3))
+        return cols, np.array(Ys), np.array(Rs)

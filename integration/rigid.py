@@ -127,36 +127,87 @@ class RigidLink:
         self._bounding_radius = r
         return r
 
-    def local_vertices(self) -> np.ndarray:
-        """The sharp vertices of the link's shapes (box corners, mesh vertices) in its inertial frame (m, 3)."""
-        if "_local_vertices" in self.__dict__:
-            return self._local_vertices
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
-        if self.shape == "box":
-            verts = corners * np.asarray(self.params["half_extents"])
-        elif self.shape == "mesh":
-            verts = np.asarray(self.params["vertices"], float)
+    def convex_parts(self) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]]:
+        """The link's convex shapes in its inertial frame: (kind, size, rotation (3, 3), position (3,),
+        vertices (k, 3) of a convex mesh or None). Planes and concave meshes are not convex parts."""
+        if "_convex_parts" in self.__dict__:
+            return self._convex_parts
+        eye, zero = np.eye(3), np.zeros(3)
+        parts = []
+        if self.shape == "sphere":
+            parts.append(("sphere", np.array([self.params["radius"]], float), eye, zero, None))
+        elif self.shape == "box":
+            parts.append(("box", np.asarray(self.params["half_extents"], float), eye, zero, None))
+        elif self.shape == "mesh" and not self.concave:
+            parts.append(("mesh", np.ones(3), eye, zero, np.asarray(self.params["vertices"], float)))
         elif self.shape == "urdf":
-            parts = []
-            for s in self.shapes:
-                if s.kind == "box":
-                    local = corners * np.asarray(s.size)
-                elif s.kind == "mesh" and s.mesh_file and Path(s.mesh_file).exists():
-                    local = np.asarray(load_trimesh(s.mesh_file).convex_hull.vertices) * np.asarray(s.size)
-                else:
-                    continue
-                parts.append(local @ quat_matrix(s.quaternion).T + np.asarray(s.position))
-            verts = np.concatenate(parts) if parts else np.zeros((0, 3))
-        else:
-            verts = np.zeros((0, 3))
-        self._local_vertices = verts
-        return verts
+            for sh in self.shapes:
+                R, pos = quat_matrix(sh.quaternion), np.asarray(sh.position, float)
+                if sh.kind in ("sphere", "box", "capsule", "cylinder"):
+                    parts.append((sh.kind, np.asarray(sh.size, float), R, pos, None))
+                elif sh.kind == "mesh" and sh.mesh_file and Path(sh.mesh_file).exists():
+                    verts = np.asarray(load_trimesh(sh.mesh_file).convex_hull.vertices) * np.asarray(sh.size)
+                    parts.append(("mesh", np.ones(3), R, pos, verts))
+        self._convex_parts = parts
+        return parts
 
-    def surface_vertices(self) -> np.ndarray:
-        """World positions of the shape's sharp vertices (box corners, mesh vertices); (0, 3) for smooth shapes."""
-        verts = self.local_vertices()
-        return self.to_world(verts) if len(verts) else verts
+    def round_parts(self) -> np.ndarray:
+        """(S,) bool per point of :meth:`support_points`: True where it lies on a smooth surface (sphere,
+        capsule), False on a rim (cylinder)."""
+        flags = []
+        for kind, *_ in self.convex_parts():
+            if kind == "sphere":
+                flags.append(True)
+            elif kind in ("capsule", "cylinder"):
+                flags += [kind == "capsule"] * 2
+        return np.array(flags, dtype=bool)
 
+    def support_points(self, directions: np.ndarray) -> np.ndarray:
+        """For each world direction (T, 3) (unit vectors), the points (T, S, 3) of the link's round parts
+        furthest along it: a sphere's, and each end's of a capsule (its two hemispheres) or of a cylinder
+        (the rim of each cap, or the cap's centre for an axial direction), so that a part lying flat offers
+        both ends. These are the deepest points of the part into a plane facing ``-direction``. Boxes and
+        meshes offer their corners instead (:meth:`corner_points`)."""
+        d = np.asarray(directions, float).reshape(-1, 3)
+        parts = [prt for prt in self.convex_parts() if prt[0] in ("sphere", "capsule", "cylinder")]
+        out = []
+        if not parts:
+            return np.zeros((len(d), 0, 3))
+        c, q = self.pose()
+        Rl = quat_matrix(q)
+        for kind, size, R, pos, _ in parts:
+            Rw = Rl @ R  # part frame -> world
+            centre = c + Rl @ pos
+            dl = d @ Rw  # the directions in the part's frame
+            if kind == "sphere":
+                out.append(centre + (size[0] * dl) @ Rw.T)
+                continue
+            r, length = size
+            if kind == "capsule":
+                rim = r * dl
+            else:
+                radial = dl.copy()
+                radial[:, 2] = 0.0
+                norm = np.linalg.norm(radial, axis=1, keepdims=True)
+                rim = np.where(norm > 1e-12, r * radial / np.maximum(norm, 1e-300), 0.0)
+            for end in (0.5 * length, -0.5 * length):
+                out.append(centre + (rim + np.array([0.0, 0.0, end])) @ Rw.T)
+        return np.stack(out, axis=1)
+
+    def corner_points(self) -> np.ndarray:
+        """World positions (k, 3) of the link's corners: box corners, the vertices of convex and concave meshes."""
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+        if "_corners_local" not in self.__dict__:
+            local = []
+            for kind, size, R, pos, verts in self.convex_parts():
+                if kind == "box":
+                    local.append((corners * size) @ R.T + pos)
+                elif kind == "mesh":
+                    local.append(verts @ R.T + pos)
+            if self.concave:
+                local.append(np.asarray(self.params["vertices"], float))
+            self._corners_local = np.concatenate(local) if local else np.zeros((0, 3))
+        return self.to_world(self._corners_local) if len(self._corners_local) else np.zeros((0, 3))
 
 RigidBody = RigidLink  # the name of a World's own single-link bodies
 

@@ -36,9 +36,14 @@ from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_matrix
-from .collision import CollisionDetector, Contacts
-from .contact import Attachments, BodyStep, ContactResult, ContactSolver, NodeContacts
+from .collision import CollisionDetector, Contacts, FaceHits
+from .contact import Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts
 from .rigid import PoseScript, RigidLink, load_trimesh
+
+
+# a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
+# the contact margin of it: resting on it, not merely near it
+TOUCH = 0.1
 
 
 def _quat(orientation) -> list[float]:
@@ -161,7 +166,9 @@ class World:
         self.detector = CollisionDetector(self.client)
         self.contact_solver = ContactSolver()
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
-        self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}
+        self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}  # id(body) -> node contacts
+        self.face_results: dict[int, tuple[FaceContacts, ContactResult]] = {}  # id(body) -> face contacts
+        self.face_hits = FaceHits.empty()  # face contact candidates of the last step
         self.attachment_forces: list[tuple[Attachment, np.ndarray]] = []  # forces on the soft nodes [N], last step
         # seconds spent in the last step, by disjoint phase: collision (queries), the core's rotations,
         # forces, assembly, factorize, solve (linear algebra), contact (the contact loop's own work),
@@ -425,46 +432,47 @@ class World:
         skip = self._ignore.get(id(body), ())
         return rb.key in skip or (rb.id, None) in skip
 
-    def _detect(self, i: int, body: FemBody) -> Contacts:
-        """Contact candidates of soft body i against every rigid link near it, one per node (the deepest)."""
+    def _detect(self, i: int, body: FemBody) -> tuple[Contacts, FaceHits]:
+        """Contact candidates of soft body i against every rigid link near it: node contacts, one per node
+        (the deepest), and rigid points on its surface triangles between nodes (face contacts)."""
         surface, tris = self._surface[id(body)]
         surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
         if not len(surface):
-            return Contacts.empty()
+            return Contacts.empty(), FaceHits.empty()
         x = body.positions
         xs = x[surface]
         speed = float(np.sqrt((body.velocities[surface] ** 2).sum(axis=1).max(initial=0.0)))
         margin = self.contact_margin + 2.0 * speed * self.dt
         lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
-        parts, vparts = [], []
+        parts, faces = [], []
+        touching = np.zeros(body.n_nodes, dtype=bool)
+        touch_normal = np.zeros((body.n_nodes, 3))
         for rb in self.rigids.values():
             if self._ignored(body, rb):
                 continue
             rlo, rhi = rb.aabb()
             if np.any(rlo > hi) or np.any(rhi < lo):
                 continue  # broad phase: far apart, no query at all
-            parts.append(self.detector.node_contacts(i, x, surface, rb, margin))
-            if len(rb.local_vertices()):
-                q, ti, bary, d = self.detector.vertex_contacts(i, x, tris, rb, margin)
-                if len(q):
-                    # a sharp rigid vertex inside a soft triangle pushes the triangle's nodes along -n_tri
-                    xt = x[tris[ti]]
-                    n_tri = np.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
-                    n_tri /= np.linalg.norm(n_tri, axis=1, keepdims=True)
-                    nodes = tris[ti].ravel()
-                    vparts.append(Contacts(np.full(len(nodes), i), nodes, np.full(len(nodes), rb.id),
-                                           np.repeat(q, 3, axis=0), np.repeat(-n_tri, 3, axis=0),
-                                           np.repeat(d, 3), np.full(len(nodes), rb.link)))
-        found = Contacts.concat(parts + vparts)
-        if not len(found):
-            return found
-        order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
-        found = found.select(order)
-        return found.select(np.r_[True, found.node[1:] != found.node[:-1]])
+            found = self.detector.node_contacts(i, x, surface, rb, margin)
+            parts.append(found)
+            touching[:] = False
+            touch_normal[:] = 0.0
+            resting = found.distance <= TOUCH * self.contact_margin
+            touching[found.node[resting]] = True
+            touch_normal[found.node[resting]] = found.normal[resting]
+            touching[body.supported()] = True
+            faces.append(self.detector.face_contacts(i, x, tris, rb, margin, touching, touch_normal))
+        found = Contacts.concat(parts)
+        if len(found):
+            order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
+            found = found.select(order)
+            found = found.select(np.r_[True, found.node[1:] != found.node[:-1]])
+        return found, FaceHits.concat(faces)
 
-    def _node_contacts(self, body: FemBody, found: Contacts, coupling: _Coupling) -> NodeContacts:
-        """Contact data for the solve: the rigid points' velocities (free motion for movable bodies, filled
-        in after pybullet's step), friction, and the Jacobians of the coupled ones."""
+    def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: _Coupling
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """For contacts with rigid links: friction (m,), the rigid points' velocities (m, 3) (for movable
+        bodies filled in after pybullet's step) and the Jacobians (m, 3, n) of the coupled ones."""
         mu = np.full(len(found), self.friction[id(body)])
         vr = np.zeros((len(found), 3))
         for key in set(zip(found.rigid.tolist(), found.link.tolist())):
@@ -475,8 +483,17 @@ class World:
             if key[0] not in coupling.dynamics:
                 vr[sel] = self._rigid_point_velocity(rb, found.point[sel])
         J = coupling.jacobians(self.adapter, found.rigid, found.link, found.point) if coupling.n else None
+        return mu, vr, J
+
+    def _node_contacts(self, body: FemBody, found: Contacts, coupling: _Coupling) -> NodeContacts:
+        mu, vr, J = self._contact_data(body, found, coupling)
         return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point,
                             found.link, J)
+
+    def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: _Coupling) -> FaceContacts:
+        mu, vr, J = self._contact_data(body, hits, coupling)
+        return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
+                            hits.nodes, hits.weights, hits.group, hits.primary)
 
     def _coupled_attachments(self, body: FemBody, coupling: _Coupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
         """(attachment, start points (m, 3), Jacobians (m, 3, n)) of this body's two-way attachments."""
@@ -497,15 +514,16 @@ class World:
         h, coupling = self.dt, self._coupling
         u_free = {b: self.adapter.generalized_velocity(dyn) for b, dyn in coupling.dynamics.items()}
         tr = time.perf_counter()
+        u = np.zeros(coupling.n)
+        for b, o in coupling.offset.items():
+            u[o:o + coupling.dynamics[b].n] = u_free[b]
         steps = []
         for body, system, sup in zip(bodies, systems, supports):
-            c = self._pending.get(id(body))
-            if c is not None and coupling.n:  # rigid velocities of the coupled points under the free motion
-                u = np.zeros(coupling.n)
-                for b, o in coupling.offset.items():
-                    u[o:o + coupling.dynamics[b].n] = u_free[b]
-                on = np.isin(c.rigid, list(coupling.dynamics))
-                c.rigid_velocity[on] = c.jacobian[on] @ u
+            c, f = self._pending.get(id(body)), self._pending_faces.get(id(body))
+            for cc in (c, f):
+                if cc is not None and coupling.n:  # rigid velocities of the coupled points under the free motion
+                    on = np.isin(cc.rigid, list(coupling.dynamics))
+                    cc.rigid_velocity[on] = cc.jacobian[on] @ u
             att = None
             parts = self._attach_pending.get(id(body), [])
             if parts:
@@ -519,13 +537,14 @@ class World:
                     lid.append(np.full(len(a.nodes), a.rigid.link))
                     pts.append(p0)
                 att = Attachments(*(np.concatenate(v) for v in (nodes, target, J, rid, lid, pts)))
-            steps.append(BodyStep(system, sup, c, att))
+            steps.append(BodyStep(system, sup, c, att, f))
         self._rigid_inside = time.perf_counter() - tr
         self.timings["rigid"] += self._rigid_inside
         sol = self.contact_solver.solve(steps, h, coupling.mass_matrix() if coupling.n else None)
         self._solution = sol
         self.contact_results = {id(b): (st.contacts, res) for b, st, res in zip(bodies, steps, sol.contacts)
                                 if res is not None}
+        self.face_results = {id(b): (st.faces, res) for b, st, res in zip(bodies, steps, sol.faces) if res is not None}
         self.attachment_forces = []
         for body, st, f in zip(bodies, steps, sol.attachment_forces):
             if f is None:
@@ -570,21 +589,27 @@ class World:
                 angle = 2 * math.atan2(np.linalg.norm(dq[:3]), dq[3])
                 axis = dq[:3] / max(np.linalg.norm(dq[:3]), 1e-300)
                 self._kin_velocity[rb.id] = ((p1 - p0) / h, axis * angle / h)
-        self.contact_results = {}
+        self.contact_results, self.face_results = {}, {}
         self.attachment_forces = []
         self.detector.last_candidates = 0
-        found = [self._detect(i, body) for i, body in enumerate(self.bodies)] if self.rigids else []
+        detected = [self._detect(i, body) for i, body in enumerate(self.bodies)] if self.rigids else []
+        found = [d[0] for d in detected]
+        hits = [d[1] for d in detected]
         self.contacts = Contacts.concat(found)
+        self.face_hits = FaceHits.concat(hits)
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         # the movable bodies in play, at the start configuration (before pybullet moves them)
-        in_play = {int(b) for b in np.unique(self.contacts.rigid)} | {a.rigid.id for a in self.attachments if a.coupled}
+        in_play = ({int(b) for b in np.unique(self.contacts.rigid)} | {int(b) for b in np.unique(self.face_hits.rigid)}
+                   | {a.rigid.id for a in self.attachments if a.coupled})
         dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
                     if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
         self._coupling = coupling = _Coupling.of(dynamics)
         self._check_constraints(dynamics)
         self._pending = {id(body): self._node_contacts(body, f, coupling)
                          for body, f in zip(self.bodies, found) if len(f)}
+        self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
+                               for body, f in zip(self.bodies, hits) if len(f)}
         self._attach_pending = {id(body): self._coupled_attachments(body, coupling) for body in self.bodies}
         self._rigid_inside = 0.0
         snapshot = self._snapshot()
@@ -616,7 +641,7 @@ class World:
         core = dict(self.sim.timings)
         contact = self.timings.pop("velocity_solve", 0.0)  # outside the core phases
         self.timings.update(core)
-        self.timings["contact"] = max(contact, 0.0) if self._pending else 0.0
+        self.timings["contact"] = max(contact, 0.0) if self._pending or self._pending_faces else 0.0
         self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"] - self._rigid_inside, 0.0)
         self.timings["total"] = sum(self.timings.values())
 
@@ -639,7 +664,7 @@ class World:
         if not lagged:
             return []
         out = []
-        for c, res in self.contact_results.values():
+        for c, res in [*self.contact_results.values(), *self.face_results.values()]:
             for i in np.flatnonzero(res.active & np.isin(c.rigid, list(lagged))):
                 out.append((int(c.rigid[i]), int(c.link[i]), -res.force[i], c.point[i]))
         return out
@@ -687,7 +712,7 @@ class World:
         if isinstance(body_id, RigidLink):
             body_id, link = body_id.id, body_id.link if link is None else link
         total = np.zeros(3)
-        for c, res in self.contact_results.values():
+        for c, res in [*self.contact_results.values(), *self.face_results.values()]:
             sel = res.active & (c.rigid == body_id)
             if link is not None:
                 sel &= c.link == link

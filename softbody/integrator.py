@@ -199,12 +199,13 @@ class DirectSystem:
         in each constrained node's local frame (zero elsewhere); for a step system r / h is the
         constraint force [N]. reuse=True keeps the last factorisation: valid when only extra_rhs
         or the constrained values changed since the previous call, not the constrained set.
-        homogeneous=True solves with b = 0 (and no extra_rhs): the response to the constrained
-        values alone, for a coupling that makes those values unknowns.
+        homogeneous=True drops the step's own load b (extra_rhs alone is the load): the response to the
+        constrained values and extra_rhs alone, for a coupling that makes them unknowns.
         """
         pat = self.body.pattern
         T, mask, value = cons.dense(pat.n_nodes)
-        b = np.zeros_like(self.b) if homogeneous else to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        load = np.zeros_like(self.b) if homogeneous else self.b
+        b = to_local(T, load if extra_rhs is None else load + extra_rhs)
         if not reuse or getattr(self, "_rotated", None) is None:
             self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
@@ -387,7 +388,8 @@ class IterativeSystem:
         """Same contract as DirectSystem.solve (``reuse`` is implied: the preconditioner is kept). A
         homogeneous solve starts from zero and leaves the warm start of the step's next solve alone."""
         T, mask, value = cons.dense(self.body.n_nodes)
-        b = np.zeros_like(self.b) if homogeneous else to_local(T, self.b if extra_rhs is None else self.b + extra_rhs)
+        load = np.zeros_like(self.b) if homogeneous else self.b
+        b = to_local(T, load if extra_rhs is None else load + extra_rhs)
         A = lambda y: to_local(T, self.apply(to_global(T, y)))
         free = ~mask
         C, fix = self._prepared(T, mask)
@@ -397,7 +399,7 @@ class IterativeSystem:
             r_full = b - A(y)
             # tolerance relative to the load on the free components or its terms; if both vanish
             # (prescribed motion alone is a load), to the initial residual (see IterativeSettings)
-            terms = () if homogeneous else self.terms if extra_rhs is None else (*self.terms, extra_rhs)
+            terms = (() if homogeneous else self.terms) + (() if extra_rhs is None else (extra_rhs,))
             scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
             atol = self.settings.tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)

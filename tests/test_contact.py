@@ -127,9 +127,12 @@ def test_box_corner_pressed_into_slab_does_not_penetrate():
     world.add_soft(body)
     tris = world._surface[id(body)][1]
     worst = []
-    world.run(1.3, lambda w: worst.append(min(w.detector.vertex_contacts(0, body.positions, tris, box, 0.05)[3],
-                                              default=1.0)))
-    assert box.surface_vertices()[:, 2].min() < 0.075  # pressed 2.5 cm below the rest surface
+    def deepest(w):
+        hits = w.detector.face_contacts(0, body.positions, tris, box, 0.05)
+        worst.append(min(hits.distance[hits.primary], default=1.0))
+
+    world.run(1.3, deepest)
+    assert box.corner_points()[:, 2].min() < 0.075  # pressed 2.5 cm below the rest surface
     assert min(worst) > -1e-3
 
 
