@@ -31,6 +31,10 @@ from .collision import barycentric, closest_on_triangles
 from .coupling import CoupledPart, CoupledSolver, Rows
 
 
+# cosine above which two face contacts of one rigid point hold the same face (nearly the same constraint)
+SAME_FACE = 0.9
+
+
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """Orthonormal frames (m, 3, 3) with the unit normals (m, 3) as first column."""
     n = normals / np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None]
@@ -359,7 +363,7 @@ class _FaceSet(_ContactSet):
     def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray:
         """(m,) which contacts may be added after a solve with velocities v (N, 3) and du: those whose rigid
         point, at the end of the step, projects into its triangle and has it as the nearest of its group,
-        one per rigid point (none while another contact of that point is active)."""
+        one per rigid point and iteration, and none nearly parallel to an active contact of that point."""
         c, h = self.c, self.h
         x_end = self.x_tri + h * v[c.nodes]
         vr = c.rigid_velocity if c.jacobian is None or not len(du) else c.rigid_velocity + c.jacobian @ du
@@ -370,10 +374,11 @@ class _FaceSet(_ContactSet):
         nearest = np.full(groups, np.inf)
         np.minimum.at(nearest, c.group, dist)
         ok = inside & (dist <= nearest[c.group] + 1e-9)
-        # one contact per rigid point: none while another of its group is active, the first of ties
-        taken = np.zeros(groups, dtype=bool)
-        taken[c.group[self.active]] = True
-        ok &= ~taken[c.group]
+        # a rigid point takes a second triangle only across a crease: none whose normal is within ~25 degrees
+        # of an active contact's of the same point (their rows would be nearly the same), the first of ties
+        act = np.flatnonzero(self.active)
+        for g, nrm in zip(c.group[act], c.normal[act]):
+            ok &= ~((c.group == g) & (c.normal @ nrm > SAME_FACE))
         first = np.zeros(len(ok), dtype=bool)
         idx = np.flatnonzero(ok)
         _, pick = np.unique(c.group[idx], return_index=True)
