@@ -1,15 +1,21 @@
-"""Free-fall step time of two checkouts of softbody, alternating in one process (no contact, no World).
+"""Step time of two checkouts of softbody, alternating in one process.
 
     git worktree add /tmp/softbody-base <commit>
-    python benchmarks/step_ab.py /tmp/softbody-base [--steps 20]
+    python benchmarks/step_ab.py /tmp/softbody-base [--mode scene|free] [--steps 60] [--block 10]
 
-Both versions (this checkout's ``softbody`` and the other's, loaded under another module name) build
-the same sheet meshes of SPEC.md and take alternating iterative steps after 5 warm-up steps each, so a
-change of the machine's speed hits both alike: the median of the per-step ratios is the figure to read.
-Also printed: the largest difference of their node positions at the end [m].
+Both versions (this checkout's ``softbody`` and ``integration``, and the other's, loaded under other
+module names) build the same configurations and step them in alternating blocks, so that a change of
+the machine's speed hits both alike: the median of the per-block ratios is the figure to read.
+
+- ``--mode scene`` (default): the canonical sheet-on-sphere scene with contact through a World (the
+  bench configurations of ``softbody bench``), after ``--warmup`` steps into the impact;
+- ``--mode free``: the bare Simulation of the same sheets in free fall (no World, no contact).
+
+Also printed: the largest difference of the monitored trajectories [m] (0 when the change keeps the
+numbers).
 """
 import argparse
-import importlib.util
+import importlib
 import os
 import sys
 import time
@@ -20,44 +26,76 @@ for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import numpy as np
 
-CONFIGS = [("tet4", (24, 24, 6)), ("hex8", (20, 20, 5)), ("tet10", (9, 9, 2))]
+CONFIGS = [("tet4", (16, 16, 4)), ("tet4", (24, 24, 6)), ("hex8", (20, 20, 5)), ("tet10", (9, 9, 2))]
+PACKAGES = ("softbody", "integration")
 
 
-def load(name: str, root: Path):
-    """The package ``root/softbody`` imported as module ``name``."""
-    spec = importlib.util.spec_from_file_location(name, root / "softbody" / "__init__.py",
-                                                  submodule_search_locations=[str(root / "softbody")])
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+def load(root: Path) -> dict:
+    """The packages of checkout ``root`` imported afresh, returned as {name: module}; sys.modules is left
+    as it was (each version's modules keep references to their own siblings)."""
+    saved = {k: v for k, v in sys.modules.items() if k.split(".")[0] in PACKAGES}
+    for k in saved:
+        del sys.modules[k]
+    sys.path.insert(0, str(root))
+    try:
+        mods = {"softbody": importlib.import_module("softbody"),
+                "scenes": importlib.import_module("integration.scenes")}
+    finally:
+        sys.path.remove(str(root))
+        for k in [k for k in sys.modules if k.split(".")[0] in PACKAGES]:
+            del sys.modules[k]
+        sys.modules.update(saved)
+    return mods
+
+
+def build(mods: dict, mode: str, kind: str, cells):
+    """(step function, monitored value function) of one configuration."""
+    if mode == "free":
+        sb = mods["softbody"]
+        mesh = sb.box_mesh((1.0, 1.0, 0.25), cells, kind, center=(0, 0, 0.475))
+        sim = sb.Simulation(sb.FemBody(mesh, sb.LinearElastic(5e5, 0.33, 1000.0)), 0.01, method="iterative")
+        return sim.step, lambda: float(sim.bodies[0].positions[:, 2].min())
+    scene = mods["scenes"].sheet_on_sphere(kind, cells)
+    return scene.world.step, scene.monitored
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("base", type=Path, help="root of the other checkout (holding softbody/)")
-    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("base", type=Path, help="root of the other checkout (holding softbody/ and integration/)")
+    ap.add_argument("--mode", choices=("scene", "free"), default="scene")
+    ap.add_argument("--steps", type=int, default=60, help="timed steps per configuration and version")
+    ap.add_argument("--block", type=int, default=10, help="steps per block (the versions alternate by block)")
+    ap.add_argument("--warmup", type=int, default=20, help="untimed steps first (20: into the sheet's impact)")
+    ap.add_argument("--configs", nargs="*", default=None, metavar="KIND:NXxNYxNZ",
+                    help="configurations, e.g. tet10:9x9x2 (default: the bench's four)")
     args = ap.parse_args()
     if not (args.base / "softbody" / "__init__.py").exists():
         sys.exit(f"{args.base} holds no softbody/ package")
-    versions = {"this": load("softbody", Path(__file__).resolve().parents[1]), "base": load("softbody_base", args.base)}
-    versions["this"].linsolve.set_threads(1)
-    print(f"| element | cells | nodes | this ms/step | base ms/step | this / base (median of ratios) | max position difference m |")
-    print("|---|---|---:|---:|---:|---:|---:|")
-    for kind, cells in CONFIGS:
-        sims = {}
-        for name, sb in versions.items():
-            mesh = sb.box_mesh((1.0, 1.0, 0.25), cells, kind, center=(0, 0, 0.475))
-            sims[name] = sb.Simulation(sb.FemBody(mesh, sb.LinearElastic(5e5, 0.33, 1000.0)), 0.01, method="iterative")
-            for _ in range(5):
-                sims[name].step()
-        times = {name: [] for name in sims}
-        for _ in range(args.steps):
-            for name, sim in sims.items():
+    configs = CONFIGS if not args.configs else [
+        (c.split(":")[0], tuple(int(n) for n in c.split(":")[1].split("x"))) for c in args.configs]
+    versions = {"this": load(Path(__file__).resolve().parents[1]), "base": load(args.base)}
+    versions["this"]["softbody"].linsolve.set_threads(1)
+    print(f"mode: {args.mode}; {args.steps} steps in blocks of {args.block} after {args.warmup} warm-up steps")
+    print("| element | cells | this ms/step | base ms/step | this / base (median of block ratios) [min-max] | "
+          "max trajectory difference m |")
+    print("|---|---|---:|---:|---:|---:|")
+    for kind, cells in configs:
+        runs = {name: build(mods, args.mode, kind, cells) for name, mods in versions.items()}
+        traj = {name: [] for name in runs}
+        for name, (step, mon) in runs.items():
+            for _ in range(args.warmup):
+                step()
+                traj[name].append(mon())
+        times = {name: [] for name in runs}
+        for _ in range(max(1, args.steps // args.block)):
+            for name, (step, mon) in runs.items():
                 tic = time.perf_counter()
-                sim.step()
-                times[name].append(time.perf_counter() - tic)
+                for _ in range(args.block):
+                    step()
+                times[name].append((time.perf_counter() - tic) / args.block)
+                traj[name].append(mon())
         a, b = np.array(times["this"]), np.array(times["base"])
-        diff = np.abs(sims["this"].bodies[0].positions - sims["base"].bodies[0].positions).max()
-        print(f"| {kind} | {cells} | {sims['this'].bodies[0].n_nodes} | {1e3 * np.median(a):.1f} | {1e3 * np.median(b):.1f} | "
-              f"{np.median(a / b):.2f} | {diff:.1e} |", flush=True)
+        r = a / b
+        diff = float(np.abs(np.array(traj["this"]) - np.array(traj["base"])).max())
+        print(f"| {kind} | {cells} | {1e3 * np.median(a):.2f} | {1e3 * np.median(b):.2f} | "
+              f"{np.median(r):.3f} [{r.min():.3f}-{r.max():.3f}] | {diff:.1e} |", flush=True)

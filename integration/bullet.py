@@ -48,6 +48,16 @@ def quat_multiply(a, b) -> np.ndarray:
                      aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz])
 
 
+def quat_from_euler(angles) -> np.ndarray:
+    """Quaternion (x, y, z, w) of Euler angles (3,) [rad] in pybullet's convention."""
+    return np.array(p.getQuaternionFromEuler(list(angles)))
+
+
+def quat_difference(q0, q1) -> np.ndarray:
+    """The rotation (x, y, z, w) that takes orientation q0 to q1."""
+    return np.array(p.getDifferenceQuaternion(list(q0), list(q1)))
+
+
 def rotation_quat(rotvec: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) of a rotation vector (3,) [rad]."""
     angle = float(np.linalg.norm(rotvec))
@@ -150,6 +160,7 @@ class BulletAdapter:
             self.owned = False
         self._joint_info: dict[int, tuple[list[int], list[int]]] = {}  # body -> (movable joints, unsupported joints)
         self._shapes: dict[tuple[int, int], list[Shape]] = {}
+        self._cache: dict[tuple, tuple] = {}  # (what, body, link) -> state, until the client's state changes
 
     # ------------------------------------------------------------------ client
     def close(self) -> None:
@@ -174,7 +185,12 @@ class BulletAdapter:
         if gravity is not None:
             p.setGravity(*np.asarray(gravity, float).tolist(), physicsClientId=self.client)
 
+    def invalidate(self) -> None:
+        """Forget the cached poses, velocities and boxes (call when something else may have moved bodies)."""
+        self._cache.clear()
+
     def step(self) -> None:
+        self._cache.clear()
         p.stepSimulation(physicsClientId=self.client)
 
     def save(self) -> int:
@@ -182,6 +198,7 @@ class BulletAdapter:
         return p.saveState(physicsClientId=self.client)
 
     def restore(self, state: int) -> None:
+        self._cache.clear()
         p.restoreState(stateId=state, physicsClientId=self.client)
 
     def discard(self, state: int) -> None:
@@ -258,40 +275,101 @@ class BulletAdapter:
     # ------------------------------------------------------------------ state
     def pose(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray]:
         """Position (3,) of the link's centre of mass and orientation (x, y, z, w) of its inertial frame."""
-        if link == BASE:
-            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
-        else:
-            pos, orn = p.getLinkState(body, link, computeForwardKinematics=1, physicsClientId=self.client)[:2]
-        return np.array(pos), np.array(orn)
+        c, q, _, _ = self.state(body, link)
+        return c, q
 
     def velocity(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray]:
         """Linear velocity (3,) of the link's centre of mass and its angular velocity (3,)."""
+        _, _, v, w = self.state(body, link)
+        return v, w
+
+    def state(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Pose and velocity in one query: (com (3,), quaternion (4,), v (3,), omega (3,)); cached until the
+        client steps or a body is reset through this adapter (read-only arrays)."""
+        key = ("state", body, link)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
         if link == BASE:
+            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
             v, w = p.getBaseVelocity(body, physicsClientId=self.client)
         else:
             s = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1,
                                physicsClientId=self.client)
-            v, w = s[6], s[7]
-        return np.array(v), np.array(w)
-
-    def state(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Pose and velocity in one query: (com (3,), quaternion (4,), v (3,), omega (3,))."""
-        if link == BASE:
-            pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
-            v, w = p.getBaseVelocity(body, physicsClientId=self.client)
-            return np.array(pos), np.array(orn), np.array(v), np.array(w)
-        s = p.getLinkState(body, link, computeLinkVelocity=1, computeForwardKinematics=1, physicsClientId=self.client)
-        return np.array(s[0]), np.array(s[1]), np.array(s[6]), np.array(s[7])
+            pos, orn, v, w = s[0], s[1], s[6], s[7]
+        out = tuple(np.array(a) for a in (pos, orn, v, w))
+        for a in out:
+            a.flags.writeable = False
+        self._cache[key] = out
+        return out
 
     def aabb(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = p.getAABB(body, link, physicsClientId=self.client)
-        return np.array(lo), np.array(hi)
+        """The link's axis-aligned bounding box (lo (3,), hi (3,)) [m], cached like :meth:`state`."""
+        key = ("aabb", body, link)
+        hit = self._cache.get(key)
+        if hit is None:
+            lo, hi = p.getAABB(body, link, physicsClientId=self.client)
+            hit = self._cache[key] = (np.array(lo), np.array(hi))
+            for a in hit:
+                a.flags.writeable = False
+        return hit
 
     def reset_pose(self, body: int, position, orientation) -> None:
+        self._cache.clear()
         p.resetBasePositionAndOrientation(body, list(position), list(orientation), physicsClientId=self.client)
 
     def reset_velocity(self, body: int, linear, angular) -> None:
+        self._cache.clear()
         p.resetBaseVelocity(body, list(linear), list(angular), physicsClientId=self.client)
+
+    # ------------------------------------------------------------------ bodies the World creates
+    def create_body(self, kind: str, size: dict, position, orientation, mass: float) -> int:
+        """A single-link body of one primitive collision shape (kind: sphere, box, plane, mesh; size: the
+        keyword arguments of createCollisionShape) at a pose; a dynamic one (mass > 0) keeps its momentum
+        (pybullet's default damping switched off)."""
+        geom = {"sphere": p.GEOM_SPHERE, "box": p.GEOM_BOX, "plane": p.GEOM_PLANE, "mesh": p.GEOM_MESH}[kind]
+        col = p.createCollisionShape(geom, physicsClientId=self.client, **size)
+        bid = p.createMultiBody(mass, col, basePosition=list(position), baseOrientation=list(orientation),
+                                physicsClientId=self.client)
+        if mass > 0:
+            p.changeDynamics(bid, BASE, linearDamping=0.0, angularDamping=0.0, physicsClientId=self.client)
+        self._cache.clear()
+        return bid
+
+    def inertia(self, body: int, link: int = BASE) -> tuple[float, np.ndarray]:
+        """Mass [kg] and the principal moments (3,) [kg m^2] of a link (in its inertial frame)."""
+        info = p.getDynamicsInfo(body, link, physicsClientId=self.client)
+        return float(info[0]), np.asarray(info[2], float)
+
+    def constrained_bodies(self) -> dict[int, list[int]]:
+        """{constraint id: the bodies it joins} of the user's pybullet constraints (createConstraint)."""
+        out = {}
+        for i in range(p.getNumConstraints(physicsClientId=self.client)):
+            cid = p.getConstraintUniqueId(i, physicsClientId=self.client)
+            info = p.getConstraintInfo(cid, physicsClientId=self.client)
+            out[cid] = [b for b in (info[0], info[2]) if b >= 0]
+        return out
+
+    def snapshot(self, bodies) -> list[tuple]:
+        """The state (base pose and velocity, joint positions and velocities) of ``bodies``, for
+        :meth:`restore_snapshot` (cheaper than pybullet's saveState, which serialises the whole world)."""
+        c, out = self.client, []
+        for b in bodies:
+            joints, _ = self.joints(b)
+            pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=c)
+            vel = p.getBaseVelocity(b, physicsClientId=c)
+            js = p.getJointStates(b, joints, physicsClientId=c) if joints else []
+            out.append((b, pos, orn, vel, joints, [(s[0], s[1]) for s in js]))
+        return out
+
+    def restore_snapshot(self, snapshot: list[tuple]) -> None:
+        c = self.client
+        self._cache.clear()
+        for b, pos, orn, vel, joints, js in snapshot:
+            p.resetBasePositionAndOrientation(b, pos, orn, physicsClientId=c)
+            p.resetBaseVelocity(b, vel[0], vel[1], physicsClientId=c)
+            for j, (q, qd) in zip(joints, js):
+                p.resetJointState(b, j, q, qd, physicsClientId=c)
 
     def apply_force(self, body: int, link: int, force: np.ndarray, point: np.ndarray) -> None:
         """A force (3,) [N] at a world point (3,) over the next step."""
@@ -382,6 +460,7 @@ class BulletAdapter:
         """Add du (n,) to the body's generalized velocity and h du to its configuration: the step pybullet
         just took (symplectic Euler, x' = x + h u') then equals the step with the corrected velocity."""
         c = self.client
+        self._cache.clear()
         u = self.generalized_velocity(dyn) + du
         k = 0
         if dyn.free_base:

@@ -105,7 +105,8 @@ class CollisionDetector:
     @staticmethod
     def face_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink,
                       margin: float, touching: np.ndarray | None = None,
-                      touch_normal: np.ndarray | None = None) -> "FaceHits":
+                      touch_normal: np.ndarray | None = None,
+                      boxes: tuple[np.ndarray, np.ndarray] | None = None) -> "FaceHits":
         """Points of a rigid link inside (or within ``margin`` of) soft surface triangles, between their nodes.
 
         The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
@@ -124,65 +125,82 @@ class CollisionDetector:
         the discretisation, not a penetration, and a second constraint on nearly the same spot would only
         make the contact forces ill-determined. Sharp parts (box corners, cylinder rims, mesh vertices)
         count on partly touching triangles too: they poke between nodes that rest on the part's faces.
+        ``boxes``: the triangles' bounds (triangle_boxes), if already at hand.
         """
-        xt = positions[triangles]  # (T, 3, 3)
+        if boxes is None:
+            boxes = triangle_boxes(positions, triangles)
+        tlo, thi = boxes[0] - margin, boxes[1] + margin
         rlo, rhi = rigid.aabb()
-        tlo, thi = xt.min(axis=1) - margin, xt.max(axis=1) + margin
-        around = np.flatnonzero(np.all((thi >= rlo) & (tlo <= rhi), axis=1))
+        around = np.flatnonzero((thi[:, 0] >= rlo[0]) & (thi[:, 1] >= rlo[1]) & (thi[:, 2] >= rlo[2])
+                                & (tlo[:, 0] <= rhi[0]) & (tlo[:, 1] <= rhi[1]) & (tlo[:, 2] <= rhi[2]))
+        reach = rigid.bounding_radius()
+        if len(around) and np.isfinite(reach):  # and whose bounding spheres meet the link's
+            centre, _ = rigid.pose()
+            mid = 0.5 * (tlo[around] + thi[around])
+            half = 0.5 * (thi[around] - tlo[around])
+            gap = np.sqrt(np.einsum("ij,ij->i", mid - centre, mid - centre)) - np.sqrt(np.einsum("ij,ij->i", half, half))
+            around = around[gap <= reach]
         if not len(around):
             return FaceHits.empty()
-        a, b, c = xt[around, 0], xt[around, 1], xt[around, 2]
-        nrm = np.cross(b - a, c - a)
-        area2 = np.linalg.norm(nrm, axis=1)
-        nrm /= area2[:, None]
-        if touching is not None:  # facets lying flat on a face of the link
-            flat = touching[triangles[around]].all(axis=1)
-            if touch_normal is not None:
-                facing = np.einsum("tki,ti->tk", touch_normal[triangles[around]], -nrm)
-                flat &= (facing > 1.0 - 1e-6).all(axis=1)
-            keep = ~flat
-            around_all, around = around, around[keep]
-            a, b, c, nrm, area2 = a[keep], b[keep], c[keep], nrm[keep], area2[keep]
-        else:
-            around_all = around
-        near = around
-        if not len(near):
+        xt = positions[triangles[around]]  # (T, 3, 3), the triangles around the link
+        tlo, thi = tlo[around], thi[around]
+        tri_touch = None if touching is None else touching[triangles[around]]  # (T, 3)
+        # round parts: on triangles none of whose nodes touches the link, one support point each
+        round_tris = np.arange(len(around))
+        if tri_touch is not None:
+            round_tris = round_tris[~tri_touch.any(axis=1)] if rigid.round_parts().all() else round_tris
+        # corners: each against the triangles whose boxes hold it, not on facets lying flat on a face
+        corners = rigid.corner_points()
+        vi = vt = np.zeros(0, dtype=np.int64)
+        if len(corners):
+            inside = np.all((corners[:, None] >= tlo[None]) & (corners[:, None] <= thi[None]), axis=2)
+            vi, vt = np.nonzero(inside)
+        used = np.unique(np.concatenate([round_tris, vt]))  # the triangles (indices into around) in play
+        if not len(used):
             return FaceHits.empty()
-        pts = rigid.support_points(-nrm)  # (T, S, 3): round parts, one point per triangle
-        S = pts.shape[1]
-        ti = np.repeat(np.arange(len(near)), S)
+        a, b, c = (np.zeros((len(around), 3)) for _ in range(3))
+        nrm, area2 = np.zeros((len(around), 3)), np.ones(len(around))
+        a[used], b[used], c[used] = xt[used, 0], xt[used, 1], xt[used, 2]
+        cr = cross(b[used] - a[used], c[used] - a[used])
+        area2[used] = np.linalg.norm(cr, axis=1)
+        nrm[used] = cr / area2[used, None]
+        if len(vt) and tri_touch is not None:  # facets lying flat on a face of the link
+            flat = tri_touch[vt].all(axis=1)
+            if touch_normal is not None:
+                facing = np.einsum("tki,ti->tk", touch_normal[triangles[around[vt]]], -nrm[vt])
+                flat &= (facing > 1.0 - 1e-6).all(axis=1)
+            vi, vt = vi[~flat], vt[~flat]
+        S = len(rigid.round_parts())
+        pts = rigid.support_points(-nrm[round_tris]) if S else np.zeros((len(round_tris), 0, 3))  # (T, S, 3)
+        ti = np.repeat(round_tris, S)
         q = pts.reshape(-1, 3)
         group = np.arange(len(ti))  # the rigid point's identity: every support point is its own
-        feature = np.tile(np.arange(S), len(near))  # which part or corner, the same from step to step
-        if touching is not None and len(ti):  # a smooth part reaches between nodes only where none touches it
-            keep = ~np.tile(rigid.round_parts(), len(near)) | ~touching[triangles[near[ti]]].any(axis=1)
+        feature = np.tile(np.arange(S), len(round_tris))  # which part or corner, the same from step to step
+        if tri_touch is not None and len(ti):  # a smooth part reaches between nodes only where none touches it
+            keep = ~np.tile(rigid.round_parts(), len(round_tris)) | ~tri_touch[ti].any(axis=1)
             ti, q, group, feature = ti[keep], q[keep], group[keep], feature[keep]
-        corners = rigid.corner_points()
-        if len(corners):  # corners, each against the triangles whose boxes hold it
-            inside = np.all((corners[:, None] >= tlo[near][None]) & (corners[:, None] <= thi[near][None]), axis=2)
-            vi, vt = np.nonzero(inside)
-            ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
-            group = np.concatenate([group, len(near) * S + vi])
-            feature = np.concatenate([feature, S + vi])
+        ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
+        group = np.concatenate([group, len(round_tris) * S + vi])
+        feature = np.concatenate([feature, S + vi])
         if not len(ti):
             return FaceHits.empty()
+        d = np.einsum("ij,ij->i", q - a[ti], nrm[ti])  # > 0 outside the soft body (outward triangles)
+        near_plane = np.abs(d) < margin
+        ti, q, d, group, feature = ti[near_plane], q[near_plane], d[near_plane], group[near_plane], feature[near_plane]
         A, B, C, n = a[ti], b[ti], c[ti], nrm[ti]
-        d = np.einsum("ij,ij->i", q - A, n)  # > 0 outside the soft body (outward triangles)
         proj = q - d[:, None] * n
-        w_a = np.einsum("ij,ij->i", np.cross(C - B, proj - B), n) / area2[ti]
-        w_b = np.einsum("ij,ij->i", np.cross(A - C, proj - C), n) / area2[ti]
-        bary = np.column_stack([w_a, w_b, 1 - w_a - w_b])
+        bary = barycentric(proj, A, B, C, n * area2[ti, None])
         closest = closest_on_triangles(q, A, B, C)
         reach = np.linalg.norm(q - closest, axis=1)
         inside = (bary >= -1e-9).all(axis=1)
-        ok = (np.abs(d) < margin) & (reach < margin) & ~(inside & (bary.max(axis=1) >= 0.99))
+        ok = (reach < margin) & ~(inside & (bary.max(axis=1) >= 0.99))
         if not ok.any():
             return FaceHits.empty()
         ti, q, d, bary, group, inside, closest, feature = (ti[ok], q[ok], d[ok], bary[ok], group[ok], inside[ok],
                                                            closest[ok], feature[ok])
         # a point inside a triangle counts there only if that triangle is the soft surface nearest to it (of
         # all triangles around the link); one such triangle per rigid point
-        xa = xt[around_all]
+        xa = xt
         nearest = closest_on_triangles(q[:, None], xa[None, :, 0], xa[None, :, 1], xa[None, :, 2])  # (P, T, 3)
         dist = np.linalg.norm(nearest - q[:, None], axis=2).min(axis=1)
         primary = inside & (np.abs(d) <= dist + 1e-9)
@@ -194,7 +212,7 @@ class CollisionDetector:
         out = ~primary
         if out.any():
             bary[out] = barycentric(closest[out], a[ti[out]], b[ti[out]], c[ti[out]])
-        tri = near[ti]
+        tri = around[ti]
         m = len(tri)
         # a key that names the same contact in the next step: triangle, feature, rigid link
         key = (tri.astype(np.int64) << 28) | ((feature % 4096) << 16) | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)
@@ -202,12 +220,29 @@ class CollisionDetector:
                         np.full(m, rigid.link), group, primary, key)
 
 
-def barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates (m, 3) of points p (m, 3) in the planes of triangles (a, b, c) (m, 3 each)."""
-    n = np.cross(b - a, c - a)
+def triangle_boxes(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (lo (T, 3), hi (T, 3)) of triangles (T, 3) over node positions (N, 3)."""
+    a, b, c = positions[triangles[:, 0]], positions[triangles[:, 1]], positions[triangles[:, 2]]
+    return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+
+
+def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of (m, 3) arrays (np.cross's general machinery costs more at these sizes)."""
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
+    out[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
+    out[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
+    out[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+    return out
+
+
+def barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
+                n: np.ndarray | None = None) -> np.ndarray:
+    """Barycentric coordinates (m, 3) of points p (m, 3) in the planes of triangles (a, b, c) (m, 3 each);
+    n: the triangles' (b - a) x (c - a), if at hand."""
+    n = cross(b - a, c - a) if n is None else n
     nn = np.einsum("ij,ij->i", n, n)
-    w_a = np.einsum("ij,ij->i", np.cross(c - b, p - b), n) / nn
-    w_b = np.einsum("ij,ij->i", np.cross(a - c, p - c), n) / nn
+    w_a = np.einsum("ij,ij->i", cross(c - b, p - b), n) / nn
+    w_b = np.einsum("ij,ij->i", cross(a - c, p - c), n) / nn
     return np.column_stack([w_a, w_b, 1.0 - w_a - w_b])
 
 

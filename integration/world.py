@@ -28,15 +28,14 @@ from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
-import pybullet as p
 
 from softbody import FemBody, Simulation
 from softbody.errors import InvalidInputError, SimulationDiverged, finite_number
 from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
 
-from .bullet import BASE, BodyDynamics, BulletAdapter, quat_matrix
-from .collision import CollisionDetector, Contacts, FaceHits
+from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
+from .collision import CollisionDetector, Contacts, FaceHits, triangle_boxes
 from .contact import Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts
 from .rigid import PoseScript, RigidLink, load_trimesh
 
@@ -49,7 +48,7 @@ TOUCH = 0.1
 def _quat(orientation) -> list[float]:
     q = np.asarray(orientation if orientation is not None else (0, 0, 0, 1), dtype=float)
     if q.shape == (3,):  # Euler angles
-        return list(p.getQuaternionFromEuler(q.tolist()))
+        return quat_from_euler(q).tolist()
     if q.shape != (4,) or not np.isfinite(q).all() or np.linalg.norm(q) == 0:
         raise InvalidInputError(f"orientation must be a quaternion (x, y, z, w) or Euler angles (3,), got {orientation!r}")
     return (q / np.linalg.norm(q)).tolist()
@@ -251,7 +250,7 @@ class World:
         if ad.movable(b) and unsupported:
             self._one_way.add(b)
 
-    def _add(self, shape: str, col: int, params: dict, position, orientation, mass: float,
+    def _add(self, shape: str, size: dict, params: dict, position, orientation, mass: float,
              motion: PoseScript | None, name: str, friction: float | None, concave: bool = False,
              tm=None) -> RigidLink:
         mass = float(mass)
@@ -263,10 +262,7 @@ class World:
             raise InvalidInputError("motion must be a function of time returning a pose")
         if friction is not None:
             friction = _friction(friction)
-        bid = p.createMultiBody(mass, col, basePosition=_vec3(position, "position"),
-                                baseOrientation=_quat(orientation), physicsClientId=self.client)
-        if mass > 0:  # pybullet damps velocities by default (0.04); physical bodies keep their momentum
-            p.changeDynamics(bid, -1, linearDamping=0.0, angularDamping=0.0, physicsClientId=self.client)
+        bid = self.adapter.create_body(shape, size, _vec3(position, "position"), _quat(orientation), mass)
         body = RigidLink(bid, self.adapter, shape, params, mass, motion, name or f"{shape}{bid}", friction, concave, tm,
                          movable=mass > 0, shapes=self.adapter.collision_shapes(bid, BASE))
         if motion is not None:
@@ -280,8 +276,7 @@ class World:
                    name: str = "", friction: float | None = None) -> RigidLink:
         """A sphere of ``radius`` [m]: fixed (mass 0), dynamic (mass > 0 [kg]) or kinematic (motion script)."""
         r = _positive(radius, "radius")
-        col = p.createCollisionShape(p.GEOM_SPHERE, radius=r, physicsClientId=self.client)
-        return self._add("sphere", col, {"radius": r}, position, None, mass, motion, name, friction)
+        return self._add("sphere", {"radius": r}, {"radius": r}, position, None, mass, motion, name, friction)
 
     def add_box(self, half_extents, position=(0, 0, 0), orientation=None, mass: float = 0.0,
                 motion: PoseScript | None = None, name: str = "", friction: float | None = None) -> RigidLink:
@@ -289,8 +284,8 @@ class World:
         he = np.asarray(half_extents, dtype=float)
         if he.shape != (3,) or not np.isfinite(he).all() or (he <= 0).any():
             raise InvalidInputError(f"half_extents must be three positive lengths, got {half_extents!r}")
-        col = p.createCollisionShape(p.GEOM_BOX, halfExtents=he.tolist(), physicsClientId=self.client)
-        return self._add("box", col, {"half_extents": he}, position, orientation, mass, motion, name, friction)
+        return self._add("box", {"halfExtents": he.tolist()}, {"half_extents": he}, position, orientation, mass,
+                         motion, name, friction)
 
     def add_plane(self, normal=(0, 0, 1), point=(0, 0, 0), name: str = "", friction: float | None = None,
                   motion: PoseScript | None = None) -> RigidLink:
@@ -299,8 +294,8 @@ class World:
         if np.linalg.norm(nrm) == 0:
             raise InvalidInputError("plane normal must be non-zero")
         nrm = nrm / np.linalg.norm(nrm)
-        col = p.createCollisionShape(p.GEOM_PLANE, planeNormal=nrm.tolist(), physicsClientId=self.client)
-        return self._add("plane", col, {"normal": nrm}, point, None, 0.0, motion, name, friction)
+        return self._add("plane", {"planeNormal": nrm.tolist()}, {"normal": nrm}, point, None, 0.0, motion, name,
+                         friction)
 
     def add_mesh(self, mesh, position=(0, 0, 0), orientation=None, mass: float = 0.0, scale: float = 1.0,
                  motion: PoseScript | None = None, name: str = "", friction: float | None = None,
@@ -318,13 +313,11 @@ class World:
             raise InvalidInputError("a concave mesh cannot be dynamic in pybullet; pass convex=True "
                                     "(convex hull) or mass=0")
         if convex:
-            hull = tm.convex_hull
-            col = p.createCollisionShape(p.GEOM_MESH, vertices=hull.vertices.tolist(), physicsClientId=self.client)
-            tm = hull
+            tm = tm.convex_hull
+            size = {"vertices": tm.vertices.tolist()}
         else:
-            col = p.createCollisionShape(p.GEOM_MESH, vertices=tm.vertices.tolist(),
-                                         indices=tm.faces.ravel().astype(int).tolist(), physicsClientId=self.client)
-        return self._add("mesh", col, {"vertices": np.asarray(tm.vertices), "faces": np.asarray(tm.faces)},
+            size = {"vertices": tm.vertices.tolist(), "indices": tm.faces.ravel().astype(int).tolist()}
+        return self._add("mesh", size, {"vertices": np.asarray(tm.vertices), "faces": np.asarray(tm.faces)},
                          position, orientation, mass, motion, name, friction, concave=not convex, tm=tm)
 
     def rigid(self, body_id: int, link: int = BASE) -> RigidLink:
@@ -445,6 +438,7 @@ class World:
         margin = self.contact_margin + 2.0 * speed * self.dt
         lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
         parts, faces = [], []
+        boxes = triangle_boxes(x, tris)
         touching = np.zeros(body.n_nodes, dtype=bool)
         touch_normal = np.zeros((body.n_nodes, 3))
         for rb in self.rigids.values():
@@ -461,7 +455,7 @@ class World:
             touching[found.node[resting]] = True
             touch_normal[found.node[resting]] = found.normal[resting]
             touching[body.supported()] = True
-            faces.append(self.detector.face_contacts(i, x, tris, rb, margin, touching, touch_normal))
+            faces.append(self.detector.face_contacts(i, x, tris, rb, margin, touching, touch_normal, boxes))
         found = Contacts.concat(parts)
         if len(found):
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
@@ -557,35 +551,18 @@ class World:
                                            - (sum(self.sim.timings.values()) - core0))
         return sol.velocities
 
-    def _snapshot(self) -> list[tuple]:
-        """The state of every movable rigid body, to restore after a failed step."""
-        ad, out = self.adapter, []
-        for b in {k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way}:
-            joints, _ = ad.joints(b)
-            pos, orn = p.getBasePositionAndOrientation(b, physicsClientId=self.client)
-            vel = p.getBaseVelocity(b, physicsClientId=self.client)
-            js = p.getJointStates(b, joints, physicsClientId=self.client) if joints else []
-            out.append((b, pos, orn, vel, joints, [(s[0], s[1]) for s in js]))
-        return out
-
-    def _restore(self, snapshot: list[tuple]) -> None:
-        for b, pos, orn, vel, joints, js in snapshot:
-            p.resetBasePositionAndOrientation(b, pos, orn, physicsClientId=self.client)
-            p.resetBaseVelocity(b, vel[0], vel[1], physicsClientId=self.client)
-            for j, (q, qd) in zip(joints, js):
-                p.resetJointState(b, j, q, qd, physicsClientId=self.client)
-
     def step(self) -> None:
         """Advance the whole scene by dt (pybullet steps exactly once)."""
         h, t = self.dt, self.t
         self.timings = defaultdict(float)
         tic = time.perf_counter()
+        self.adapter.invalidate()  # the user may have moved bodies since the last step
         self._sync()
         for rb in self.rigids.values():
             if rb.motion is not None:
                 p0, q0 = rb.scripted_pose(t)
                 p1, q1 = rb.scripted_pose(t + h)
-                dq = np.array(p.getDifferenceQuaternion(q0.tolist(), q1.tolist()))
+                dq = quat_difference(q0, q1)
                 angle = 2 * math.atan2(np.linalg.norm(dq[:3]), dq[3])
                 axis = dq[:3] / max(np.linalg.norm(dq[:3]), 1e-300)
                 self._kin_velocity[rb.id] = ((p1 - p0) / h, axis * angle / h)
@@ -612,7 +589,7 @@ class World:
                                for body, f in zip(self.bodies, hits) if len(f)}
         self._attach_pending = {id(body): self._coupled_attachments(body, coupling) for body in self.bodies}
         self._rigid_inside = 0.0
-        snapshot = self._snapshot()
+        snapshot = self.adapter.snapshot({k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way})
         for b, lk, f, x in self._lagged:
             self.adapter.apply_force(b, lk, f, x)
         self.adapter.step()
@@ -629,7 +606,7 @@ class World:
                     self.adapter.change_velocity(dyn, du[o:o + dyn.n], h)
             self._check_energy(new)
         except BaseException:
-            self._restore(snapshot)
+            self.adapter.restore_snapshot(snapshot)
             raise
         self.sim.commit(new)
         for rb in self.rigids.values():
@@ -649,10 +626,8 @@ class World:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""
         if not dynamics:
             return
-        for i in range(p.getNumConstraints(physicsClientId=self.client)):
-            cid = p.getConstraintUniqueId(i, physicsClientId=self.client)
-            info = p.getConstraintInfo(cid, physicsClientId=self.client)
-            for b in (info[0], info[2]):
+        for cid, bodies in self.adapter.constrained_bodies().items():
+            for b in bodies:
                 if b in dynamics:
                     self._warn_once(("constraint", cid), f"pybullet constraint {cid} holds body {b}: the coupled "
                                     "solve treats the body as free and pybullet enforces the constraint in its next "
@@ -686,8 +661,7 @@ class World:
             if not rb.movable:
                 continue
             c, q, v, w = self.adapter.state(rb.id, rb.link)
-            info = p.getDynamicsInfo(rb.id, rb.link, physicsClientId=self.client)
-            m, I = info[0], np.asarray(info[2])
+            m, I = self.adapter.inertia(rb.id, rb.link)
             R = quat_matrix(q)
             rig_k += 0.5 * m * float(v @ v) + 0.5 * float(w @ ((R * I) @ R.T) @ w)
             rig_p -= m * float(c @ g)
