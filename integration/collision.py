@@ -151,6 +151,10 @@ class CollisionDetector:
             round_tris = round_tris[~tri_touch.any(axis=1)] if rigid.round_parts().all() else round_tris
         # corners: each against the triangles whose boxes hold it, not on facets lying flat on a face
         corners = rigid.corner_points()
+        if len(corners):  # only those near the soft surface at all
+            near_body = np.all((corners >= tlo.min(axis=0)) & (corners <= thi.max(axis=0)), axis=1)
+            corner_ids = np.flatnonzero(near_body)
+            corners = corners[corner_ids]
         vi = vt = np.zeros(0, dtype=np.int64)
         if len(corners):
             inside = np.all((corners[:, None] >= tlo[None]) & (corners[:, None] <= thi[None]), axis=2)
@@ -181,7 +185,7 @@ class CollisionDetector:
             ti, q, group, feature = ti[keep], q[keep], group[keep], feature[keep]
         ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
         group = np.concatenate([group, len(round_tris) * S + vi])
-        feature = np.concatenate([feature, S + vi])
+        feature = np.concatenate([feature, S + (corner_ids[vi] if len(vi) else vi)])
         if not len(ti):
             return FaceHits.empty()
         d = np.einsum("ij,ij->i", q - a[ti], nrm[ti])  # > 0 outside the soft body (outward triangles)
@@ -198,12 +202,21 @@ class CollisionDetector:
             return FaceHits.empty()
         ti, q, d, bary, group, inside, closest, feature = (ti[ok], q[ok], d[ok], bary[ok], group[ok], inside[ok],
                                                            closest[ok], feature[ok])
-        # a point inside a triangle counts there only if that triangle is the soft surface nearest to it (of
-        # all triangles around the link); one such triangle per rigid point
-        xa = xt
-        nearest = closest_on_triangles(q[:, None], xa[None, :, 0], xa[None, :, 1], xa[None, :, 2])  # (P, T, 3)
-        dist = np.linalg.norm(nearest - q[:, None], axis=2).min(axis=1)
-        primary = inside & (np.abs(d) <= dist + 1e-9)
+        # per triangle, the deepest point inside it and the deepest outside only: a flat rigid face over a
+        # triangle (many mesh vertices at one depth) is one contact, not one per vertex
+        order = np.lexsort((d, ~inside, ti))
+        keep = np.zeros(len(ti), dtype=bool)
+        keep[order] = np.r_[True, (ti[order][1:] != ti[order][:-1]) | (inside[order][1:] != inside[order][:-1])]
+        ti, q, d, bary, group, inside, closest, feature = (ti[keep], q[keep], d[keep], bary[keep], group[keep],
+                                                           inside[keep], closest[keep], feature[keep])
+        # a point inside a triangle counts there (primary) only if that triangle is the soft surface nearest to
+        # it (of all triangles around the link); one such triangle per rigid point
+        primary = inside.copy()
+        if primary.any():
+            qi = q[primary]
+            nearest = closest_on_triangles(qi[:, None], xt[None, :, 0], xt[None, :, 1], xt[None, :, 2])  # (P, T, 3)
+            dist = np.sqrt(((nearest - qi[:, None]) ** 2).sum(axis=2)).min(axis=1)
+            primary[primary] = np.abs(d[primary]) <= dist + 1e-9
         order = np.lexsort((~primary, group))
         first = np.r_[True, group[order][1:] != group[order][:-1]]
         primary[order[~first]] = False

@@ -179,8 +179,12 @@ class _ContactSet:
         self.vr_free = np.einsum("mji,mj->mi", self.frames, c.rigid_velocity)  # rigid velocity in (n, t1, t2)
         # d(local rigid velocity) / d du: the point Jacobians in the contact frames
         self.G = None if c.jacobian is None else np.einsum("mji,mjn->min", self.frames, c.jacobian)
+        # the gap to close: a contact that may start active (a node, or a point on its own triangle) closes
+        # its whole gap; a neighbour (its point not on that triangle yet) only keeps from penetrating further,
+        # its distance to the triangle's extended plane being no penetration to undo
+        self.gap = c.distance if may_start is None else np.where(may_start, c.distance, np.maximum(c.distance, 0.0))
         self.target = self.vr_free.copy()
-        self.target[:, 0] -= c.distance / h
+        self.target[:, 0] -= self.gap / h
         prev_active, prev_stick, prev_slip = previous
         self.keys = keys
         touching = c.distance <= 0 if may_start is None else (c.distance <= 0) & may_start
@@ -228,7 +232,7 @@ class _ContactSet:
         vr_local = self.vr_free if self.G is None or not len(du) else self.vr_free + self.G @ du
         lam = rl[:, 0]
         vrel = v_soft - vr_local
-        gap_rate = vrel[:, 0] + c.distance / self.h
+        gap_rate = vrel[:, 0] + self.gap / self.h
         active, stick = self.active, self.stick
         release = active & (lam < 0) & ~self.released
         add = ~active & (gap_rate < -s.velocity_tol)

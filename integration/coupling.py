@@ -39,8 +39,9 @@ import numpy as np
 
 from softbody.integrator import Constraints, LinearSystem
 
-# compliance of the rows relative to their diagonal: keeps the dense system regular when two rows (or a
-# row and an eliminated node constraint) hold the same motion, at no visible cost in accuracy
+# compliance of the rows relative to their free diagonal (sum w^2 / M_ii over their nodes): keeps the dense
+# system regular when two rows (or a row and an eliminated node constraint) hold the same motion, at no
+# visible cost in accuracy
 ROW_COMPLIANCE = 1e-9
 
 
@@ -103,10 +104,12 @@ class Rows:
                    np.concatenate([r.g for r in parts]), np.concatenate([r.target for r in parts]))
 
     def values(self, part: int, v: np.ndarray) -> np.ndarray:
-        """C_part v (m,) for the soft velocities v (N, 3) of one part."""
+        """C_part v: (m,) for the soft velocities v (N, 3) of one part, (m, k) for k of them (k, N, 3)."""
         on = self.part == part
-        terms = np.einsum("msi,mi->ms", v[np.where(on, self.node, 0)], self.direction)
-        return np.where(on, self.weight * terms, 0.0).sum(axis=1)
+        w = np.where(on, self.weight, 0.0)
+        if v.ndim == 2:
+            return np.einsum("ms,msi,mi->m", w, v[np.where(on, self.node, 0)], self.direction)
+        return np.einsum("ms,kmsi,mi->mk", w, v[:, np.where(on, self.node, 0)], self.direction)
 
     def load(self, k: int, part: int, n_nodes: int) -> np.ndarray:
         """C_part^T e_k (N, 3): the unit impulse of row k on the nodes of ``part``."""
@@ -121,9 +124,11 @@ class Rows:
 
 
 def generalized(cons: Constraints, r: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """G^T r (n,): the generalized impulse of the reactions r (N, 3, local frames) of the constrained
-    components of ``cons`` through G (len(cons), 3, n)."""
-    return np.einsum("ck,ckn->n", np.where(cons.mask, r[cons.nodes], 0.0), G)
+    """G^T r: the generalized impulse (n,) of the reactions r (N, 3, local frames) of the constrained
+    components of ``cons`` through G (len(cons), 3, n); (n, k) for k sets of reactions r (k, N, 3)."""
+    if r.ndim == 2:
+        return np.einsum("ca,can->n", np.where(cons.mask, r[cons.nodes], 0.0), G)
+    return np.einsum("kca,can->nk", np.where(cons.mask, r[:, cons.nodes], 0.0), G)
 
 
 class CoupledSolver:
@@ -173,14 +178,27 @@ class CoupledSolver:
                 rhs[:n] -= generalized(part.cons, r0, part.G)
             if m:
                 rhs[n:] -= rows.values(i, y0)
-            for k, j in enumerate(cols):
+            if len(cols):
                 if coupled:
-                    H[:n, j] += generalized(part.cons, R[k], part.G)
+                    H[:n, cols] += generalized(part.cons, R, part.G)
                 if m:
-                    H[n:, j] += rows.values(i, Y[k])
-        if m:  # a tiny compliance on the rows keeps H regular where rows repeat a constraint
-            d = float(np.abs(np.diag(H)[n:]).max(initial=0.0))
-            H[n:, n:] += ROW_COMPLIANCE * max(d, 1e-300) * np.eye(m)
+                    H[n:, cols] += rows.values(i, Y)
+        if m:
+            # a row whose soft points cannot move (all held by eliminated constraints) is no constraint of
+            # its own: its multiplier is zero; a tiny compliance on the others keeps H regular where rows
+            # repeat a constraint. The scale: a row's diagonal if nothing held its points, sum w^2 / M_ii.
+            free = np.zeros(m)
+            for i, part in enumerate(parts):
+                on = rows.part == i
+                body = part.system.body
+                mass = body.M_data[body.pattern.diag][np.where(on, rows.node, 0)]  # the mass matrix's diagonal
+                free += np.where(on, rows.weight ** 2 / np.maximum(mass, 1e-300), 0.0).sum(axis=1)
+            held = np.diag(H)[n:] <= 1e-9 * free
+            if held.any():
+                k = n + np.flatnonzero(held)
+                H[k, :], H[:, k], rhs[k] = 0.0, 0.0, 0.0
+                H[k, k] = 1.0
+            H[n:, n:] += np.diag(ROW_COMPLIANCE * free)
         try:
             z = np.linalg.solve(H, rhs)
         except np.linalg.LinAlgError:  # a massless direction no constraint holds: the least-squares answer
