@@ -18,6 +18,12 @@ import pybullet as p
 from .rigid import RigidLink
 
 
+# a face point with a barycentric weight above AT_NODE is at that node; above NEAR_TOUCHING it is close
+# enough to a node resting on the same link for the node's contact to hold it
+AT_NODE = 0.99
+NEAR_TOUCHING = 0.8
+
+
 @dataclass
 class Contacts:
     """Contact candidates as plain arrays (m entries).
@@ -112,8 +118,7 @@ class CollisionDetector:
         The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
         near the link, the points of its round parts deepest into the triangle's plane (support points
         along the inward normal: a sphere's, and both ends' of a capsule or cylinder). A candidate counts
-        if it projects into the triangle (barycentric weights >= 0, none above 0.99: a point at a node is
-        that node's contact), lies within ``margin`` of the plane on either side, and the triangle is the
+        if it projects into the triangle (barycentric weights >= 0, and not at a node: see ``at_node``), lies within ``margin`` of the plane on either side, and the triangle is the
         soft surface nearest to it (so a rigid point above a soft body's top face never counts against its
         side faces).
 
@@ -150,11 +155,11 @@ class CollisionDetector:
         if tri_touch is not None:
             round_tris = round_tris[~tri_touch.any(axis=1)] if rigid.round_parts().all() else round_tris
         # corners: each against the triangles whose boxes hold it, not on facets lying flat on a face
-        corners = rigid.corner_points()
+        corners, corner_centres = rigid.corner_points()
         if len(corners):  # only those near the soft surface at all
             near_body = np.all((corners >= tlo.min(axis=0)) & (corners <= thi.max(axis=0)), axis=1)
             corner_ids = np.flatnonzero(near_body)
-            corners = corners[corner_ids]
+            corners, corner_centres = corners[corner_ids], corner_centres[corner_ids]
         vi = vt = np.zeros(0, dtype=np.int64)
         if len(corners):
             inside = np.all((corners[:, None] >= tlo[None]) & (corners[:, None] <= thi[None]), axis=2)
@@ -180,12 +185,19 @@ class CollisionDetector:
         q = pts.reshape(-1, 3)
         group = np.arange(len(ti))  # the rigid point's identity: every support point is its own
         feature = np.tile(np.arange(S), len(round_tris))  # which part or corner, the same from step to step
+        centre = np.tile(rigid.support_centres(), (len(round_tris), 1)) if S else np.zeros((0, 3))
         if tri_touch is not None and len(ti):  # a smooth part reaches between nodes only where none touches it
             keep = ~np.tile(rigid.round_parts(), len(round_tris)) | ~tri_touch[ti].any(axis=1)
-            ti, q, group, feature = ti[keep], q[keep], group[keep], feature[keep]
+            ti, q, group, feature, centre = ti[keep], q[keep], group[keep], feature[keep], centre[keep]
+        centre = np.concatenate([centre, corner_centres[vi]])
         ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
         group = np.concatenate([group, len(round_tris) * S + vi])
         feature = np.concatenate([feature, S + (corner_ids[vi] if len(vi) else vi)])
+        # the part must lie on the outer side of the triangle's plane: a box on a soft block's top face
+        # never presses on its side faces through the edge they share (a concave mesh's vertices: no test)
+        outer = np.einsum("ij,ij->i", centre - a[ti], nrm[ti])
+        ok = np.isnan(outer) | (outer > 0)
+        ti, q, group, feature = ti[ok], q[ok], group[ok], feature[ok]
         if not len(ti):
             return FaceHits.empty()
         d = np.einsum("ij,ij->i", q - a[ti], nrm[ti])  # > 0 outside the soft body (outward triangles)
@@ -197,7 +209,7 @@ class CollisionDetector:
         closest = closest_on_triangles(q, A, B, C)
         reach = np.linalg.norm(q - closest, axis=1)
         inside = (bary >= -1e-9).all(axis=1)
-        ok = (reach < margin) & ~(inside & (bary.max(axis=1) >= 0.99))
+        ok = (reach < margin) & ~(inside & self_at_node(bary, ti, tri_touch))
         if not ok.any():
             return FaceHits.empty()
         ti, q, d, bary, group, inside, closest, feature = (ti[ok], q[ok], d[ok], bary[ok], group[ok], inside[ok],
@@ -225,6 +237,12 @@ class CollisionDetector:
         out = ~primary
         if out.any():
             bary[out] = barycentric(closest[out], a[ti[out]], b[ti[out]], c[ti[out]])
+            # a neighbour whose nearest point is (almost) one of its nodes is that node's contact
+            at_node = out & self_at_node(bary, ti, tri_touch)
+            if at_node.any():
+                keep = ~at_node
+                ti, q, d, bary, group, primary, feature = (ti[keep], q[keep], d[keep], bary[keep], group[keep],
+                                                           primary[keep], feature[keep])
         tri = around[ti]
         m = len(tri)
         # a key that names the same contact in the next step: triangle, feature, rigid link
@@ -257,6 +275,19 @@ def barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
     w_a = np.einsum("ij,ij->i", cross(c - b, p - b), n) / nn
     w_b = np.einsum("ij,ij->i", cross(a - c, p - c), n) / nn
     return np.column_stack([w_a, w_b, 1.0 - w_a - w_b])
+
+
+def self_at_node(weights: np.ndarray, tri: np.ndarray, touch: np.ndarray | None) -> np.ndarray:
+    """(m,) whether face points with barycentric ``weights`` (m, 3) on triangles ``tri`` (indices into the
+    rows of ``touch`` (T, 3): which of each triangle's nodes rests on the link) are that node's business: at
+    a node (a weight above AT_NODE), or close to a node that rests on the link (above NEAR_TOUCHING), whose
+    node contact already holds the point; a second contact there would only split the force arbitrarily."""
+    top = weights.argmax(axis=1)
+    w = weights[np.arange(len(top)), top]
+    out = w >= AT_NODE
+    if touch is not None:
+        out |= (w >= NEAR_TOUCHING) & touch[tri, top]
+    return out
 
 
 def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

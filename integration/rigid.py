@@ -194,20 +194,39 @@ class RigidLink:
                 out.append(centre + (rim + np.array([0.0, 0.0, end])) @ Rw.T)
         return np.stack(out, axis=1)
 
-    def corner_points(self) -> np.ndarray:
-        """World positions (k, 3) of the link's corners: box corners, the vertices of convex and concave meshes."""
+    def corner_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """World positions (k, 3) of the link's corners (box corners, the vertices of convex and concave
+        meshes) and the centres (k, 3) of the convex parts they belong to (NaN for a concave mesh's)."""
         corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
         if "_corners_local" not in self.__dict__:
-            local = []
+            local, centre = [], []
             for kind, size, R, pos, verts in self.convex_parts():
                 if kind == "box":
                     local.append((corners * size) @ R.T + pos)
                 elif kind == "mesh":
                     local.append(verts @ R.T + pos)
+                    pos = verts.mean(axis=0) @ R.T + pos
+                else:
+                    continue
+                centre.append(np.broadcast_to(pos, local[-1].shape))
             if self.concave:
                 local.append(np.asarray(self.params["vertices"], float))
+                centre.append(np.full(local[-1].shape, np.nan))
             self._corners_local = np.concatenate(local) if local else np.zeros((0, 3))
-        return self.to_world(self._corners_local) if len(self._corners_local) else np.zeros((0, 3))
+            self._corner_centres = np.concatenate(centre) if centre else np.zeros((0, 3))
+        if not len(self._corners_local):
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        return self.to_world(self._corners_local), self.to_world(self._corner_centres)
+
+    def support_centres(self) -> np.ndarray:
+        """World centres (S, 3) of the round parts, one per point of :meth:`support_points`."""
+        c, q = self.pose()
+        Rl = quat_matrix(q)
+        out = []
+        for kind, _, _, pos, _ in self.convex_parts():
+            if kind in ("sphere", "capsule", "cylinder"):
+                out += [c + Rl @ pos] * (1 if kind == "sphere" else 2)
+        return np.array(out).reshape(-1, 3)
 
 RigidBody = RigidLink  # the name of a World's own single-link bodies
 
