@@ -29,6 +29,7 @@ from softbody.integrator import Constraints, LinearSystem
 
 from .collision import barycentric, closest_on_triangles
 from .coupling import CoupledPart, CoupledSolver, Rows
+from .frictional import ContactState, solve_contacts
 
 
 # cosine above which two face contacts of one rigid point hold the same face (nearly the same constraint)
@@ -197,6 +198,8 @@ class _ContactSet:
             f_prev = np.array([prev_slip[int(keys[i])] for i in carried])
             self.slip_force[carried, 1:] = np.einsum("mji,mj->mi", self.frames[carried], f_prev)[:, 1:]
         self.released = np.zeros(m, dtype=bool)  # a contact released once this step is not released again
+        self.switches = solver.friction_switches  # iterations in which stick/slip may change (see ContactSolver)
+        self.lock_after = 0  # iterations after which a released contact stays released
         self.factorizations = 0
         self.last_key = None
         self.reuse = False
@@ -205,6 +208,27 @@ class _ContactSet:
         self.gap_rate = np.zeros(m)
         self.mag = np.zeros((m, 1))
         self.d_stick = self.new_slip = np.zeros((m, 2))
+
+    def remember_warm_start(self) -> None:
+        """Keep the warm start (active, stick, sliding directions) apart, for a solver that sets the contact
+        state itself (ContactSolver._solve_dense)."""
+        self.warm_active, self.warm_stick = self.active.copy(), self.stick.copy()
+        ft = self.slip_force[:, 1:]
+        norm = np.linalg.norm(ft, axis=1, keepdims=True)
+        self.warm_direction = np.where(norm > 0, ft / np.maximum(norm, 1e-300), 0.0)
+
+    def finish(self, rl: np.ndarray, w: np.ndarray, active: np.ndarray, stick: np.ndarray,
+               direction: np.ndarray) -> None:
+        """Take a state found by another solver: forces rl (m, 3) [N] and relative velocities w (m, 3) in the
+        contact frames, the active and sticking contacts, sliding directions (m, 2); then :meth:`result`."""
+        self.active, self.stick = active.copy(), stick & active & self.friction
+        self.rl = np.where(active[:, None], rl, 0.0)
+        self.gap_rate = w[:, 0] + self.gap / self.h
+        sliding = active & self.friction & ~self.stick
+        self.slip_force = np.zeros_like(self.slip_force)
+        self.slip_force[sliding, 1:] = self.rl[sliding, 1:]
+        self.new_slip = self.slip_force[:, 1:].copy()
+        self.want_slip = self.want_stick = np.zeros(len(active), dtype=bool)
 
     def mask(self) -> np.ndarray:
         """(m, 3): the constrained local components (normal if active, tangents if also sticking)."""
@@ -234,7 +258,7 @@ class _ContactSet:
         vrel = v_soft - vr_local
         gap_rate = vrel[:, 0] + self.gap / self.h
         active, stick = self.active, self.stick
-        release = active & (lam < 0) & ~self.released
+        release = active & (lam < 0) & ~(self.released & (it > self.lock_after))
         add = ~active & (gap_rate < -s.velocity_tol)
         if eligible is not None:
             add &= eligible
@@ -243,7 +267,7 @@ class _ContactSet:
         # friction: stick -> slip when the needed force leaves the cone; slip -> stick when sliding stops
         ft = rl[:, 1:]
         ftn = np.linalg.norm(ft, axis=1)
-        switching = it <= s.friction_switches
+        switching = it <= self.switches
         want_slip = active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + s.cone_tol))
         to_slip = switching & want_slip
         vt = vrel[:, 1:]
@@ -261,7 +285,7 @@ class _ContactSet:
         cont = active & ~stick & self.friction & ~to_stick
         new_slip = np.where(cont[:, None], mag * d_slip, new_slip)
         slip_change = np.abs(new_slip - old).max(initial=0.0) > s.slip_tol * max(1e-12, mag.max(initial=0.0))
-        refine = it <= s.friction_switches + 1  # slip forces: a bounded fixed-point iteration
+        refine = it <= self.switches + 1  # slip forces: a bounded fixed-point iteration
         changed = changed or to_slip.any() or to_stick.any() or (refine and slip_change and cont.any())
         self.rl, self.gap_rate, self.mag, self.d_stick, self.new_slip = rl, gap_rate, mag, d_stick, new_slip
         self.want_slip, self.want_stick = want_slip, want_stick
@@ -324,12 +348,52 @@ class _NodeSet(_ContactSet):
         return self.update(r[nodes] / self.h, np.einsum("mji,mj->mi", self.frames, v[nodes]), du, it)
 
 
-class _FaceSet(_ContactSet):
-    """Contacts at points of one soft body's triangles: constraint rows with multipliers."""
+class _RowSet(_ContactSet):
+    """Contacts held by constraint rows with multipliers: points with barycentric weights (m, s) over nodes
+    (m, s) of one soft body (part); a node contact is a point with one weight of 1."""
+
+    def __init__(self, solver, c: NodeContacts, nodes: np.ndarray, weights: np.ndarray, part: int, previous: tuple,
+                 h: float, n_nodes: int, may_start: np.ndarray | None = None):
+        super().__init__(solver, c, c.node, previous, h, may_start)
+        self.nodes, self.weights, self.part, self.n_nodes = nodes, weights, part, n_nodes
+
+    def rows(self, n: int, every: bool = False) -> tuple[Rows, np.ndarray | None]:
+        """The active contacts' rows (values at du = 0) and the sliding friction as an extra right-hand side
+        (N, 3) of the body (None if nothing slides); remembers each row's (contact, axis). every: all three
+        rows of every contact (contact-major), whatever the state."""
+        c, h = self.c, self.h
+        ci, ax = np.nonzero(np.ones((len(c), 3), dtype=bool) if every else self.mask())
+        self.row_index = (ci, ax)
+        direction = self.frames[ci, :, ax]
+        g = np.einsum("mi,min->mn", direction, c.jacobian[ci]) if c.jacobian is not None and n else np.zeros((len(ci), n))
+        rows = Rows(np.full(self.nodes[ci].shape, self.part), self.nodes[ci], self.weights[ci], direction, g,
+                    self.target[ci, ax])
+        extra = None
+        slipping = self.slipping()
+        if slipping.any():
+            extra = np.zeros((self.n_nodes, 3))
+            f = h * np.einsum("mij,mj->mi", self.frames[slipping], self.slip_force[slipping])
+            np.add.at(extra, self.nodes[slipping].ravel(),
+                      (self.weights[slipping][:, :, None] * f[:, None, :]).reshape(-1, 3))
+        return rows, extra
+
+    def read(self, v: np.ndarray, lam: np.ndarray, du: np.ndarray, it: int) -> bool:
+        """Update from the body's velocities v (N, 3) and the impulses lam of this set's rows."""
+        rl = np.zeros((len(self.c), 3))
+        ci, ax = self.row_index
+        rl[ci, ax] = lam / self.h
+        v_point = np.einsum("ms,msi->mi", self.weights, v[self.nodes])
+        return self.update(rl, np.einsum("mji,mj->mi", self.frames, v_point), du, it, self.eligible(v, du))
+
+    def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray | None:
+        return None
+
+
+class _FaceSet(_RowSet):
+    """Contacts at points of one soft body's triangles, between their nodes."""
 
     def __init__(self, solver, c: FaceContacts, part: int, previous: tuple, h: float, positions: np.ndarray):
-        super().__init__(solver, c, c.node, previous, h, c.primary)
-        self.part, self.n_nodes = part, len(positions)
+        super().__init__(solver, c, c.nodes, c.weights, part, previous, h, len(positions), c.primary)
         # one active contact per rigid point to start with (its primary, else the first)
         idx = np.flatnonzero(self.active)
         order = idx[np.lexsort((~c.primary[idx], c.group[idx]))]
@@ -337,32 +401,6 @@ class _FaceSet(_ContactSet):
         dup[1:] = c.group[order][1:] == c.group[order][:-1]
         self.active[order[dup]] = False
         self.x_tri = positions[c.nodes]  # (m, 3, 3) at the start of the step
-
-    def rows(self, n: int) -> tuple[Rows, np.ndarray, np.ndarray | None]:
-        """The active contacts' rows (values at du = 0), each row's (contact, axis), and the sliding friction
-        as an extra right-hand side (N, 3) of the body (None if nothing slides)."""
-        c, h = self.c, self.h
-        ci, ax = np.nonzero(self.mask())
-        self.row_index = (ci, ax)
-        direction = self.frames[ci, :, ax]
-        g = np.einsum("mi,min->mn", direction, c.jacobian[ci]) if c.jacobian is not None and n else np.zeros((len(ci), n))
-        rows = Rows(np.full((len(ci), 3), self.part), c.nodes[ci], c.weights[ci], direction, g, self.target[ci, ax])
-        extra = None
-        slipping = self.slipping()
-        if slipping.any():
-            extra = np.zeros((self.n_nodes, 3))
-            f = h * np.einsum("mij,mj->mi", self.frames[slipping], self.slip_force[slipping])
-            np.add.at(extra, c.nodes[slipping].ravel(), (c.weights[slipping][:, :, None] * f[:, None, :]).reshape(-1, 3))
-        return rows, extra
-
-    def read(self, v: np.ndarray, lam: np.ndarray, du: np.ndarray, it: int) -> bool:
-        """Update from the body's velocities v (N, 3) and the impulses lam of this set's rows."""
-        c = self.c
-        rl = np.zeros((len(c), 3))
-        ci, ax = self.row_index
-        rl[ci, ax] = lam / self.h
-        v_point = np.einsum("ms,msi->mi", c.weights, v[c.nodes])
-        return self.update(rl, np.einsum("mji,mj->mi", self.frames, v_point), du, it, self.eligible(v, du))
 
     def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray:
         """(m,) which contacts may be added after a solve with velocities v (N, 3) and du: those whose rigid
@@ -420,12 +458,14 @@ class ContactSolver:
 
     def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None) -> StepSolution:
         """Solve one step of every body in ``steps``; ``mass_matrix`` (n, n): the movable rigid bodies' mass
-        matrix for the coupled velocity change du (None: no rigid body is coupled)."""
-        coupled = CoupledSolver(mass_matrix)
-        n = coupled.n
-        base, base_G, nodes, faces = [], [], [], []
-        for i, st in enumerate(steps):
-            body = st.system.body
+        matrix for the coupled velocity change du (None: no rigid body is coupled).
+
+        A body in touch with a movable rigid body (a contact or attachment whose Jacobian is not zero) is
+        solved in the dense mode with all others like it (:meth:`_solve_dense`); the others alone, by the
+        active set on eliminated node contacts (:meth:`_solve_sparse`)."""
+        n = 0 if mass_matrix is None else len(mass_matrix)
+        prepared, dense = [], []
+        for st in steps:
             held = st.supports.nodes
             cons, G = [st.supports], [np.zeros((len(st.supports), 3, n))]
             a = st.attachments
@@ -434,41 +474,70 @@ class ContactSolver:
                 cons.append(Constraints.full(a.node[keep], a.target[keep]))
                 G.append(a.jacobian[keep] if n else np.zeros((int(keep.sum()), 3, 0)))
                 held = np.concatenate([held, a.node[keep]])
-            base.append(_stack(cons))
-            base_G.append(np.concatenate(G) if n else None)
             c = st.contacts
             if c is not None and len(c):
                 c = c.select(~np.isin(c.node, held))
-            nodes.append(self._set("node", body, c, lambda prev: _NodeSet(self, c, prev, h, body.n_nodes)))
             f = st.faces
             if f is not None and len(f):  # a point on a triangle of held nodes only is held already
                 f = f.select(~np.isin(f.nodes, held).all(axis=1))
+            prepared.append((_stack(cons), np.concatenate(G) if n else None, c, f))
+            dense.append(n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
+        results: list = [None] * len(steps)
+        simple = [i for i in range(len(steps)) if not dense[i]]
+        coupled = [i for i in range(len(steps)) if dense[i]]
+        du, iterations = np.zeros(n), 0
+        if simple:
+            its = self._solve_sparse([steps[i] for i in simple], [prepared[i] for i in simple], h, simple, results)
+            iterations = max(iterations, its)
+        if coupled:
+            du, its = self._solve_dense([steps[i] for i in coupled], [prepared[i] for i in coupled], h, mass_matrix,
+                                        coupled, results)
+            iterations = max(iterations, its)
+        velocities, nodes, faces, attach = [], [], [], []
+        for st, (v, r, res_n, res_f) in zip(steps, results):
+            velocities.append(v)
+            nodes.append(res_n)
+            faces.append(res_f)
+            attach.append(self._attachment_forces(st, r, h))
+        return StepSolution(velocities, nodes, faces, attach, du, iterations)
+
+    @staticmethod
+    def _attachment_forces(st: BodyStep, r: np.ndarray, h: float) -> np.ndarray | None:
+        """The attachments' forces on the soft nodes (m, 3) [N] from the reactions r (N, 3) (identity frames)."""
+        a = st.attachments
+        if a is None or not len(a):
+            return None
+        f = np.zeros((len(a), 3))
+        kept = ~np.isin(a.node, st.supports.nodes)
+        f[kept] = r[a.node[kept]] / h
+        return f
+
+    def _solve_sparse(self, steps, prepared, h, index, results) -> int:
+        """Bodies touching no movable rigid body, each alone: node contacts eliminated in their frames, face
+        contacts as rows, an active set that solves the sparse systems anew when the set changes."""
+        coupled = CoupledSolver(None)
+        nodes, faces = [], []
+        for i, (st, (b_cons, _, c, f)) in enumerate(zip(steps, prepared)):
+            body = st.system.body
+            nodes.append(self._set("node", body, c, lambda prev: _NodeSet(self, c, prev, h, body.n_nodes)))
             faces.append(self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h, body.positions)))
         it = 0
         for it in range(1, self.max_iterations + 1):
-            parts, slip, row_parts = [], np.zeros(n), []
-            for st, b_cons, b_G, nset, fset in zip(steps, base, base_G, nodes, faces):
-                extra, cons, G, reuse = None, b_cons, b_G, it > 1
+            parts, row_parts = [], []
+            for st, (b_cons, _, _, _), nset, fset in zip(steps, prepared, nodes, faces):
+                extra, cons, reuse = None, b_cons, it > 1
                 if nset is not None:
-                    c_cons, c_G, extra = nset.constraints()
+                    c_cons, _, extra = nset.constraints()
                     cons = _stack([b_cons, c_cons])
-                    if n:
-                        G = np.concatenate([b_G, c_G if c_G is not None else np.zeros((len(c_cons), 3, n))])
                     reuse = nset.reuse
-                    s = nset.slip_impulse()
-                    if s is not None:
-                        slip += s
                 if fset is not None:
-                    rows, f_extra = fset.rows(n)
-                    row_parts.append(rows)
+                    r, f_extra = fset.rows(0)
+                    row_parts.append(r)
                     if f_extra is not None:
                         extra = f_extra if extra is None else extra + f_extra
-                    s = fset.slip_impulse()
-                    if s is not None:
-                        slip += s
-                parts.append(CoupledPart(st.system, cons, G, extra, reuse))
-            rows = Rows.concat(row_parts, n) if row_parts else None
-            out, du, lam = coupled.solve(parts, rows, slip if n else None)
+                parts.append(CoupledPart(st.system, cons, None, extra, reuse))
+            rows = Rows.concat(row_parts, 0) if row_parts else None
+            out, du, lam = coupled.solve(parts, rows)
             changed, k = False, 0
             for (v, r), nset, fset in zip(out, nodes, faces):
                 if nset is not None:
@@ -479,22 +548,110 @@ class ContactSolver:
                     k += m
             if not changed:
                 break
-        velocities, results, face_results, attach = [], [], [], []
-        for st, nset, fset, (v, r), part in zip(steps, nodes, faces, out, parts):
+        for j, st, nset, fset, (v, r) in zip(index, steps, nodes, faces, out):
             body = st.system.body
-            velocities.append(v)
-            for kind, cset, store in (("node", nset, results), ("face", fset, face_results)):
+            res = []
+            for kind, cset in (("node", nset), ("face", fset)):
                 if cset is None:
-                    store.append(None)
+                    res.append(None)
                 else:
-                    res, self.previous[(kind, id(body))] = cset.result(it)
-                    store.append(res)
-            a = st.attachments
-            if a is not None and len(a):
-                f = np.zeros((len(a), 3))
-                kept = np.isin(a.node, part.cons.nodes) & ~np.isin(a.node, st.supports.nodes)
-                f[kept] = r[a.node[kept]] / h  # identity frames: world forces on the soft nodes
-                attach.append(f)
+                    result, self.previous[(kind, id(body))] = cset.result(it)
+                    res.append(result)
+            results[j] = (v, r, *res)
+        return it
+
+    def _solve_dense(self, steps, prepared, h, M, index, results) -> tuple[np.ndarray, int]:
+        """Bodies touching movable rigid bodies, together: every contact (node or face) is three rows with
+        multipliers; the responses of the soft bodies to every candidate row and to du are solved once, the
+        contact problem then on the dense system (frictional.solve_contacts)."""
+        coupled = CoupledSolver(M)
+        n = coupled.n
+        sets = []  # (step index, kind, row set)
+        for i, (st, (b_cons, b_G, c, f)) in enumerate(zip(steps, prepared)):
+            body = st.system.body
+            if c is not None and len(c):
+                sets.append((i, "node", self._set("node", body, c, lambda prev: _RowSet(
+                    self, c, c.node[:, None], np.ones((len(c), 1)), i, prev, h, body.n_nodes))))
             else:
-                attach.append(None)
-        return StepSolution(velocities, results, face_results, attach, du, it)
+                self._set("node", body, c, None)
+            if f is not None and len(f):
+                sets.append((i, "face", self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h,
+                                                                                          body.positions))))
+            else:
+                self._set("face", body, f, None)
+        # every candidate contact's three rows, at du = 0 and without the gap (w: the relative velocity)
+        row_parts = []
+        for _, _, rs in sets:
+            rs.remember_warm_start()
+            rs.slip_force[:] = 0.0
+            r, _ = rs.rows(n, every=True)
+            r.target = rs.vr_free[rs.row_index]  # rows of (contact, axis), contact-major
+            row_parts.append(r)
+        rows = Rows.concat(row_parts, n) if row_parts else None
+        parts = [CoupledPart(st.system, b_cons, b_G, None, False) for st, (b_cons, b_G, _, _) in zip(steps, prepared)]
+        system = coupled.assemble(parts, rows)
+        m = 0 if rows is None else len(rows) // 3
+        H, rhs = system.H, system.rhs
+        if n:
+            K, B = H[:n, :n], H[:n, n:]
+            try:
+                KiB = np.linalg.solve(K, np.column_stack([B, rhs[:n]]))
+            except np.linalg.LinAlgError:
+                KiB = np.linalg.lstsq(K, np.column_stack([B, rhs[:n]]), rcond=None)[0]
+            D = H[n:, n:] - H[n:, :n] @ KiB[:, :-1]
+            w0 = H[n:, :n] @ KiB[:, -1] - rhs[n:]
+        else:
+            D, w0 = H[n:, n:], -rhs[n:]
+        gamma = np.zeros((m, 3))
+        solves = 0
+        if m:
+            cat = lambda f: np.concatenate([f(rs) for _, _, rs in sets])  # noqa: E731
+            bias = cat(lambda rs: rs.gap) / h
+            mu = cat(lambda rs: rs.c.mu)
+            # the warm start: last step's active and sticking contacts (kept by the row sets' constructors)
+            state = ContactState(cat(lambda rs: rs.warm_active), cat(lambda rs: rs.warm_stick),
+                                 cat(lambda rs: rs.warm_direction))
+            offsets = np.cumsum([0] + [len(rs.c) for _, _, rs in sets])
+
+            def gamma_to_z(g):
+                z = np.zeros(n + 3 * m)
+                z[n:] = g.ravel()
+                if n:
+                    z[:n] = KiB[:, -1] - KiB[:, :-1] @ g.ravel()
+                return z
+
+            def eligible(g):
+                ok = np.ones(m, dtype=bool)
+                faces_in = [(o, rs) for o, (_, kind, rs) in zip(offsets, sets) if kind == "face"]
+                if not faces_in:
+                    return ok
+                z = gamma_to_z(g)
+                out = system.combine(z)
+                for o, rs in faces_in:
+                    ok[o:o + len(rs.c)] = rs.eligible(out[rs.part][0], z[:n])
+                return ok
+
+            gamma, state, solves = solve_contacts(D, w0, bias, mu, state, eligible, self.velocity_tol, self.cone_tol)
+        z = np.zeros(n + 3 * m)
+        if m:
+            z = gamma_to_z(gamma)
+        elif n:
+            z[:n] = KiB[:, -1]
+        out = system.combine(z)
+        du = z[:n]
+        # results per body, through the row sets' bookkeeping
+        per_body = {i: [None, None] for i in range(len(steps))}
+        k = 0
+        for i, kind, rs in sets:
+            mk = len(rs.c)
+            g = gamma[k:k + mk]
+            sl = slice(k, k + mk)
+            w = (w0 + D @ gamma.ravel()).reshape(-1, 3)[sl] if m else np.zeros((0, 3))
+            rs.finish(g / h, w, state.active[sl], state.stick[sl], state.direction[sl])
+            result, self.previous[(kind, id(steps[i].system.body))] = rs.result(solves)
+            per_body[i][0 if kind == "node" else 1] = result
+            k += mk
+        for j, i in zip(index, range(len(steps))):
+            v, r = out[i]
+            results[j] = (v, r, *per_body[i])
+        return du, solves

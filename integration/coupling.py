@@ -111,16 +111,46 @@ class Rows:
             return np.einsum("ms,msi,mi->m", w, v[np.where(on, self.node, 0)], self.direction)
         return np.einsum("ms,kmsi,mi->mk", w, v[:, np.where(on, self.node, 0)], self.direction)
 
-    def load(self, k: int, part: int, n_nodes: int) -> np.ndarray:
-        """C_part^T e_k (N, 3): the unit impulse of row k on the nodes of ``part``."""
-        f = np.zeros((n_nodes, 3))
-        sel = self.part[k] == part
-        np.add.at(f, self.node[k, sel], self.weight[k, sel, None] * self.direction[k])
+    def loads(self, ks: np.ndarray, part: int, n_nodes: int) -> np.ndarray:
+        """C_part^T e_k (len(ks), N, 3): the unit impulses of rows ks on the nodes of ``part``."""
+        f = np.zeros((len(ks), n_nodes, 3))
+        on = self.part[ks] == part  # (k, s)
+        j, slot = np.nonzero(on)
+        np.add.at(f, (j, self.node[ks][j, slot]), self.weight[ks][j, slot, None] * self.direction[ks][j])
         return f
 
-    def signature(self, k: int, part: int) -> bytes:
-        sel = self.part[k] == part
-        return self.node[k, sel].tobytes() + self.weight[k, sel].tobytes() + self.direction[k].tobytes()
+    def signatures(self, part: int) -> list[bytes]:
+        """Per row, bytes that tell whether two rows act alike on ``part`` (its nodes, weights, direction)."""
+        on = self.part == part
+        table = np.concatenate([np.where(on, self.node, -1).astype(np.float64), np.where(on, self.weight, 0.0),
+                                self.direction], axis=1)
+        return [row.tobytes() for row in np.ascontiguousarray(table)]
+
+
+@dataclass
+class CoupledSystem:
+    """The dense system H z = rhs of a coupled solve, z = (du (n,), lambda (m,)), and per part the solve at
+    z = 0 (base: v, r) and its responses to the columns of z it depends on (columns: indices, Y, R)."""
+
+    H: np.ndarray
+    rhs: np.ndarray
+    base: list[tuple[np.ndarray, np.ndarray]]
+    columns: list[tuple]
+    n: int
+
+    @property
+    def size(self) -> int:
+        return len(self.rhs)
+
+    def combine(self, z: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Every part's velocities and reactions (v (N, 3), r (N, 3)) for the unknowns z."""
+        out = list(self.base)
+        for i, (cols, Y, R) in enumerate(self.columns):
+            if len(cols):
+                y0, r0 = out[i]
+                w = z[cols]
+                out[i] = (y0 + np.tensordot(w, Y, axes=1), r0 + np.tensordot(w, R, axes=1))
+        return out
 
 
 def generalized(cons: Constraints, r: np.ndarray, G: np.ndarray) -> np.ndarray:
@@ -152,15 +182,29 @@ class CoupledSolver:
 
     def solve(self, parts: list[CoupledPart], rows: Rows | None = None, slip: np.ndarray | None = None
               ) -> tuple[list[tuple[np.ndarray, np.ndarray]], np.ndarray, np.ndarray]:
-        """Velocities and reactions (v (N, 3), r (N, 3) local) per part, du (n,) and the rows' impulses (m,).
+        """Velocities and reactions (v (N, 3), r (N, 3) local) per part, du (n,) and the rows' impulses (m,),
+        with every row an equality.
 
         slip (n,): the generalized impulse s of forces on the rigid side that do not depend on du or lambda."""
+        system = self.assemble(parts, rows, slip)
+        if system.size == 0:
+            return system.base, np.zeros(0), np.zeros(0)
+        try:
+            z = np.linalg.solve(system.H, system.rhs)
+        except np.linalg.LinAlgError:  # a massless direction no constraint holds: the least-squares answer
+            z = np.linalg.lstsq(system.H, system.rhs, rcond=None)[0]
+        return system.combine(z), z[:self.n], z[self.n:]
+
+    def assemble(self, parts: list[CoupledPart], rows: Rows | None = None, slip: np.ndarray | None = None
+                 ) -> "CoupledSystem":
+        """The dense system H z = rhs in z = (du, lambda) of the module doc, with the responses to rebuild
+        every part's velocities and reactions from z (CoupledSystem.combine)."""
         out = [self._base(i, part) for i, part in enumerate(parts)]
         n, m = self.n, 0 if rows is None else len(rows)
-        if n + m == 0:
-            return out, np.zeros(0), np.zeros(0)
         H = np.zeros((n + m, n + m))
         rhs = np.zeros(n + m)
+        if n + m == 0:
+            return CoupledSystem(H, rhs, out, [], n)
         if n:
             H[:n, :n] = self.M
             if slip is not None:
@@ -199,16 +243,7 @@ class CoupledSolver:
                 H[k, :], H[:, k], rhs[k] = 0.0, 0.0, 0.0
                 H[k, k] = 1.0
             H[n:, n:] += np.diag(ROW_COMPLIANCE * free)
-        try:
-            z = np.linalg.solve(H, rhs)
-        except np.linalg.LinAlgError:  # a massless direction no constraint holds: the least-squares answer
-            z = np.linalg.lstsq(H, rhs, rcond=None)[0]
-        for i, (cols, Y, R) in enumerate(columns):
-            if len(cols):
-                y0, r0 = out[i]
-                w = z[cols]
-                out[i] = (y0 + np.tensordot(w, Y, axes=1), r0 + np.tensordot(w, R, axes=1))
-        return out, z[:n], z[n:]
+        return CoupledSystem(H, rhs, out, columns, n)
 
     def _base(self, i: int, part: CoupledPart) -> tuple[np.ndarray, np.ndarray]:
         """The solve of part i at du = 0 and lambda = 0, repeated only if its constraints, values or extra
@@ -223,33 +258,38 @@ class CoupledSolver:
 
     def _columns(self, i: int, part: CoupledPart, rows: Rows | None) -> tuple[list[int], np.ndarray, np.ndarray]:
         """The columns of (du, lambda) that touch part i and its homogeneous responses to each (Y, R (k, N, 3)),
-        solved anew only for columns not seen with the same constraint set."""
+        solved anew (all new ones in one batched solve) only for columns not seen with the same constraint set."""
         n, key, N = self.n, part.key(), part.system.body.n_nodes
-        cols, Ys, Rs = [], [], []
+        cols, keys = [], []
+        new_du, new_rows = [], []
         if part.G is not None and n and len(part.cons):
             G = np.where(part.cons.mask[:, :, None], part.G, 0.0)
             for j in np.flatnonzero(np.abs(G).max(axis=(0, 1), initial=0.0) > 0).tolist():
                 ck = (i, key, ("du", G[:, :, j].tobytes()))
                 if ck not in self._responses:
-                    cons = Constraints(part.cons.nodes, part.cons.mask, G[:, :, j], part.cons.frames)
-                    self._responses[ck] = part.system.solve(cons, reuse=True, homogeneous=True)
-                    self.homogeneous_solves += 1
+                    new_du.append((ck, G[:, :, j]))
                 cols.append(j)
-                Ys.append(self._responses[ck][0])
-                Rs.append(self._responses[ck][1])
+                keys.append(ck)
         if rows is not None and len(rows):
-            zero = None
+            sigs = rows.signatures(i)
+            pending = set()
             for k in np.flatnonzero((rows.part == i).any(axis=1)).tolist():
-                ck = (i, key, ("row", rows.signature(k, i)))
-                if ck not in self._responses:
-                    if zero is None:
-                        zero = Constraints(part.cons.nodes, part.cons.mask, np.zeros_like(part.cons.value),
-                                           part.cons.frames)
-                    self._responses[ck] = part.system.solve(zero, rows.load(k, i, N), reuse=True, homogeneous=True)
-                    self.homogeneous_solves += 1
+                ck = (i, key, ("row", sigs[k]))
+                if ck not in self._responses and ck not in pending:
+                    new_rows.append((ck, k))
+                    pending.add(ck)
                 cols.append(n + k)
-                Ys.append(self._responses[ck][0])
-                Rs.append(self._responses[ck][1])
+                keys.append(ck)
+        if new_du:
+            Y, R = part.system.responses(part.cons, values=np.array([g for _, g in new_du]))
+            for (ck, _), y, r in zip(new_du, Y, R):
+                self._responses[ck] = (y, r)
+            self.homogeneous_solves += len(new_du)
+        if new_rows:
+            Y, R = part.system.responses(part.cons, loads=rows.loads(np.array([k for _, k in new_rows]), i, N))
+            for (ck, _), y, r in zip(new_rows, Y, R):
+                self._responses[ck] = (y, r)
+            self.homogeneous_solves += len(new_rows)
         if not cols:
             return [], np.zeros((0, N, 3)), np.zeros((0, N, 3))
-        return cols, np.array(Ys), np.array(Rs)
+        return cols, np.array([self._responses[ck][0] for ck in keys]), np.array([self._responses[ck][1] for ck in keys])

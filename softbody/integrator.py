@@ -125,24 +125,24 @@ Frames = NodeFrames | np.ndarray | None  # sparse frames, per-node frames (N, 3,
 
 
 def _per_node(T: Frames, x: np.ndarray, spec: str) -> np.ndarray:
-    """Apply per-node 3x3 frames to x (N, 3) by the einsum ``spec`` (T^T x or T x); None: identity."""
+    """Apply per-node 3x3 frames to x (..., N, 3) by the einsum ``spec`` (T^T x or T x); None: identity."""
     if T is None:
         return x
     if isinstance(T, NodeFrames):
         y = x.copy()
-        y[T.nodes] = np.einsum(spec, T.R, x[T.nodes])
+        y[..., T.nodes, :] = np.einsum(spec, T.R, x[..., T.nodes, :])
         return y
     return np.einsum(spec, T, x)
 
 
 def to_local(T: Frames, x: np.ndarray) -> np.ndarray:
-    """T^T x per node for x (N, 3)."""
-    return _per_node(T, x, "nji,nj->ni")
+    """T^T x per node for x (..., N, 3)."""
+    return _per_node(T, x, "nji,...nj->...ni")
 
 
 def to_global(T: Frames, y: np.ndarray) -> np.ndarray:
-    """T y per node for y (N, 3)."""
-    return _per_node(T, y, "nij,nj->ni")
+    """T y per node for y (..., N, 3)."""
+    return _per_node(T, y, "nij,...nj->...ni")
 
 
 def _frames_at(T: Frames, nodes: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -217,6 +217,37 @@ class DirectSystem:
         y[mask] = value[mask]  # exact, not up to round-off
         reaction = np.where(mask, (A @ y.reshape(-1)).reshape(-1, 3) - b, 0.0)
         return to_global(T, y), reaction
+
+    def responses(self, cons: Constraints, values: np.ndarray | None = None,
+                  loads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Homogeneous solves (the step's load dropped) for k columns at once, with the factorisation of the
+        last solve (which must have had the constrained set of ``cons``): the constrained components set to
+        ``values`` (k, len(cons), 3) (local frames; zero if None) and the loads ``loads`` (k, N, 3) (zero if
+        None). Returns y (k, N, 3) global and the reactions (k, N, 3) local, as :meth:`solve` for each."""
+        pat = self.body.pattern
+        N = pat.n_nodes
+        T, mask, _ = cons.dense(N)
+        k = len(values) if values is not None else len(loads)
+        V = np.zeros((k, N, 3))
+        if values is not None:
+            V[:, cons.nodes] = np.where(cons.mask, values, 0.0)
+        b = np.zeros((k, N, 3)) if loads is None else to_local(T, loads)
+        if getattr(self, "_rotated", None) is None:
+            self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
+        if getattr(self, "_csr", None) is None or self._csr[0] is not self._rotated:
+            self._csr = (self._rotated, pat.to_bsr(self._rotated).tocsr())  # sparse x dense products by CSR
+        A, scale = self._csr[1], self._scale
+        rhs = b if values is None else b - (A @ V.reshape(k, -1).T).T.reshape(k, N, 3)
+        rhs = rhs.copy()
+        rhs[:, mask] = scale * V[:, mask]
+        with timed(self.timings, "solve"):
+            y = self.solver.solve(np.asfortranarray(rhs.reshape(k, -1).T)).T.reshape(k, N, 3)
+        y[:, mask] = V[:, mask]
+        rows = np.flatnonzero(mask.ravel())  # the reactions live on the constrained components only
+        reaction = np.zeros((k, 3 * N))
+        if len(rows):
+            reaction[:, rows] = (A[rows] @ y.reshape(k, -1).T).T - b.reshape(k, -1)[:, rows]
+        return to_global(T, y), reaction.reshape(k, N, 3)
 
 
 @dataclass
@@ -422,6 +453,14 @@ class IterativeSystem:
             self.x0 = y  # warm start for the next solve of this step (active-set loops)
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
         return y, reaction
+
+    def responses(self, cons: Constraints, values: np.ndarray | None = None,
+                  loads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Same contract as DirectSystem.responses: one homogeneous PCG solve per column."""
+        k = len(values) if values is not None else len(loads)
+        out = [self.solve(cons if values is None else Constraints(cons.nodes, cons.mask, values[j], cons.frames),
+                          None if loads is None else loads[j], homogeneous=True) for j in range(k)]
+        return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
     def _precondition(self, r: np.ndarray, free: np.ndarray, C: Frames, fix: ConstraintCorrection | None) -> np.ndarray:
         """z = C^T P_F^-1 C r on the free components (r, z (N, 3) in the current local frames), P_F^-1
