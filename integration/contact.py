@@ -602,6 +602,7 @@ class ContactSolver:
             w0 = H[n:, :n] @ KiB[:, -1] - rhs[n:]
         else:
             D, w0 = H[n:, n:], -rhs[n:]
+        D = 0.5 * (D + D.T)  # symmetric by reciprocity, up to round-off
         gamma = np.zeros((m, 3))
         solves = 0
         if m:

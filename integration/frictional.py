@@ -1,19 +1,22 @@
 """The frictional contact problem of one step on a small dense system (the Delassus form).
 
-m contacts, each with an impulse gamma_i = (g_n, g_t1, g_t2) in its frame (n, t1, t2) and a relative
+m contacts, each with an impulse gamma_i = (g_n, g_t1, g_t2) [N s] in its frame (n, t1, t2) and a relative
 velocity w_i (soft point minus rigid point, same frame) at the end of the step, linear in all impulses:
 
-    w = w0 + D gamma        (D (3m, 3m): the soft bodies' and rigid bodies' response; contact-major order)
+    w = w0 + D gamma        (D (3m, 3m) symmetric positive definite: the response; contact-major order)
 
-Sought: for every contact, either inactive (gamma_i = 0, w_n + b >= 0, b = gap / h), or active with
-w_n + b = 0 and g_n >= 0, and then sticking (w_t = 0, |g_t| <= mu g_n) or sliding (g_t = mu g_n d with d
-opposite to the sliding velocity w_t).
+Sought: for every contact g_n >= 0, w_n + b >= 0 (b = gap / h) and g_n (w_n + b) = 0 (non-penetration and
+separation), and Coulomb friction: sticking (w_t = 0, |g_t| <= mu g_n) or sliding (g_t = mu g_n d, d opposite
+to the sliding velocity w_t).
 
-The solver is exact for the contact state it settles on: an active set on the normals (all violations
-flipped at once while that makes progress; one at a time, the worst first, once a set repeats), inside a
-fixed point on the friction state (stick turns to slip when the needed force leaves the cone, slip to
-stick when the sliding reverses or stops, sliding directions follow the sliding velocity). Each iteration
-is one dense solve of the active unknowns: cheap next to the sparse solves that built D.
+Solved as a fixed point on the friction state around a convex problem: with the sticking contacts' tangents
+free and the sliding contacts' friction impulses given, the impulses minimise the convex quadratic
+1/2 gamma^T D gamma + gamma^T (w0 + b) under g_n >= 0, whose optimality conditions are exactly the normal
+conditions above and w_t = 0 on the sticking contacts. A projected Newton method solves it (monotone,
+finitely many active-set changes for a strictly convex quadratic). Between solves, a sticking contact
+whose force leaves the cone turns to sliding, a sliding one whose velocity reverses or stops turns to
+sticking, sliding impulses follow the new normal impulses and sliding directions. Non-penetration holds
+exactly after every solve, whatever the friction iteration ends on.
 """
 from __future__ import annotations
 
@@ -33,93 +36,120 @@ class ContactState:
     direction: np.ndarray
 
 
-def _solve_set(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, st: ContactState) -> np.ndarray:
-    """Impulses gamma (m, 3) with the normals of the active contacts closing their gaps, the sticking ones'
-    tangents zero, the sliding ones' friction mu g_n along their directions, the inactive ones zero."""
-    m = len(bias)
-    act = np.flatnonzero(st.active)
-    stick = act[st.stick[act]]
-    slide = act[~st.stick[act] & (mu[act] > 0)]
-    # unknowns: the active normals, then the sticking tangents (two each)
-    unknown = np.concatenate([3 * act, (3 * stick[:, None] + np.array([1, 2])).ravel()])
-    k = len(unknown)
-    gamma = np.zeros(3 * m)
-    if not k:
-        return gamma.reshape(m, 3)
-    T = np.zeros((3 * m, k))  # gamma = T x
-    T[unknown, np.arange(k)] = 1.0
-    col = {int(i): j for j, i in enumerate(act)}
-    for i in slide.tolist():
-        T[3 * i + 1:3 * i + 3, col[i]] = mu[i] * st.direction[i]
-    E = unknown  # the equations: the same components of w (+ b on the normals) vanish
-    rhs = -w0[E].copy()
-    rhs[:len(act)] -= bias[act]
-    A = D[E] @ T
-    try:
-        x = np.linalg.solve(A, rhs)
-    except np.linalg.LinAlgError:
-        x = np.linalg.lstsq(A, rhs, rcond=None)[0]
-    return (T @ x).reshape(m, 3)
+def bounded_quadratic(Q: np.ndarray, c: np.ndarray, bounded: np.ndarray, x0: np.ndarray | None = None,
+                      tol: float = 1e-12, max_iter: int = 200) -> tuple[np.ndarray, int]:
+    """argmin 1/2 x^T Q x + c^T x subject to x_i >= 0 where ``bounded`` (n,) bool, for Q symmetric positive
+    definite (n, n): Bertsekas' projected Newton method with an Armijo search along the projected arc.
+    Returns x (n,) and the number of Newton steps."""
+    n = len(c)
+    x = np.zeros(n) if x0 is None else np.where(bounded, np.maximum(x0, 0.0), x0)
+
+    def f(y):
+        return 0.5 * y @ (Q @ y) + c @ y
+
+    fx = f(x)
+    scale = max(np.abs(c).max(initial=0.0), 1e-300)
+    for it in range(1, max_iter + 1):
+        g = Q @ x + c
+        # the bound variables held at zero by a gradient pushing outwards
+        eps = min(1e-12 * max(np.abs(x).max(initial=0.0), 1.0), np.linalg.norm(np.where(bounded, x - np.maximum(x - g, 0.0), g)))
+        held = bounded & (x <= eps) & (g > 0)
+        free = ~held
+        # optimality: the projected gradient vanishes
+        pg = np.where(bounded, x - np.maximum(x - g, 0.0), g)
+        if np.abs(pg).max(initial=0.0) <= tol * scale:
+            return x, it - 1
+        d = np.zeros(n)
+        Qf = Q[np.ix_(free, free)]
+        try:
+            d[free] = -np.linalg.solve(Qf, g[free])
+        except np.linalg.LinAlgError:
+            d[free] = -np.linalg.lstsq(Qf, g[free], rcond=None)[0]
+        alpha = 1.0
+        for _ in range(40):
+            y = x + alpha * d
+            y = np.where(bounded, np.maximum(y, 0.0), y)
+            fy = f(y)
+            # Armijo on the projected arc (Bertsekas 1982)
+            if fy <= fx + 1e-4 * (g[free] @ (y - x)[free]) + 1e-4 * (g[held] @ (y - x)[held]):
+                break
+            alpha *= 0.5
+        else:
+            return x, it
+        x, fx = y, fy
+    return x, max_iter
 
 
 def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, state: ContactState,
                    eligible: Callable[[np.ndarray], np.ndarray] | None = None, velocity_tol: float = 1e-7,
-                   cone_tol: float = 1e-3, direction_tol: float = 1e-3, max_friction: int = 20
+                   cone_tol: float = 1e-3, direction_tol: float = 1e-3, max_friction: int = 12
                    ) -> tuple[np.ndarray, ContactState, int]:
     """Solve the contact problem of the module doc from the warm start ``state`` (changed in place).
 
-    D (3m, 3m), w0 (3m,), bias (m,) [m/s], mu (m,); eligible(gamma (m, 3)) -> (m,) bool: which inactive
-    contacts may be added (None: all). Returns gamma (m, 3) [N s], the state and the number of solves."""
+    D (3m, 3m), w0 (3m,), bias (m,) [m/s], mu (m,); eligible(gamma (m, 3)) -> (m,) bool: which contacts
+    may carry an impulse after a solve that gave gamma (None: all). Returns gamma (m, 3) [N s], the state and
+    the number of Newton steps taken."""
     m = len(bias)
     st = state
-    st.stick &= st.active & (mu > 0)
-    solves = 0
+    friction = mu > 0
+    st.stick &= st.active & friction
+    allowed = np.ones(m, dtype=bool) if eligible is None else (st.active | eligible(np.zeros((m, 3))))
     gamma = np.zeros((m, 3))
+    gn_prev = np.zeros(m)
+    steps = 0
     for _ in range(max_friction):
-        # the normals: an active set with the friction state fixed
-        seen: set[bytes] = set()
-        single = False
-        for _ in range(4 * m + 20):
-            gamma = _solve_set(D, w0, bias, mu, st)
-            solves += 1
-            w = (w0 + D @ gamma.ravel()).reshape(m, 3)
-            gap = w[:, 0] + bias
-            pull = st.active & (gamma[:, 0] < 0)
-            close = ~st.active & (gap < -velocity_tol)
-            if eligible is not None and close.any():
-                close &= eligible(gamma)
-            if not pull.any() and not close.any():
-                break
-            key = st.active.tobytes()
-            if key in seen:
-                single = True  # the set repeats: flip one contact at a time from now on
-            seen.add(key)
-            if single:
-                score = np.where(pull, -gamma[:, 0] / max(np.abs(gamma[:, 0]).max(), 1e-300), 0.0)
-                score = np.maximum(score, np.where(close, -gap / max(np.abs(gap).max(), 1e-300), 0.0))
-                i = int(np.argmax(score))
-                pull, close = np.zeros(m, bool), np.zeros(m, bool)
-                (pull if st.active[i] else close)[i] = True
-            st.active = (st.active & ~pull) | close
-            st.stick = (st.stick & st.active) | (close & (mu > 0))
+        slide = st.active & friction & ~st.stick
+        # unknowns: every allowed normal (bounded), the sticking contacts' tangents (free)
+        normal = np.flatnonzero(allowed)
+        stick = np.flatnonzero(st.stick & allowed)
+        idx = np.concatenate([3 * normal, (3 * stick[:, None] + np.array([1, 2])).ravel()])
+        bounded = np.r_[np.ones(len(normal), bool), np.zeros(2 * len(stick), bool)]
+        # the sliding contacts' friction impulses, given: mu g_n (of the last solve) along their directions
+        fixed = np.zeros((m, 3))
+        fixed[slide, 1:] = (mu[slide] * np.maximum(np.where(gn_prev > 0, gn_prev, gamma[:, 0]), 0.0)[slide])[:, None] \
+            * st.direction[slide]
+        c = (w0 + D @ fixed.ravel()).copy()
+        c[0::3] += bias
+        x0 = gamma.ravel()[idx]
+        x, k = bounded_quadratic(D[np.ix_(idx, idx)], c[idx], bounded, x0)
+        steps += k
+        gamma = fixed.copy().ravel()
+        gamma[idx] = x
+        gamma = gamma.reshape(m, 3)
+        gn_prev = gamma[:, 0].copy()
+        w = (w0 + D @ gamma.ravel()).reshape(m, 3)
+        active = gamma[:, 0] > 0
+        # face contacts that the solution moved off their triangles carry nothing; others may join
+        if eligible is not None:
+            ok = eligible(gamma)
+            new_allowed = (allowed & (active | ok)) | (ok & (w[:, 0] + bias < -velocity_tol))
+        else:
+            new_allowed = allowed
         # the friction state
-        act = st.active & (mu > 0)
-        gn = np.maximum(gamma[:, 0], 0.0)
         gt = gamma[:, 1:]
         gtn = np.linalg.norm(gt, axis=1)
         wt = w[:, 1:]
         wtn = np.linalg.norm(wt, axis=1)
-        to_slip = act & st.stick & (gtn > mu * gn * (1 + cone_tol))
-        sliding = act & ~st.stick
-        along = np.einsum("mi,mi->m", wt, st.direction) > 0  # sliding along the friction force: it stopped
+        was_stick = st.stick & active
+        to_slip = was_stick & (gtn > mu * gamma[:, 0] * (1 + cone_tol))
+        sliding = slide & active
+        along = np.einsum("mi,mi->m", wt, st.direction) > 0  # sliding along its friction force: it stopped
         to_stick = sliding & (along | (wtn < velocity_tol))
         with np.errstate(invalid="ignore", divide="ignore"):
             new_dir = np.where(wtn[:, None] > 0, -wt / wtn[:, None], st.direction)
         turn = sliding & ~to_stick & (np.abs(new_dir - st.direction).max(axis=1) > direction_tol)
-        if not (to_slip.any() or to_stick.any() or turn.any()):
-            break
+        joined = active & friction & ~st.active  # a new contact starts sticking
+        left = st.active & ~active
+        changed = to_slip.any() or to_stick.any() or turn.any() or joined.any() or left.any() \
+            or (new_allowed != allowed).any()
         with np.errstate(invalid="ignore", divide="ignore"):
             st.direction = np.where(to_slip[:, None], gt / np.maximum(gtn, 1e-300)[:, None], st.direction)
         st.direction = np.where(turn[:, None], new_dir, st.direction)
-        st.stick = (st.stick & ~to_slip) | to_stick
-    return gamma, st, solves
+        st.stick = ((st.stick & ~to_slip) | to_stick | joined) & active & friction
+        st.active = active
+        allowed = new_allowed
+        if not changed:
+            break
+    st.active = gamma[:, 0] > 0
+    st.stick &= st.active
+    return gamma, st, steps
