@@ -160,7 +160,9 @@ class BulletAdapter:
             self.owned = False
         self._joint_info: dict[int, tuple[list[int], list[int]]] = {}  # body -> (movable joints, unsupported joints)
         self._shapes: dict[tuple[int, int], list[Shape]] = {}
-        self._cache: dict[tuple, tuple] = {}  # (what, body, link) -> state, until the client's state changes
+        # (what, body, link) -> state, kept while ``caching`` (a World's step: nothing else moves bodies then)
+        self._cache: dict[tuple, tuple] = {}
+        self.caching = False
 
     # ------------------------------------------------------------------ client
     def close(self) -> None:
@@ -284,10 +286,10 @@ class BulletAdapter:
         return v, w
 
     def state(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Pose and velocity in one query: (com (3,), quaternion (4,), v (3,), omega (3,)); cached until the
-        client steps or a body is reset through this adapter (read-only arrays)."""
+        """Pose and velocity in one query: (com (3,), quaternion (4,), v (3,), omega (3,)) (read-only arrays);
+        while ``caching``, kept until the client steps or a body is reset through this adapter."""
         key = ("state", body, link)
-        hit = self._cache.get(key)
+        hit = self._cache.get(key) if self.caching else None
         if hit is not None:
             return hit
         if link == BASE:
@@ -300,18 +302,21 @@ class BulletAdapter:
         out = tuple(np.array(a) for a in (pos, orn, v, w))
         for a in out:
             a.flags.writeable = False
-        self._cache[key] = out
+        if self.caching:
+            self._cache[key] = out
         return out
 
     def aabb(self, body: int, link: int = BASE) -> tuple[np.ndarray, np.ndarray]:
         """The link's axis-aligned bounding box (lo (3,), hi (3,)) [m], cached like :meth:`state`."""
         key = ("aabb", body, link)
-        hit = self._cache.get(key)
+        hit = self._cache.get(key) if self.caching else None
         if hit is None:
             lo, hi = p.getAABB(body, link, physicsClientId=self.client)
-            hit = self._cache[key] = (np.array(lo), np.array(hi))
+            hit = (np.array(lo), np.array(hi))
             for a in hit:
                 a.flags.writeable = False
+            if self.caching:
+                self._cache[key] = hit
         return hit
 
     def reset_pose(self, body: int, position, orientation) -> None:

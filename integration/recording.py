@@ -44,6 +44,8 @@ import scipy.sparse as sp
 from softbody import FemBody, Simulation
 from softbody.errors import InvalidInputError
 
+from .bullet import quat_matrix
+
 TIMELINE = "sim_time"
 CONTENT = ("mesh", "colors", "rigid", "contacts", "attachments", "monitor", "diagnostics")
 COLOR_FIELDS = {"von_mises": ("von Mises stress", "Pa"), "displacement": ("displacement magnitude", "m")}
@@ -88,6 +90,42 @@ def default_path(scene=None, target=None, directory: str | Path = "logs") -> Pat
         path = directory / f"{stem}-{k}.rrd"
         k += 1
     return path
+
+
+def _link_visuals(rb) -> list:
+    """Archetypes drawing a URDF link in its inertial frame: its visual shapes (boxes, spheres, capsules,
+    cylinders, meshes read by trimesh) in their colours, or its collision shapes where it has none."""
+    shapes = rb.adapter.visual_shapes(rb.id).get(rb.link) or rb.shapes
+    out = []
+    for sh in shapes:
+        pos, quat = np.asarray(sh.position, float), np.asarray(sh.quaternion, float)
+        R = quat_matrix(quat)
+        color = tuple(int(round(255 * c)) for c in sh.rgba)
+        if sh.kind == "box":
+            out.append(rr.Boxes3D(half_sizes=[sh.size], centers=[pos], quaternions=[rr.Quaternion(xyzw=quat)],
+                                  colors=color, fill_mode="solid"))
+        elif sh.kind == "sphere":
+            out.append(rr.Ellipsoids3D(half_sizes=[[sh.size[0]] * 3], centers=[pos], colors=color, fill_mode="solid"))
+        elif sh.kind == "capsule":  # rerun's capsule runs from its origin along +z: start it half a length down
+            r, length = sh.size
+            out.append(rr.Capsules3D(lengths=[length], radii=[r], translations=[pos - 0.5 * length * R[:, 2]],
+                                     quaternions=[rr.Quaternion(xyzw=quat)], colors=color))
+        elif sh.kind == "cylinder":
+            r, length = sh.size
+            out.append(rr.Cylinders3D(lengths=[length], radii=[r], centers=[pos], quaternions=[rr.Quaternion(xyzw=quat)],
+                                      colors=color, fill_mode="solid"))
+        elif sh.kind == "mesh" and sh.mesh_file:
+            try:
+                import trimesh
+
+                tm = trimesh.load(sh.mesh_file, force="mesh")
+                verts = (np.asarray(tm.vertices) * np.asarray(sh.size)) @ R.T + pos
+                normals = trimesh.Trimesh(verts, tm.faces, process=False).vertex_normals
+            except Exception:  # a file trimesh cannot read: the link is drawn without this shape
+                continue
+            out.append(rr.Mesh3D(vertex_positions=verts, triangle_indices=np.asarray(tm.faces), vertex_normals=normals,
+                                 albedo_factor=color))
+    return out
 
 
 def _bodies_of(target) -> list[FemBody]:
@@ -329,14 +367,19 @@ class Recorder:
         if "rigid" in self.content:
             for rb in self.target.rigids.values():
                 path = self._rigid_path(rb)
-                rec.log(path, self._rigid_shape(rb), static=True)
+                if rb.shape == "urdf":  # a link of the user's body: one child entity per shape
+                    for k, shape in enumerate(_link_visuals(rb)):
+                        rec.log(f"{path}/shape{k}", shape, static=True)
+                else:
+                    rec.log(path, self._rigid_shape(rb), static=True)
                 if rb.mode == "fixed":
                     pos, quat = rb.pose()
                     rec.log(path, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)), static=True)
 
     @staticmethod
     def _rigid_path(rb) -> str:
-        return f"world/rigid/{rr.escape_entity_path_part(rb.name or rb.shape)}_{rb.id}"
+        link = "" if rb.link < 0 else f"_{rb.link}"
+        return f"world/rigid/{rr.escape_entity_path_part(rb.name or rb.shape)}_{rb.id}{link}"
 
     def _rigid_shape(self, rb):
         """The rigid body's shape in its own frame."""

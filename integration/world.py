@@ -553,10 +553,18 @@ class World:
 
     def step(self) -> None:
         """Advance the whole scene by dt (pybullet steps exactly once)."""
-        h, t = self.dt, self.t
         self.timings = defaultdict(float)
-        tic = time.perf_counter()
         self.adapter.invalidate()  # the user may have moved bodies since the last step
+        self.adapter.caching = True  # within the step only pybullet's step and this World move them
+        try:
+            self._step()
+        finally:
+            self.adapter.caching = False
+            self.adapter.invalidate()
+
+    def _step(self) -> None:
+        h, t = self.dt, self.t
+        tic = time.perf_counter()
         self._sync()
         for rb in self.rigids.values():
             if rb.motion is not None:
@@ -650,6 +658,7 @@ class World:
         bodies) kinetic and gravitational potential (zero at the world origin), and their total.
 
         states: the soft bodies' (positions, velocities) to evaluate (default: their current state)."""
+        self._sync()
         g = self.gravity
         soft_k = soft_e = soft_p = 0.0
         for body, (x, v) in zip(self.bodies, states or [(b.positions, b.velocities) for b in self.bodies]):
