@@ -74,6 +74,40 @@ class CollisionDetector:
         self._probe = p.createCollisionShape(p.GEOM_SPHERE, radius=1e-6, physicsClientId=client)
         self.last_candidates = 0
 
+    def detect(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
+               supported: np.ndarray, links: list[RigidLink], margin: float, touch: float) -> tuple["Contacts", "FaceHits"]:
+        """Contact candidates of one soft body (positions (N, 3), surface nodes (s,) not held by supports,
+        surface triangles (T, 3), supported (N,) bool) against ``links``: node contacts within ``margin``,
+        one per node (the deepest), and rigid points on its triangles between nodes (face contacts; a node
+        within ``touch`` of a link rests on it). Far links cost no query (broad phase on boxes)."""
+        if not len(surface):
+            return Contacts.empty(), FaceHits.empty()
+        xs = positions[surface]
+        lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
+        parts, faces = [], []
+        boxes = triangle_boxes(positions, triangles)
+        touching = np.zeros(len(positions), dtype=bool)
+        touch_normal = np.zeros((len(positions), 3))
+        for rb in links:
+            rlo, rhi = rb.aabb()
+            if np.any(rlo > hi) or np.any(rhi < lo):
+                continue  # broad phase: far apart, no query at all
+            found = self.node_contacts(body_index, positions, surface, rb, margin)
+            parts.append(found)
+            touching[:] = False
+            touch_normal[:] = 0.0
+            resting = found.distance <= touch
+            touching[found.node[resting]] = True
+            touch_normal[found.node[resting]] = found.normal[resting]
+            touching[supported] = True
+            faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching, touch_normal, boxes))
+        found = Contacts.concat(parts)
+        if len(found):
+            order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
+            found = found.select(order)
+            found = found.select(np.r_[True, found.node[1:] != found.node[:-1]])
+        return found, FaceHits.concat(faces)
+
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
                       rigid: RigidLink, margin: float) -> Contacts:
         """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body."""

@@ -37,7 +37,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from typing import TYPE_CHECKING
+
 from softbody.integrator import Constraints, LinearSystem
+
+if TYPE_CHECKING:
+    from .bullet import BodyDynamics
 
 # compliance of the rows relative to their free diagonal (sum w^2 / M_ii over their nodes): keeps the dense
 # system regular when two rows (or a row and an eliminated node constraint) hold the same motion, at no
@@ -293,3 +298,41 @@ class CoupledSolver:
         if not cols:
             return [], np.zeros((0, N, 3)), np.zeros((0, N, 3))
         return cols, np.array([self._responses[ck][0] for ck in keys]), np.array([self._responses[ck][1] for ck in keys])
+
+
+@dataclass
+class RigidCoupling:
+    """The movable rigid bodies of one step: their dynamics at the start (bullet.BodyDynamics), their slices of
+    the stacked du, the block-diagonal mass matrix and the point Jacobians of contacts and attachments."""
+
+    dynamics: dict[int, BodyDynamics]
+    offset: dict[int, int]
+    n: int
+
+    @classmethod
+    def of(cls, dynamics: dict[int, BodyDynamics]) -> "RigidCoupling":
+        offset, n = {}, 0
+        for b, dyn in dynamics.items():
+            offset[b] = n
+            n += dyn.n
+        return cls(dynamics, offset, n)
+
+    def mass_matrix(self) -> np.ndarray:
+        M = np.zeros((self.n, self.n))
+        for b, dyn in self.dynamics.items():
+            o = self.offset[b]
+            M[o:o + dyn.n, o:o + dyn.n] = dyn.M
+        return M
+
+    def jacobians(self, adapter, rigid: np.ndarray, link: np.ndarray,
+                  points: np.ndarray) -> np.ndarray:
+        """Point Jacobians (m, 3, n) of rigid points (body ids (m,), links (m,), world points (m, 3));
+        zero rows for points on bodies that are not coupled."""
+        J = np.zeros((len(rigid), 3, self.n))
+        for b, dyn in self.dynamics.items():
+            o = self.offset[b]
+            on_body = rigid == b
+            for lk in np.unique(link[on_body]).tolist():
+                sel = on_body & (link == lk)
+                J[sel, :, o:o + dyn.n] = adapter.point_jacobians(dyn, lk, points[sel])
+        return J

@@ -35,13 +35,14 @@ from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
-from .collision import CollisionDetector, Contacts, FaceHits, triangle_boxes
+from .collision import CollisionDetector, Contacts, FaceHits
+from .coupling import RigidCoupling
 from .contact import Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts
 from .rigid import PoseScript, RigidLink, load_trimesh
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
-# the contact margin of it: resting on it, not merely near it
+# the contact margin of it: resting on it, not merely near it (collision.CollisionDetector.detect)
 TOUCH = 0.1
 
 
@@ -82,44 +83,6 @@ class Attachment:
     rigid: RigidLink
     local: np.ndarray
     coupled: bool
-
-
-@dataclass
-class _Coupling:
-    """The movable rigid bodies of one step: their dynamics at the start, their slices of du, and the
-    block-diagonal mass matrix."""
-
-    dynamics: dict[int, BodyDynamics]
-    offset: dict[int, int]
-    n: int
-
-    @classmethod
-    def of(cls, dynamics: dict[int, BodyDynamics]) -> "_Coupling":
-        offset, n = {}, 0
-        for b, dyn in dynamics.items():
-            offset[b] = n
-            n += dyn.n
-        return cls(dynamics, offset, n)
-
-    def mass_matrix(self) -> np.ndarray:
-        M = np.zeros((self.n, self.n))
-        for b, dyn in self.dynamics.items():
-            o = self.offset[b]
-            M[o:o + dyn.n, o:o + dyn.n] = dyn.M
-        return M
-
-    def jacobians(self, adapter: BulletAdapter, rigid: np.ndarray, link: np.ndarray,
-                  points: np.ndarray) -> np.ndarray:
-        """Point Jacobians (m, 3, n) of rigid points (body ids (m,), links (m,), world points (m, 3));
-        zero rows for points on bodies that are not coupled."""
-        J = np.zeros((len(rigid), 3, self.n))
-        for b, dyn in self.dynamics.items():
-            o = self.offset[b]
-            on_body = rigid == b
-            for lk in np.unique(link[on_body]).tolist():
-                sel = on_body & (link == lk)
-                J[sel, :, o:o + dyn.n] = adapter.point_jacobians(dyn, lk, points[sel])
-        return J
 
 
 class World:
@@ -426,44 +389,16 @@ class World:
         return rb.key in skip or (rb.id, None) in skip
 
     def _detect(self, i: int, body: FemBody) -> tuple[Contacts, FaceHits]:
-        """Contact candidates of soft body i against every rigid link near it: node contacts, one per node
-        (the deepest), and rigid points on its surface triangles between nodes (face contacts)."""
+        """Contact candidates of soft body i against every rigid link it does not ignore (collision.py)."""
         surface, tris = self._surface[id(body)]
         surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
-        if not len(surface):
-            return Contacts.empty(), FaceHits.empty()
-        x = body.positions
-        xs = x[surface]
         speed = float(np.sqrt((body.velocities[surface] ** 2).sum(axis=1).max(initial=0.0)))
         margin = self.contact_margin + 2.0 * speed * self.dt
-        lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
-        parts, faces = [], []
-        boxes = triangle_boxes(x, tris)
-        touching = np.zeros(body.n_nodes, dtype=bool)
-        touch_normal = np.zeros((body.n_nodes, 3))
-        for rb in self.rigids.values():
-            if self._ignored(body, rb):
-                continue
-            rlo, rhi = rb.aabb()
-            if np.any(rlo > hi) or np.any(rhi < lo):
-                continue  # broad phase: far apart, no query at all
-            found = self.detector.node_contacts(i, x, surface, rb, margin)
-            parts.append(found)
-            touching[:] = False
-            touch_normal[:] = 0.0
-            resting = found.distance <= TOUCH * self.contact_margin
-            touching[found.node[resting]] = True
-            touch_normal[found.node[resting]] = found.normal[resting]
-            touching[body.supported()] = True
-            faces.append(self.detector.face_contacts(i, x, tris, rb, margin, touching, touch_normal, boxes))
-        found = Contacts.concat(parts)
-        if len(found):
-            order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
-            found = found.select(order)
-            found = found.select(np.r_[True, found.node[1:] != found.node[:-1]])
-        return found, FaceHits.concat(faces)
+        links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
+        return self.detector.detect(i, body.positions, surface, tris, body.supported(), links, margin,
+                                    TOUCH * self.contact_margin)
 
-    def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: _Coupling
+    def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: RigidCoupling
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """For contacts with rigid links: friction (m,), the rigid points' velocities (m, 3) (for movable
         bodies filled in after pybullet's step) and the Jacobians (m, 3, n) of the coupled ones."""
@@ -479,17 +414,17 @@ class World:
         J = coupling.jacobians(self.adapter, found.rigid, found.link, found.point) if coupling.n else None
         return mu, vr, J
 
-    def _node_contacts(self, body: FemBody, found: Contacts, coupling: _Coupling) -> NodeContacts:
+    def _node_contacts(self, body: FemBody, found: Contacts, coupling: RigidCoupling) -> NodeContacts:
         mu, vr, J = self._contact_data(body, found, coupling)
         return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point,
                             found.link, J)
 
-    def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: _Coupling) -> FaceContacts:
+    def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: RigidCoupling) -> FaceContacts:
         mu, vr, J = self._contact_data(body, hits, coupling)
         return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
                             hits.nodes, hits.weights, hits.group, hits.primary)
 
-    def _coupled_attachments(self, body: FemBody, coupling: _Coupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
+    def _coupled_attachments(self, body: FemBody, coupling: RigidCoupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
         """(attachment, start points (m, 3), Jacobians (m, 3, n)) of this body's two-way attachments."""
         out = []
         for att in self.attachments:
@@ -589,7 +524,7 @@ class World:
                    | {a.rigid.id for a in self.attachments if a.coupled})
         dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
                     if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
-        self._coupling = coupling = _Coupling.of(dynamics)
+        self._coupling = coupling = RigidCoupling.of(dynamics)
         self._check_constraints(dynamics)
         self._pending = {id(body): self._node_contacts(body, f, coupling)
                          for body, f in zip(self.bodies, found) if len(f)}
