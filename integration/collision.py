@@ -2,10 +2,11 @@
 
 Broad phase in numpy: a soft body's surface AABB against each rigid body's AABB (from pybullet),
 then only the surface nodes inside the rigid's AABB and its bounding sphere, both grown by the
-margin, become candidates. Narrow
-phase: pybullet's ``getClosestPoints`` of a point probe at each candidate against the rigid body,
-which gives the closest point, the outward normal and the signed distance (for concave triangle
-meshes the sign comes from trimesh's inside test). Sharp rigid features (box corners, mesh
+margin, become candidates. Narrow phase: for links made of primitives (spheres, boxes, capsules,
+cylinders, planes) closed-form signed distances of all candidates at once (distance.py); for meshes
+pybullet's ``getClosestPoints`` of a point probe at each candidate against the link, which gives the
+closest point, the outward normal and the signed distance (for concave triangle meshes the sign comes
+from trimesh's inside test). Sharp rigid features (box corners, mesh
 vertices) are also tested against the soft surface triangles.
 """
 from __future__ import annotations
@@ -15,6 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pybullet as p
 
+from .bullet import quat_matrix
+from .distance import shape_distance
 from .rigid import RigidLink
 
 
@@ -122,6 +125,13 @@ class CollisionDetector:
         self.last_candidates += len(cand)
         if not len(cand):
             return Contacts.empty()
+        parts = rigid.primitive_parts()
+        if parts is not None:  # primitives: closed-form distances, all candidates at once
+            point, normal, dist = primitive_distances(rigid, parts, positions[cand])
+            near = dist < margin
+            n = int(near.sum())
+            return Contacts(np.full(n, body_index), cand[near], np.full(n, rigid.id), point[near], normal[near],
+                            dist[near], np.full(n, rigid.link))
         rows = []
         for node, xi in zip(cand.tolist(), positions[cand].tolist()):
             res = p.getClosestPoints(-1, rigid.id, margin, linkIndexB=rigid.link, collisionShapeA=self._probe,
@@ -198,7 +208,10 @@ class CollisionDetector:
         if len(corners):
             inside = np.all((corners[:, None] >= tlo[None]) & (corners[:, None] <= thi[None]), axis=2)
             vi, vt = np.nonzero(inside)
-        used = np.unique(np.concatenate([round_tris, vt]))  # the triangles (indices into around) in play
+        in_play = np.zeros(len(around), dtype=bool)  # the triangles (indices into around) in play
+        in_play[round_tris] = True
+        in_play[vt] = True
+        used = np.flatnonzero(in_play)
         if not len(used):
             return FaceHits.empty()
         a, b, c = (np.zeros((len(around), 3)) for _ in range(3))
@@ -283,6 +296,26 @@ class CollisionDetector:
         key = (tri.astype(np.int64) << 28) | ((feature % 4096) << 16) | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)
         return FaceHits(np.full(m, body_index), tri, triangles[tri], bary, q, -nrm[ti], d, np.full(m, rigid.id),
                         np.full(m, rigid.link), group, primary, key)
+
+
+def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest points, outward normals and signed distances of world points x (m, 3) to a link made of
+    primitive parts (RigidLink.primitive_parts), the nearest part for each point, in world coordinates."""
+    c, q = rigid.pose()
+    Rl = quat_matrix(q)
+    best = None
+    for kind, size, R, pos in parts:
+        Rw = Rl @ R  # part frame -> world
+        origin = c + Rl @ pos
+        cl, nl, d = shape_distance(kind, size, (x - origin) @ Rw)
+        if best is None:
+            best = [cl @ Rw.T + origin, nl @ Rw.T, d]
+        else:
+            closer = d < best[2]
+            best[0] = np.where(closer[:, None], cl @ Rw.T + origin, best[0])
+            best[1] = np.where(closer[:, None], nl @ Rw.T, best[1])
+            best[2] = np.where(closer, d, best[2])
+    return best[0], best[1], best[2]
 
 
 def triangle_boxes(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

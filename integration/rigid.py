@@ -151,16 +151,39 @@ class RigidLink:
         self._convex_parts = parts
         return parts
 
+    def primitive_parts(self) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] | None:
+        """The link's shapes as primitives with closed-form distances (distance.py), in its inertial frame:
+        (kind, size, rotation (3, 3), position (3,)); None if any shape is a mesh (pybullet's query then)."""
+        if "_primitives" in self.__dict__:
+            return self._primitives
+        eye, zero = np.eye(3), np.zeros(3)
+        if self.shape == "sphere":
+            parts = [("sphere", np.array([self.params["radius"]], float), eye, zero)]
+        elif self.shape == "box":
+            parts = [("box", np.asarray(self.params["half_extents"], float), eye, zero)]
+        elif self.shape == "plane":
+            parts = [("plane", np.asarray(self.params["normal"], float), eye, zero)]
+        elif self.shape == "urdf" and self.shapes and all(
+                sh.kind in ("sphere", "box", "capsule", "cylinder", "plane") for sh in self.shapes):
+            parts = [(sh.kind, np.asarray(sh.size, float), quat_matrix(sh.quaternion), np.asarray(sh.position, float))
+                     for sh in self.shapes]
+        else:
+            parts = None
+        self._primitives = parts
+        return parts
+
     def round_parts(self) -> np.ndarray:
         """(S,) bool per point of :meth:`support_points`: True where it lies on a smooth surface (sphere,
         capsule), False on a rim (cylinder)."""
-        flags = []
-        for kind, *_ in self.convex_parts():
-            if kind == "sphere":
-                flags.append(True)
-            elif kind in ("capsule", "cylinder"):
-                flags += [kind == "capsule"] * 2
-        return np.array(flags, dtype=bool)
+        if "_round" not in self.__dict__:
+            flags = []
+            for kind, *_ in self.convex_parts():
+                if kind == "sphere":
+                    flags.append(True)
+                elif kind in ("capsule", "cylinder"):
+                    flags += [kind == "capsule"] * 2
+            self._round = np.array(flags, dtype=bool)
+        return self._round
 
     def support_points(self, directions: np.ndarray) -> np.ndarray:
         """For each world direction (T, 3) (unit vectors), the points (T, S, 3) of the link's round parts
@@ -176,12 +199,12 @@ class RigidLink:
         c, q = self.pose()
         Rl = quat_matrix(q)
         for kind, size, R, pos, _ in parts:
-            Rw = Rl @ R  # part frame -> world
             centre = c + Rl @ pos
-            dl = d @ Rw  # the directions in the part's frame
-            if kind == "sphere":
-                out.append(centre + (size[0] * dl) @ Rw.T)
+            if kind == "sphere":  # no frame needed
+                out.append(centre + size[0] * d)
                 continue
+            Rw = Rl @ R  # part frame -> world
+            dl = d @ Rw  # the directions in the part's frame
             r, length = size
             if kind == "capsule":
                 rim = r * dl
