@@ -227,15 +227,21 @@ class CollisionDetector:
                 flat &= (facing > 1.0 - 1e-6).all(axis=1)
             vi, vt = vi[~flat], vt[~flat]
         S = len(rigid.round_parts())
-        pts = rigid.support_points(-nrm[round_tris]) if S else np.zeros((len(round_tris), 0, 3))  # (T, S, 3)
-        ti = np.repeat(round_tris, S)
-        q = pts.reshape(-1, 3)
-        group = np.arange(len(ti))  # the rigid point's identity: every support point is its own
-        feature = np.tile(np.arange(S), len(round_tris))  # which part or corner, the same from step to step
-        centre = np.tile(rigid.support_centres(), (len(round_tris), 1)) if S else np.zeros((0, 3))
-        if tri_touch is not None and len(ti):  # a smooth part reaches between nodes only where none touches it
-            keep = ~np.tile(rigid.round_parts(), len(round_tris)) | ~tri_touch[ti].any(axis=1)
-            ti, q, group, feature, centre = ti[keep], q[keep], group[keep], feature[keep], centre[keep]
+        if S and len(round_tris):
+            pts = rigid.support_points(-nrm[round_tris])  # (T, S, 3)
+            # only support points within the margin of their triangle's plane go on (most do not)
+            d_all = np.einsum("tsi,ti->ts", pts - a[round_tris, None], nrm[round_tris])
+            keep = np.abs(d_all) < margin
+            if tri_touch is not None:  # a smooth part reaches between nodes only where none touches it
+                keep &= ~rigid.round_parts()[None] | ~tri_touch[round_tris].any(axis=1)[:, None]
+            tk, sk = np.nonzero(keep)
+            ti, q = round_tris[tk], pts[tk, sk]
+            group = tk * S + sk  # the rigid point's identity: every support point is its own
+            feature = sk  # which part or corner, the same from step to step
+            centre = rigid.support_centres()[sk]
+        else:
+            ti, q, group, feature = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+            centre = np.zeros((0, 3))
         centre = np.concatenate([centre, corner_centres[vi]])
         ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
         group = np.concatenate([group, len(round_tris) * S + vi])
