@@ -289,6 +289,10 @@ class IterativeSettings:
     assembled and matrix-free in one process, benchmarks/operator_ab.py): matrix-free took 0.73x the
     time at (9,9,2) (3.3 iterations per step), 0.94x at (14,14,3) during the impact (6.5 iterations,
     about 9.5 products), but 1.07x at (24,24,5) (10 iterations, about 13 products).
+
+    ``pcg_responses``: a batch of homogeneous responses (IterativeSystem.responses, one per contact row
+    of a coupled solve) larger than this is solved by one exact double-precision factorisation of A
+    instead of a PCG solve per column (a factorisation costs about 10-20 PCG iterations, a response 3-6).
     """
 
     tol: float = 1e-5
@@ -297,6 +301,7 @@ class IterativeSettings:
     max_corrected_nodes: int = 64
     operator: Literal["auto", "assembled", "matrix-free"] = "auto"
     matrix_free_max_products: int = 10
+    pcg_responses: int = 4
 
     def __post_init__(self):
         if self.operator not in ("auto", "assembled", "matrix-free"):
@@ -305,7 +310,7 @@ class IterativeSettings:
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
         for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0),
-                            ("matrix_free_max_products", 0)):
+                            ("matrix_free_max_products", 0), ("pcg_responses", 0)):
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and value >= least):
                 raise InvalidInputError(f"IterativeSettings.{name} must be an integer >= {least}, got {value!r}")
@@ -323,12 +328,14 @@ class IterativeSystem:
     def __init__(self, body: FemBody, A: np.ndarray | Callable[[], np.ndarray], b: np.ndarray, x0: np.ndarray,
                  pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
                  Q: np.ndarray | None = None, terms: tuple[np.ndarray, ...] = (),
-                 A_op: Callable[[np.ndarray], np.ndarray] | sp.spmatrix | None = None):
+                 A_op: Callable[[np.ndarray], np.ndarray] | sp.spmatrix | None = None,
+                 direct: SpdSolver | None = None):
         """A: block data (nnzb, 3, 3) of the system matrix, or a function that assembles it (called
         only if a refactorisation needs it); A_op: the product y (N, 3) -> A y (N, 3), as a function or
         a sparse matrix (default: A's BSR matrix); b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3)
         per-node rotations for conjugating the preconditioner; terms: the (N, 3) terms that sum to b,
-        for the tolerance (IterativeSettings)."""
+        for the tolerance (IterativeSettings); direct: the body's double-precision solver, for batches of
+        responses (see :meth:`responses`)."""
         self.body, self.b = body, b
         self.terms = terms
         self._A = A
@@ -343,6 +350,8 @@ class IterativeSystem:
         self.Q = Q  # per-node rotations, for conjugating the preconditioner
         self.stats: dict = {"iterations": 0, "factorizations": 0}
         self.timings = timings
+        self.direct = direct
+        self._exact: tuple[bytes, DirectSystem] | None = None  # (constraint set, its factorised system)
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
@@ -456,8 +465,19 @@ class IterativeSystem:
 
     def responses(self, cons: Constraints, values: np.ndarray | None = None,
                   loads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Same contract as DirectSystem.responses: one homogeneous PCG solve per column."""
+        """Same contract as DirectSystem.responses. Up to ``IterativeSettings.pcg_responses`` columns: one
+        homogeneous PCG solve each; more (a coupled contact solve asks for one per contact row): one exact
+        factorisation of A under ``cons`` (kept while the constraint set stays) and one batched solve."""
         k = len(values) if values is not None else len(loads)
+        if k > self.settings.pcg_responses and self.direct is not None:
+            key = b"".join((cons.nodes.tobytes(), cons.mask.tobytes(),
+                            b"" if cons.frames is None else np.ascontiguousarray(cons.frames).tobytes()))
+            if self._exact is None or self._exact[0] != key:
+                with timed(self.timings, "assembly"):
+                    A = self.assemble()
+                self._exact = (key, DirectSystem(self.body, A, self.b, self.direct, timings=self.timings))
+                self.stats["factorizations"] += 1
+            return self._exact[1].responses(cons, values, loads)
         out = [self.solve(cons if values is None else Constraints(cons.nodes, cons.mask, values[j], cons.frames),
                           None if loads is None else loads[j], homogeneous=True) for j in range(k)]
         return np.array([o[0] for o in out]), np.array([o[1] for o in out])
@@ -568,7 +588,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     # iterations and a third of the refactorisations per step)
     v_prev, pre.previous_velocities = pre.previous_velocities, v.copy()
     x0 = 2.0 * v - v_prev if v_prev is not None and v_prev.shape == v.shape else v
-    return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, A_op)
+    return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, A_op, solver)
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:
