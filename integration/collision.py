@@ -11,7 +11,9 @@ vertices) are also tested against the soft surface triangles.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import math
 
 import numpy as np
 import pybullet as p
@@ -25,6 +27,13 @@ from .rigid import RigidLink
 # enough to a node resting on the same link for the node's contact to hold it
 AT_NODE = 0.99
 NEAR_TOUCHING = 0.8
+# a rigid point's travel towards a soft point within the step, times this, widens the contact search (the slack
+# covers what pybullet's own step adds to the velocity: gravity, motors, rigid contacts)
+RIGID_SLACK = 1.5
+# the same for the soft side (its velocity is solved within the step, so it may change more)
+SOFT_SLACK = 2.0
+# a contact normal and a soft surface's own normal face each other if they make more than ~95 degrees
+FACING = -0.1
 
 
 @dataclass
@@ -69,6 +78,64 @@ class Contacts:
         return cls(*(np.concatenate([getattr(c, f) for c in parts]) for f in cls.FIELDS))
 
 
+@dataclass(frozen=True)
+class Sweep:
+    """What one rigid link and one soft body can close within a step of ``h`` [s]: ``margin`` [m] (the contact
+    margin), ``velocities`` (N, 3) [m/s] of the soft body's nodes, and the link's motion at the start of the
+    step: linear velocity ``v`` (3,) [m/s] of its centre of mass ``centre`` (3,), angular velocity ``w`` (3,)
+    [rad/s]; ``radius`` [m] its bounding radius about the centre (inf: unbounded, a plane).
+
+    Speculative contact: whatever could meet within the step is a constraint of the step, so that no speed
+    tunnels. A soft point at distance d from the link, along the direction n from the rigid point facing it,
+    is a candidate if d < margin + h (RIGID_SLACK max(v_p . n, 0) + SOFT_SLACK max(-v_s . n, 0)), v_p the
+    rigid point's velocity and v_s the soft point's, and if it lies within the link's bounding sphere swept
+    over the step (its centre's path, its radius grown by the spin and by the soft side's travel)."""
+
+    margin: float
+    h: float
+    velocities: np.ndarray
+    v: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    w: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    radius: float = math.inf
+
+    def soft_travel(self, nodes: np.ndarray | None = None) -> float:
+        """The farthest [m] any of the soft ``nodes`` (default: all) may travel within the step, with slack."""
+        v = self.velocities if nodes is None else self.velocities[nodes]
+        return SOFT_SLACK * self.h * float(np.sqrt(np.einsum("ij,ij->i", v, v).max(initial=0.0)))
+
+    def rigid_travel(self) -> float:
+        """The farthest [m] any point of the link may travel within the step, with slack (0 if unbounded)."""
+        spin = float(np.linalg.norm(self.w)) * self.radius if math.isfinite(self.radius) else 0.0
+        return RIGID_SLACK * self.h * (float(np.linalg.norm(self.v)) + spin)
+
+    def bound(self, nodes: np.ndarray | None = None) -> float:
+        """The largest reach [m] for the soft ``nodes`` (for the broad phase on boxes)."""
+        return self.margin + self.soft_travel(nodes) + self.rigid_travel()
+
+    def reach(self, points: np.ndarray, towards: np.ndarray, v_soft: np.ndarray) -> np.ndarray:
+        """(m,) the reach [m] at rigid material points (m, 3) whose soft partners lie along unit ``towards``
+        (m, 3) from them and move with ``v_soft`` (m, 3): the margin plus what the two close within the step."""
+        vp = self.v + np.cross(self.w, points - self.centre)
+        rigid = np.maximum(np.einsum("ij,ij->i", vp, towards), 0.0)
+        soft = np.maximum(-np.einsum("ij,ij->i", v_soft, towards), 0.0)
+        return self.margin + self.h * (RIGID_SLACK * rigid + SOFT_SLACK * soft)
+
+    def swept(self, x: np.ndarray, size: np.ndarray | float = 0.0, travel: float = 0.0) -> np.ndarray:
+        """(m,) bool: balls at x (m, 3) of radius ``size`` [m], travelling up to ``travel`` [m], meet the
+        link's bounding sphere swept over the step (all True for a link of unbounded extent)."""
+        if not math.isfinite(self.radius):
+            return np.ones(len(x), dtype=bool)
+        path = RIGID_SLACK * self.h * self.v
+        length2 = float(path @ path)
+        rel = x - self.centre
+        s = np.clip(rel @ path / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(x))
+        gap = rel - s[:, None] * path
+        spin = RIGID_SLACK * self.h * float(np.linalg.norm(self.w)) * self.radius
+        reach = self.radius + spin + self.margin + size + travel
+        return np.einsum("ij,ij->i", gap, gap) <= reach * reach
+
+
 class CollisionDetector:
     """Finds node contacts of soft bodies against rigid bodies within ``margin`` [m]."""
 
@@ -78,24 +145,33 @@ class CollisionDetector:
         self.last_candidates = 0
 
     def detect(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
-               supported: np.ndarray, links: list[RigidLink], margin: float, touch: float) -> tuple["Contacts", "FaceHits"]:
+               supported: np.ndarray, links: list[RigidLink], sweeps: list[Sweep], touch: float
+               ) -> tuple["Contacts", "FaceHits"]:
         """Contact candidates of one soft body (positions (N, 3), surface nodes (s,) not held by supports,
-        surface triangles (T, 3), supported (N,) bool) against ``links``: node contacts within ``margin``,
-        one per node (the deepest), and rigid points on its triangles between nodes (face contacts; a node
-        within ``touch`` of a link rests on it). Far links cost no query (broad phase on boxes)."""
+        surface triangles (T, 3), supported (N,) bool) against ``links``: node contacts within each link's
+        reach (``sweeps``, one per link: what the two sides may close within the step), one per node (the
+        deepest), and rigid points on its triangles between nodes (face contacts; a node within ``touch`` of
+        a link rests on it). Far links cost no query (broad phase on boxes)."""
         if not len(surface):
             return Contacts.empty(), FaceHits.empty()
         xs = positions[surface]
-        lo, hi = xs.min(axis=0) - margin, xs.max(axis=0) + margin
+        lo0, hi0 = xs.min(axis=0), xs.max(axis=0)
         parts, faces = [], []
         boxes = triangle_boxes(positions, triangles)
+        normals = vertex_normals(positions, triangles)
         touching = np.zeros(len(positions), dtype=bool)
         touch_normal = np.zeros((len(positions), 3))
-        for rb in links:
+        for rb, sweep in zip(links, sweeps):
+            margin = sweep.bound(surface)
             rlo, rhi = rb.aabb()
-            if np.any(rlo > hi) or np.any(rhi < lo):
+            if np.any(rlo > hi0 + margin) or np.any(rhi < lo0 - margin):
                 continue  # broad phase: far apart, no query at all
-            found = self.node_contacts(body_index, positions, surface, rb, margin)
+            found = self.node_contacts(body_index, positions, surface, rb, margin, sweep)
+            # a rigid face must face the soft surface at the node: a node lying in the plane of a box's bottom,
+            # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
+            # plough into it); a node inside the link always is
+            facing = np.einsum("ij,ij->i", found.normal, normals[found.node]) < FACING
+            found = found.select(facing | (found.distance <= 0))
             parts.append(found)
             touching[:] = False
             touch_normal[:] = 0.0
@@ -103,7 +179,8 @@ class CollisionDetector:
             touching[found.node[resting]] = True
             touch_normal[found.node[resting]] = found.normal[resting]
             touching[supported] = True
-            faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching, touch_normal, boxes))
+            faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching, touch_normal, boxes,
+                                            sweep))
         found = Contacts.concat(parts)
         if len(found):
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
@@ -112,13 +189,16 @@ class CollisionDetector:
         return found, FaceHits.concat(faces)
 
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
-                      rigid: RigidLink, margin: float) -> Contacts:
-        """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body."""
+                      rigid: RigidLink, margin: float, sweep: Sweep | None = None) -> Contacts:
+        """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body within
+        ``margin`` [m] (and, given a ``sweep``, within its reach of the rigid point facing them)."""
         x = positions[surface_nodes]
         lo, hi = rigid.aabb()
         inside = np.all((x >= lo - margin) & (x <= hi + margin), axis=1)
         reach = rigid.bounding_radius() + margin
-        if np.isfinite(reach):  # and inside the shape's bounding sphere (for a sphere: exact)
+        if sweep is not None:  # and inside the bounding sphere's sweep over the step
+            inside &= sweep.swept(x, travel=sweep.soft_travel(surface_nodes))
+        elif np.isfinite(reach):  # and inside the shape's bounding sphere (for a sphere: exact)
             c, _ = rigid.pose()
             inside &= np.einsum("ij,ij->i", x - c, x - c) <= reach * reach
         cand = surface_nodes[inside]
@@ -128,7 +208,7 @@ class CollisionDetector:
         parts = rigid.primitive_parts()
         if parts is not None:  # primitives: closed-form distances, all candidates at once
             point, normal, dist = primitive_distances(rigid, parts, positions[cand])
-            near = dist < margin
+            near = dist < (margin if sweep is None else sweep.reach(point, normal, sweep.velocities[cand]))
             n = int(near.sum())
             return Contacts(np.full(n, body_index), cand[near], np.full(n, rigid.id), point[near], normal[near],
                             dist[near], np.full(n, rigid.link))
@@ -148,6 +228,9 @@ class CollisionDetector:
             inside_mesh = rigid._trimesh.contains(rigid.to_local(positions[node]))
             normal = np.where(inside_mesh[:, None], -normal, normal)
             dist = np.where(inside_mesh, -dist, dist)
+        if sweep is not None:
+            near = dist < sweep.reach(point, normal, sweep.velocities[node])
+            node, point, normal, dist = node[near], point[near], normal[near], dist[near]
         n = len(node)
         return Contacts(np.full(n, body_index), node, np.full(n, rigid.id), point, normal, dist,
                         np.full(n, rigid.link))
@@ -156,7 +239,7 @@ class CollisionDetector:
     def face_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink,
                       margin: float, touching: np.ndarray | None = None,
                       touch_normal: np.ndarray | None = None,
-                      boxes: tuple[np.ndarray, np.ndarray] | None = None) -> "FaceHits":
+                      boxes: tuple[np.ndarray, np.ndarray] | None = None, sweep: Sweep | None = None) -> "FaceHits":
         """Points of a rigid link inside (or within ``margin`` of) soft surface triangles, between their nodes.
 
         The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
@@ -174,7 +257,8 @@ class CollisionDetector:
         the discretisation, not a penetration, and a second constraint on nearly the same spot would only
         make the contact forces ill-determined. Sharp parts (box corners, cylinder rims, mesh vertices)
         count on partly touching triangles too: they poke between nodes that rest on the part's faces.
-        ``boxes``: the triangles' bounds (triangle_boxes), if already at hand.
+        ``boxes``: the triangles' bounds (triangle_boxes), if already at hand. ``sweep``: a point outside a
+        triangle's plane counts only within its reach (what it closes along the normal within the step).
         """
         if boxes is None:
             boxes = triangle_boxes(positions, triangles)
@@ -183,7 +267,12 @@ class CollisionDetector:
         around = np.flatnonzero((thi[:, 0] >= rlo[0]) & (thi[:, 1] >= rlo[1]) & (thi[:, 2] >= rlo[2])
                                 & (tlo[:, 0] <= rhi[0]) & (tlo[:, 1] <= rhi[1]) & (tlo[:, 2] <= rhi[2]))
         reach = rigid.bounding_radius()
-        if len(around) and np.isfinite(reach):  # and whose bounding spheres meet the link's
+        if len(around) and sweep is not None:  # and whose bounding spheres meet its sweep
+            mid = 0.5 * (boxes[0][around] + boxes[1][around])
+            half = 0.5 * (boxes[1][around] - boxes[0][around])
+            travel = sweep.soft_travel(np.unique(triangles[around]))
+            around = around[sweep.swept(mid, np.sqrt(np.einsum("ij,ij->i", half, half)), travel)]
+        elif len(around) and np.isfinite(reach):  # and whose bounding spheres meet the link's
             centre, _ = rigid.pose()
             mid = 0.5 * (tlo[around] + thi[around])
             half = 0.5 * (thi[around] - tlo[around])
@@ -255,6 +344,8 @@ class CollisionDetector:
             return FaceHits.empty()
         d = np.einsum("ij,ij->i", q - a[ti], nrm[ti])  # > 0 outside the soft body (outward triangles)
         near_plane = np.abs(d) < margin
+        if sweep is not None:  # the triangle's velocity: its nodes' mean
+            near_plane &= d < sweep.reach(q, -nrm[ti], sweep.velocities[triangles[around[ti]]].mean(axis=1))
         ti, q, d, group, feature = ti[near_plane], q[near_plane], d[near_plane], group[near_plane], feature[near_plane]
         A, B, C, n = a[ti], b[ti], c[ti], nrm[ti]
         proj = q - d[:, None] * n
@@ -304,10 +395,12 @@ class CollisionDetector:
                         np.full(m, rigid.link), group, primary, key)
 
 
-def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tuple | None = None
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest points, outward normals and signed distances of world points x (m, 3) to a link made of
-    primitive parts (RigidLink.primitive_parts), the nearest part for each point, in world coordinates."""
-    c, q = rigid.pose()
+    primitive parts (RigidLink.primitive_parts), the nearest part for each point, in world coordinates; with
+    the link at ``pose`` (centre of mass (3,), quaternion (4,)), default its current one."""
+    c, q = rigid.pose() if pose is None else pose
     Rl = quat_matrix(q)
     best = None
     for kind, size, R, pos in parts:
@@ -322,6 +415,18 @@ def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray) -> tuple[n
             best[1] = np.where(closer[:, None], nl @ Rw.T, best[1])
             best[2] = np.where(closer, d, best[2])
     return best[0], best[1], best[2]
+
+
+def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit normals (N, 3) of a surface's nodes for positions (N, 3) and outward triangles
+    (T, 3) (zero at nodes on no triangle)."""
+    P = positions[triangles]
+    n = cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    out = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(out, triangles[:, k], n)
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    return np.divide(out, norm, out=np.zeros_like(out), where=norm > 0)
 
 
 def triangle_boxes(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

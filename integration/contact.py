@@ -34,6 +34,8 @@ from .frictional import ContactState, solve_contacts
 
 # cosine above which two face contacts of one rigid point hold the same face (nearly the same constraint)
 SAME_FACE = 0.9
+# penetration [m] a soft contact leaves where it is (_ContactSet.tolerate)
+SOFT_SLOP = 5e-5
 
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
@@ -56,7 +58,9 @@ class NodeContacts:
     node (m,), normal (m, 3), distance (m,), rigid_velocity (m, 3) [m/s] of the rigid material point
     (for a movable body: under its free motion over the step), mu (m,), rigid (m,) pybullet body id,
     point (m, 3), link (m,) link index (-1: base), jacobian (m, 3, n): velocity of the rigid point per
-    unit of the coupled rigid velocity change du (None: nothing coupled).
+    unit of the coupled rigid velocity change du (None: nothing coupled); carried (m,) bool: the contact
+    was found at the end of the step and carried back with the link, so its distance is no penetration
+    (never undone at a bounded speed, see ContactSolver.push_speed); None: none is.
     """
 
     node: np.ndarray
@@ -68,6 +72,7 @@ class NodeContacts:
     point: np.ndarray
     link: np.ndarray | None = None
     jacobian: np.ndarray | None = None
+    carried: np.ndarray | None = None
 
     def __post_init__(self):
         if self.link is None:
@@ -95,6 +100,24 @@ class FaceContacts(NodeContacts):
     weights: np.ndarray | None = None
     group: np.ndarray | None = None
     primary: np.ndarray | None = None
+
+
+@dataclass
+class PairContacts(NodeContacts):
+    """Contacts between soft bodies (softcontact.py): as NodeContacts (node: the contact's key; rigid_velocity
+    zero, rigid -1), with parts (m, 4) the indices of the step's soft bodies of the slots (a, b, b, b), nodes
+    (m, 4) the node of a and the triangle's of b, weights (m, 4): 1 and minus the barycentric weights, so
+    that a row's value is the normal velocity of a's node relative to b's triangle point."""
+
+    parts: np.ndarray | None = None
+    nodes: np.ndarray | None = None
+    weights: np.ndarray | None = None
+
+    def relabel(self, local: np.ndarray) -> "PairContacts":
+        """The same contacts with parts mapped through ``local`` (array: old index -> new)."""
+        out = self.select(np.ones(len(self), dtype=bool))
+        out.parts = local[self.parts]
+        return out
 
 
 @dataclass
@@ -145,7 +168,8 @@ class BodyStep:
 class StepSolution:
     """What the contact solve found: per body the velocities (N, 3), the node and face contact results
     (or None) and the attachment forces on the soft nodes (m, 3) [N] (or None); du (n,) the rigid
-    velocity change."""
+    velocity change; pairs: the soft contacts solved (in up to two parts, one per mode) with their results
+    (force: on the node of body a [N]; body b takes minus its weights' share)."""
 
     velocities: list[np.ndarray]
     contacts: list[ContactResult | None]
@@ -153,6 +177,7 @@ class StepSolution:
     attachment_forces: list[np.ndarray | None]
     du: np.ndarray
     iterations: int
+    pairs: list[tuple["PairContacts", ContactResult]] = field(default_factory=list)
 
 
 def _stack(parts: list[Constraints]) -> Constraints:
@@ -183,7 +208,11 @@ class _ContactSet:
         # the gap to close: a contact that may start active (a node, or a point on its own triangle) closes
         # its whole gap; a neighbour (its point not on that triangle yet) only keeps from penetrating further,
         # its distance to the triangle's extended plane being no penetration to undo
-        self.gap = c.distance if may_start is None else np.where(may_start, c.distance, np.maximum(c.distance, 0.0))
+        gap = c.distance if may_start is None else np.where(may_start, c.distance, np.maximum(c.distance, 0.0))
+        # a penetration (an overlap the scene started with, or a contact caught late) is undone at a bounded
+        # speed, over as many steps as it takes, so that it adds no more than that speed's kinetic energy
+        bounded = np.maximum(gap, -solver.push_speed * h)
+        self.gap = bounded if c.carried is None else np.where(c.carried, gap, bounded)
         self.target = self.vr_free.copy()
         self.target[:, 0] -= self.gap / h
         prev_active, prev_stick, prev_slip = previous
@@ -208,6 +237,14 @@ class _ContactSet:
         self.gap_rate = np.zeros(m)
         self.mag = np.zeros((m, 1))
         self.d_stick = self.new_slip = np.zeros((m, 2))
+
+    def tolerate(self, slop: float) -> None:
+        """Leave penetrations up to ``slop`` [m] where they are (closing only what lies beyond): a contact
+        between two deforming surfaces is linearised at the start of the step (normal and weights), so its
+        end state is off by a little, and undoing that little each step would feed energy into the scene."""
+        gap = np.where(self.gap < 0, np.minimum(self.gap + slop, 0.0), self.gap)
+        self.target[:, 0] += (self.gap - gap) / self.h
+        self.gap = gap
 
     def remember_warm_start(self) -> None:
         """Keep the warm start (active, stick, sliding directions) apart, for a solver that sets the contact
@@ -349,43 +386,56 @@ class _NodeSet(_ContactSet):
 
 
 class _RowSet(_ContactSet):
-    """Contacts held by constraint rows with multipliers: points with barycentric weights (m, s) over nodes
-    (m, s) of one soft body (part); a node contact is a point with one weight of 1."""
+    """Contacts held by constraint rows with multipliers: points with weights (m, s) over nodes (m, s) of the
+    soft bodies ``parts`` (m, s) (an int: all of one body); a node contact is a point with one weight of 1, a
+    soft-soft contact a node of one body (weight 1) against a triangle point of another (minus its weights).
+    sizes: {part: its number of nodes}."""
 
-    def __init__(self, solver, c: NodeContacts, nodes: np.ndarray, weights: np.ndarray, part: int, previous: tuple,
-                 h: float, n_nodes: int, may_start: np.ndarray | None = None):
+    def __init__(self, solver, c: NodeContacts, nodes: np.ndarray, weights: np.ndarray, parts, previous: tuple,
+                 h: float, sizes: dict[int, int], may_start: np.ndarray | None = None):
         super().__init__(solver, c, c.node, previous, h, may_start)
-        self.nodes, self.weights, self.part, self.n_nodes = nodes, weights, part, n_nodes
+        self.nodes, self.weights, self.sizes = nodes, weights, sizes
+        self.parts = np.broadcast_to(np.asarray(parts, dtype=np.int64), nodes.shape)
 
-    def rows(self, n: int, every: bool = False) -> tuple[Rows, np.ndarray | None]:
-        """The active contacts' rows (values at du = 0) and the sliding friction as an extra right-hand side
-        (N, 3) of the body (None if nothing slides); remembers each row's (contact, axis). every: all three
-        rows of every contact (contact-major), whatever the state."""
+    def rows(self, n: int, every: bool = False) -> tuple[Rows, dict[int, np.ndarray]]:
+        """The active contacts' rows (values at du = 0) and the sliding friction as extra right-hand sides
+        {part: (N, 3)} of the bodies (empty if nothing slides); remembers each row's (contact, axis). every:
+        all three rows of every contact (contact-major), whatever the state."""
         c, h = self.c, self.h
         ci, ax = np.nonzero(np.ones((len(c), 3), dtype=bool) if every else self.mask())
         self.row_index = (ci, ax)
         direction = self.frames[ci, :, ax]
         g = np.einsum("mi,min->mn", direction, c.jacobian[ci]) if c.jacobian is not None and n else np.zeros((len(ci), n))
-        rows = Rows(np.full(self.nodes[ci].shape, self.part), self.nodes[ci], self.weights[ci], direction, g,
-                    self.target[ci, ax])
-        extra = None
+        rows = Rows(self.parts[ci], self.nodes[ci], self.weights[ci], direction, g, self.target[ci, ax])
+        extra = {}
         slipping = self.slipping()
         if slipping.any():
-            extra = np.zeros((self.n_nodes, 3))
             f = h * np.einsum("mij,mj->mi", self.frames[slipping], self.slip_force[slipping])
-            np.add.at(extra, self.nodes[slipping].ravel(),
-                      (self.weights[slipping][:, :, None] * f[:, None, :]).reshape(-1, 3))
+            parts, nodes, weights = self.parts[slipping], self.nodes[slipping], self.weights[slipping]
+            for part in np.unique(parts).tolist():
+                j, slot = np.nonzero(parts == part)
+                e = np.zeros((self.sizes[part], 3))
+                np.add.at(e, nodes[j, slot], weights[j, slot, None] * f[j])
+                extra[part] = e
         return rows, extra
 
-    def read(self, v: np.ndarray, lam: np.ndarray, du: np.ndarray, it: int) -> bool:
-        """Update from the body's velocities v (N, 3) and the impulses lam of this set's rows."""
+    def point_velocities(self, vs) -> np.ndarray:
+        """(m, 3) the velocities sum_s w_s v[node_s] of the contact points, vs[part] (N, 3) each body's."""
+        out = np.zeros((len(self.c), 3))
+        for part in np.unique(self.parts).tolist():
+            on = self.parts == part
+            out += np.einsum("ms,msi->mi", np.where(on, self.weights, 0.0), vs[part][np.where(on, self.nodes, 0)])
+        return out
+
+    def read(self, vs, lam: np.ndarray, du: np.ndarray, it: int) -> bool:
+        """Update from the bodies' velocities vs[part] (N, 3) and the impulses lam of this set's rows."""
         rl = np.zeros((len(self.c), 3))
         ci, ax = self.row_index
         rl[ci, ax] = lam / self.h
-        v_point = np.einsum("ms,msi->mi", self.weights, v[self.nodes])
-        return self.update(rl, np.einsum("mji,mj->mi", self.frames, v_point), du, it, self.eligible(v, du))
+        v_point = self.point_velocities(vs)
+        return self.update(rl, np.einsum("mji,mj->mi", self.frames, v_point), du, it, self.eligible(vs, du))
 
-    def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray | None:
+    def eligible(self, vs, du: np.ndarray, active: np.ndarray | None = None) -> np.ndarray | None:
         return None
 
 
@@ -393,7 +443,8 @@ class _FaceSet(_RowSet):
     """Contacts at points of one soft body's triangles, between their nodes."""
 
     def __init__(self, solver, c: FaceContacts, part: int, previous: tuple, h: float, positions: np.ndarray):
-        super().__init__(solver, c, c.nodes, c.weights, part, previous, h, len(positions), c.primary)
+        super().__init__(solver, c, c.nodes, c.weights, part, previous, h, {part: len(positions)}, c.primary)
+        self.part = part
         # one active contact per rigid point to start with (its primary, else the first)
         idx = np.flatnonzero(self.active)
         order = idx[np.lexsort((~c.primary[idx], c.group[idx]))]
@@ -402,12 +453,13 @@ class _FaceSet(_RowSet):
         self.active[order[dup]] = False
         self.x_tri = positions[c.nodes]  # (m, 3, 3) at the start of the step
 
-    def eligible(self, v: np.ndarray, du: np.ndarray) -> np.ndarray:
-        """(m,) which contacts may be added after a solve with velocities v (N, 3) and du: those whose rigid
+    def eligible(self, vs, du: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        """(m,) which contacts may be added after a solve with velocities vs[part] (N, 3) and du, given the
+        contacts ``active`` (m,) in that solve (default: this set's own active set): those whose rigid
         point, at the end of the step, projects into its triangle and has it as the nearest of its group,
         one per rigid point and iteration, and none nearly parallel to an active contact of that point."""
         c, h = self.c, self.h
-        x_end = self.x_tri + h * v[c.nodes]
+        x_end = self.x_tri + h * vs[self.part][c.nodes]
         vr = c.rigid_velocity if c.jacobian is None or not len(du) else c.rigid_velocity + c.jacobian @ du
         q_end = c.point + h * vr
         inside = (barycentric(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]) >= -1e-9).all(axis=1)
@@ -418,7 +470,7 @@ class _FaceSet(_RowSet):
         ok = inside & (dist <= nearest[c.group] + 1e-9)
         # a rigid point takes a second triangle only across a crease: none whose normal is within ~25 degrees
         # of an active contact's of the same point (their rows would be nearly the same), the first of ties
-        act = np.flatnonzero(self.active)
+        act = np.flatnonzero(self.active if active is None else active)
         for g, nrm in zip(c.group[act], c.normal[act]):
             ok &= ~((c.group == g) & (c.normal @ nrm > SAME_FACE))
         first = np.zeros(len(ok), dtype=bool)
@@ -428,18 +480,44 @@ class _FaceSet(_RowSet):
         return first
 
 
+def _groups(count: int, pairs: PairContacts | None) -> np.ndarray:
+    """(count,) a label per body: bodies joined by soft contacts (directly or through others) share one."""
+    label = np.arange(count)
+    if pairs is None or not len(pairs):
+        return label
+    links = np.unique(pairs.parts[:, :2], axis=0)
+    changed = True
+    while changed:  # label propagation: as many rounds as the longest chain of touching bodies
+        changed = False
+        for a, b in links.tolist():
+            low = min(label[a], label[b])
+            if label[a] != low or label[b] != low:
+                label[label == label[a]] = low
+                label[label == label[b]] = low
+                changed = True
+    return label
+
+
+def _add_extras(extras: list, parts: dict[int, np.ndarray]) -> None:
+    """Add extra right-hand sides {part: (N, 3)} into extras[part] (None: none yet)."""
+    for part, e in parts.items():
+        extras[part] = e if extras[part] is None else extras[part] + e
+
+
 class ContactSolver:
     """Active-set solver for unilateral contacts with Coulomb friction, for all soft bodies of a step at
     once (coupled through movable rigid bodies and constraint rows, see coupling.py).
 
     max_iterations bounds the active-set loop; velocity_tol [m/s] is the threshold for adding contacts
     and for a slide to count as stopped; slip_tol the relative change of sliding forces that still
-    counts as a change; cone_tol the relative slack of the friction cone before stick turns to slip.
+    counts as a change; cone_tol the relative slack of the friction cone before stick turns to slip;
+    push_speed [m/s] the fastest a penetration is undone (deeper ones take several steps).
     """
 
     def __init__(self, max_iterations: int = 30, velocity_tol: float = 1e-7, slip_tol: float = 1e-3,
-                 friction_switches: int = 1, cone_tol: float = 1e-3):
+                 friction_switches: int = 1, cone_tol: float = 1e-3, push_speed: float = 0.5):
         self.max_iterations = max_iterations
+        self.push_speed = push_speed
         self.velocity_tol = velocity_tol
         self.slip_tol = slip_tol
         # stick/slip may change only in the first friction_switches iterations of a step; later changes
@@ -456,15 +534,20 @@ class ContactSolver:
             return None
         return make(self.previous.get((kind, id(body)), (set(), set(), {})))
 
-    def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None) -> StepSolution:
+    def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None,
+              pairs: PairContacts | None = None) -> StepSolution:
         """Solve one step of every body in ``steps``; ``mass_matrix`` (n, n): the movable rigid bodies' mass
-        matrix for the coupled velocity change du (None: no rigid body is coupled).
+        matrix for the coupled velocity change du (None: no rigid body is coupled); ``pairs``: contacts
+        between the soft bodies (their parts index ``steps``).
 
         A body in touch with a movable rigid body (a contact or attachment whose Jacobian is not zero) is
-        solved in the dense mode with all others like it (:meth:`_solve_dense`); the others alone, by the
-        active set on eliminated node contacts (:meth:`_solve_sparse`)."""
+        solved in the dense mode with all others like it (:meth:`_solve_dense`); so are bodies in soft contact
+        (with each other or themselves), whose contacts come and go as the surfaces slide over each other:
+        the dense mode settles stick and slip within the step, where the active set carries a contact's
+        change to the next step. The others are solved by the active set on eliminated node contacts
+        (:meth:`_solve_sparse`)."""
         n = 0 if mass_matrix is None else len(mass_matrix)
-        prepared, dense = [], []
+        prepared, dense, held_by = [], [], []
         for st in steps:
             held = st.supports.nodes
             cons, G = [st.supports], [np.zeros((len(st.supports), 3, n))]
@@ -482,24 +565,64 @@ class ContactSolver:
                 f = f.select(~np.isin(f.nodes, held).all(axis=1))
             prepared.append((_stack(cons), np.concatenate(G) if n else None, c, f))
             dense.append(n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
+            held_by.append(held)
+        dense = np.array(dense, dtype=bool)
+        if pairs is not None and len(pairs):  # a soft contact between held nodes only is held already
+            free = np.zeros(pairs.parts.shape, dtype=bool)
+            for i, held in enumerate(held_by):
+                on = pairs.parts == i
+                free |= on & ~np.isin(pairs.nodes, held)
+            pairs = pairs.select(free.any(axis=1))
+        group = _groups(len(steps), pairs)
+        for g in np.unique(group):
+            members = np.flatnonzero(group == g)
+            if any(dense[i] for i in members) or len(members) > 1 or (
+                    pairs is not None and len(pairs) and np.isin(pairs.parts[:, 0], members).any()):
+                dense[members] = True
         results: list = [None] * len(steps)
         simple = [i for i in range(len(steps)) if not dense[i]]
         coupled = [i for i in range(len(steps)) if dense[i]]
-        du, iterations = np.zeros(n), 0
-        if simple:
-            its = self._solve_sparse([steps[i] for i in simple], [prepared[i] for i in simple], h, simple, results)
+        du, iterations, pair_results = np.zeros(n), 0, []
+        self._pair_previous = (set(), set(), {})
+        for index, solve in ((simple, self._solve_sparse), (coupled, self._solve_dense)):
+            if not index:
+                continue
+            sub = None
+            if pairs is not None and len(pairs):
+                local = np.full(len(steps), -1)
+                local[index] = np.arange(len(index))
+                sub = pairs.select(np.isin(pairs.parts[:, 0], index))
+                sub = sub.relabel(local) if len(sub) else None
+            out, its, res = solve([steps[i] for i in index], [prepared[i] for i in index], h, index, results, sub,
+                                  *(() if solve == self._solve_sparse else (mass_matrix,)))
+            if solve == self._solve_dense:
+                du = out
             iterations = max(iterations, its)
-        if coupled:
-            du, its = self._solve_dense([steps[i] for i in coupled], [prepared[i] for i in coupled], h, mass_matrix,
-                                        coupled, results)
-            iterations = max(iterations, its)
+            if res is not None:
+                pair_results.append((pairs.select(np.isin(pairs.parts[:, 0], index)), res))
+        self.previous[("soft", 0)] = self._pair_previous
         velocities, nodes, faces, attach = [], [], [], []
         for st, (v, r, res_n, res_f) in zip(steps, results):
             velocities.append(v)
             nodes.append(res_n)
             faces.append(res_f)
             attach.append(self._attachment_forces(st, r, h))
-        return StepSolution(velocities, nodes, faces, attach, du, iterations)
+        return StepSolution(velocities, nodes, faces, attach, du, iterations, pair_results)
+
+    def _pair_set(self, pairs: PairContacts | None, steps: list[BodyStep], h: float) -> "_RowSet | None":
+        """The row set of the soft contacts ``pairs`` (parts local to ``steps``), warm-started."""
+        if pairs is None or not len(pairs):
+            return None
+        sizes = {i: st.system.body.n_nodes for i, st in enumerate(steps)}
+        rs = _RowSet(self, pairs, pairs.nodes, pairs.weights, pairs.parts,
+                     self.previous.get(("soft", 0), (set(), set(), {})), h, sizes)
+        rs.tolerate(SOFT_SLOP)
+        return rs
+
+    def _keep_pair_state(self, state: tuple) -> None:
+        """Merge the friction state of one mode's soft contacts into this step's (see :meth:`solve`)."""
+        active, stick, slip = self._pair_previous
+        self._pair_previous = (active | state[0], stick | state[1], {**slip, **state[2]})
 
     @staticmethod
     def _attachment_forces(st: BodyStep, r: np.ndarray, h: float) -> np.ndarray | None:
@@ -512,40 +635,51 @@ class ContactSolver:
         f[kept] = r[a.node[kept]] / h
         return f
 
-    def _solve_sparse(self, steps, prepared, h, index, results) -> int:
-        """Bodies touching no movable rigid body, each alone: node contacts eliminated in their frames, face
-        contacts as rows, an active set that solves the sparse systems anew when the set changes."""
+    def _solve_sparse(self, steps, prepared, h, index, results, pairs=None) -> tuple[None, int, ContactResult | None]:
+        """Bodies touching no movable rigid body: node contacts eliminated in their frames, face contacts and
+        soft contacts (``pairs``, parts local to ``steps``) as rows, an active set that solves the sparse
+        systems anew when the set changes. Returns (None, iterations, the soft contacts' result)."""
         coupled = CoupledSolver(None)
         nodes, faces = [], []
         for i, (st, (b_cons, _, c, f)) in enumerate(zip(steps, prepared)):
             body = st.system.body
             nodes.append(self._set("node", body, c, lambda prev: _NodeSet(self, c, prev, h, body.n_nodes)))
             faces.append(self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h, body.positions)))
+        pset = self._pair_set(pairs, steps, h)
         it = 0
         for it in range(1, self.max_iterations + 1):
-            parts, row_parts = [], []
-            for st, (b_cons, _, _, _), nset, fset in zip(steps, prepared, nodes, faces):
-                extra, cons, reuse = None, b_cons, it > 1
+            row_parts, extras, cons_of, reuse_of = [], [None] * len(steps), [], []
+            for i, (st, (b_cons, _, _, _), nset, fset) in enumerate(zip(steps, prepared, nodes, faces)):
+                cons, reuse = b_cons, it > 1
                 if nset is not None:
-                    c_cons, _, extra = nset.constraints()
+                    c_cons, _, extras[i] = nset.constraints()
                     cons = _stack([b_cons, c_cons])
                     reuse = nset.reuse
                 if fset is not None:
                     r, f_extra = fset.rows(0)
                     row_parts.append(r)
-                    if f_extra is not None:
-                        extra = f_extra if extra is None else extra + f_extra
-                parts.append(CoupledPart(st.system, cons, None, extra, reuse))
+                    _add_extras(extras, f_extra)
+                cons_of.append(cons)
+                reuse_of.append(reuse)
+            if pset is not None:
+                r, p_extra = pset.rows(0)
+                row_parts.append(r)
+                _add_extras(extras, p_extra)
+            parts = [CoupledPart(st.system, cons, None, extra, reuse)
+                     for st, cons, extra, reuse in zip(steps, cons_of, extras, reuse_of)]
             rows = Rows.concat(row_parts, 0) if row_parts else None
             out, du, lam = coupled.solve(parts, rows)
+            vs = [v for v, _ in out]
             changed, k = False, 0
             for (v, r), nset, fset in zip(out, nodes, faces):
                 if nset is not None:
                     changed |= nset.read(v, r, du, it)
                 if fset is not None:
                     m = len(fset.row_index[0])
-                    changed |= fset.read(v, lam[k:k + m], du, it)
+                    changed |= fset.read(vs, lam[k:k + m], du, it)
                     k += m
+            if pset is not None:
+                changed |= pset.read(vs, lam[k:], du, it)
             if not changed:
                 break
         for j, st, nset, fset, (v, r) in zip(index, steps, nodes, faces, out):
@@ -558,12 +692,18 @@ class ContactSolver:
                     result, self.previous[(kind, id(body))] = cset.result(it)
                     res.append(result)
             results[j] = (v, r, *res)
-        return it
+        pair_result = None
+        if pset is not None:
+            pair_result, state = pset.result(it)
+            self._keep_pair_state(state)
+        return None, it, pair_result
 
-    def _solve_dense(self, steps, prepared, h, M, index, results) -> tuple[np.ndarray, int]:
-        """Bodies touching movable rigid bodies, together: every contact (node or face) is three rows with
-        multipliers; the responses of the soft bodies to every candidate row and to du are solved once, the
-        contact problem then on the dense system (frictional.solve_contacts)."""
+    def _solve_dense(self, steps, prepared, h, index, results, pairs=None, M=None
+                     ) -> tuple[np.ndarray, int, ContactResult | None]:
+        """Bodies touching movable rigid bodies, together: every contact (node, face or soft, ``pairs`` with
+        parts local to ``steps``) is three rows with multipliers; the responses of the soft bodies to every
+        candidate row and to du are solved once, the contact problem then on the dense system
+        (frictional.solve_contacts). Returns (du, Newton steps, the soft contacts' result)."""
         coupled = CoupledSolver(M)
         n = coupled.n
         sets = []  # (step index, kind, row set)
@@ -571,7 +711,7 @@ class ContactSolver:
             body = st.system.body
             if c is not None and len(c):
                 sets.append((i, "node", self._set("node", body, c, lambda prev: _RowSet(
-                    self, c, c.node[:, None], np.ones((len(c), 1)), i, prev, h, body.n_nodes))))
+                    self, c, c.node[:, None], np.ones((len(c), 1)), i, prev, h, {i: body.n_nodes}))))
             else:
                 self._set("node", body, c, None)
             if f is not None and len(f):
@@ -579,6 +719,9 @@ class ContactSolver:
                                                                                           body.positions))))
             else:
                 self._set("face", body, f, None)
+        pset = self._pair_set(pairs, steps, h)
+        if pset is not None:
+            sets.append((None, "soft", pset))
         # every candidate contact's three rows, at du = 0 and without the gap (w: the relative velocity)
         row_parts = []
         for _, _, rs in sets:
@@ -627,9 +770,9 @@ class ContactSolver:
                 if not faces_in:
                     return ok
                 z = gamma_to_z(g)
-                out = system.combine(z)
+                vs = [v for v, _ in system.combine(z)]
                 for o, rs in faces_in:
-                    ok[o:o + len(rs.c)] = rs.eligible(out[rs.part][0], z[:n])
+                    ok[o:o + len(rs.c)] = rs.eligible(vs, z[:n], g[o:o + len(rs.c), 0] > 0)
                 return ok
 
             gamma, state, solves = solve_contacts(D, w0, bias, mu, state, eligible, self.velocity_tol, self.cone_tol)
@@ -642,6 +785,7 @@ class ContactSolver:
         du = z[:n]
         # results per body, through the row sets' bookkeeping
         per_body = {i: [None, None] for i in range(len(steps))}
+        pair_result = None
         k = 0
         for i, kind, rs in sets:
             mk = len(rs.c)
@@ -649,10 +793,14 @@ class ContactSolver:
             sl = slice(k, k + mk)
             w = (w0 + D @ gamma.ravel()).reshape(-1, 3)[sl] if m else np.zeros((0, 3))
             rs.finish(g / h, w, state.active[sl], state.stick[sl], state.direction[sl])
-            result, self.previous[(kind, id(steps[i].system.body))] = rs.result(solves)
-            per_body[i][0 if kind == "node" else 1] = result
+            if kind == "soft":
+                pair_result, pair_state = rs.result(solves)
+                self._keep_pair_state(pair_state)
+            else:
+                result, self.previous[(kind, id(steps[i].system.body))] = rs.result(solves)
+                per_body[i][0 if kind == "node" else 1] = result
             k += mk
         for j, i in zip(index, range(len(steps))):
             v, r = out[i]
             results[j] = (v, r, *per_body[i])
-        return du, solves
+        return du, solves, pair_result

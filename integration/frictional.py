@@ -97,25 +97,29 @@ def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarr
     gamma = np.zeros((m, 3))
     gn_prev = np.zeros(m)
     steps = 0
-    for _ in range(max_friction):
-        slide = st.active & friction & ~st.stick
-        # unknowns: every allowed normal (bounded), the sticking contacts' tangents (free)
+
+    def solve(slide: np.ndarray, stuck: np.ndarray, gn_used: np.ndarray, gamma: np.ndarray) -> tuple[np.ndarray, int]:
+        """The convex problem with the sticking contacts' tangents free and the sliding ones' friction given
+        (mu gn_used along their directions); returns gamma (m, 3) and the Newton steps."""
         normal = np.flatnonzero(allowed)
-        stick = np.flatnonzero(st.stick & allowed)
+        stick = np.flatnonzero(stuck & allowed)
         idx = np.concatenate([3 * normal, (3 * stick[:, None] + np.array([1, 2])).ravel()])
         bounded = np.r_[np.ones(len(normal), bool), np.zeros(2 * len(stick), bool)]
-        # the sliding contacts' friction impulses, given: mu g_n (of the last solve) along their directions
         fixed = np.zeros((m, 3))
-        fixed[slide, 1:] = (mu[slide] * np.maximum(np.where(gn_prev > 0, gn_prev, gamma[:, 0]), 0.0)[slide])[:, None] \
-            * st.direction[slide]
+        fixed[slide, 1:] = (mu[slide] * gn_used[slide])[:, None] * st.direction[slide]
         c = (w0 + D @ fixed.ravel()).copy()
         c[0::3] += bias
-        x0 = gamma.ravel()[idx]
-        x, k = bounded_quadratic(D[np.ix_(idx, idx)], c[idx], bounded, x0)
+        x, k = bounded_quadratic(D[np.ix_(idx, idx)], c[idx], bounded, gamma.ravel()[idx])
+        out = fixed.ravel()
+        out[idx] = x
+        return out.reshape(m, 3), k
+
+    for _ in range(max_friction):
+        slide = st.active & friction & ~st.stick
+        # the sliding contacts' friction impulses, given: mu g_n (of the last solve) along their directions
+        gn_used = np.maximum(np.where(gn_prev > 0, gn_prev, gamma[:, 0]), 0.0)
+        gamma, k = solve(slide, st.stick, gn_used, gamma)
         steps += k
-        gamma = fixed.copy().ravel()
-        gamma[idx] = x
-        gamma = gamma.reshape(m, 3)
         gn_prev = gamma[:, 0].copy()
         w = (w0 + D @ gamma.ravel()).reshape(m, 3)
         active = gamma[:, 0] > 0
@@ -138,18 +142,42 @@ def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarr
         with np.errstate(invalid="ignore", divide="ignore"):
             new_dir = np.where(wtn[:, None] > 0, -wt / wtn[:, None], st.direction)
         turn = sliding & ~to_stick & (np.abs(new_dir - st.direction).max(axis=1) > direction_tol)
-        joined = active & friction & ~st.active  # a new contact starts sticking
+        # a new contact starts sticking, unless its surfaces slide past each other: then sliding, against that
+        # (starting to stick would stop a sliding body dead until the iteration lets it go)
+        joined = active & friction & ~st.active
+        joined_sliding = joined & (wtn > velocity_tol)
         left = st.active & ~active
-        changed = to_slip.any() or to_stick.any() or turn.any() or joined.any() or left.any() \
+        # a sliding contact's friction followed the normal impulse of the solve before: go on while it moved
+        regrip = sliding & ~to_stick & (np.abs(gamma[:, 0] - gn_used) > direction_tol * max(gamma[:, 0].max(initial=0.0),
+                                                                                           1e-300))
+        changed = to_slip.any() or to_stick.any() or turn.any() or joined.any() or left.any() or regrip.any() \
             or (new_allowed != allowed).any()
         with np.errstate(invalid="ignore", divide="ignore"):
             st.direction = np.where(to_slip[:, None], gt / np.maximum(gtn, 1e-300)[:, None], st.direction)
-        st.direction = np.where(turn[:, None], new_dir, st.direction)
-        st.stick = ((st.stick & ~to_slip) | to_stick | joined) & active & friction
+        st.direction = np.where((turn | joined_sliding)[:, None], new_dir, st.direction)
+        st.stick = ((st.stick & ~to_slip) | to_stick | (joined & ~joined_sliding)) & active & friction
         st.active = active
         allowed = new_allowed
         if not changed:
             break
+    # an iteration cut short may leave friction inconsistent with the last solve: an impulse without pressure
+    # (sliding at the normal impulse of the solve before, or sticking with its tangents free), or a sticking
+    # impulse outside the cone. Solve again with those sliding at the cone's edge (or free, without pressure)
+    # until none is left; non-penetration holds after every solve.
+    for _ in range(2 * m):
+        gn, gtn = gamma[:, 0], np.linalg.norm(gamma[:, 1:], axis=1)
+        loose = (gn <= 0) & (gtn > 0)
+        over = st.stick & (gn > 0) & (gtn > mu * gn * (1 + cone_tol))
+        stale = ~st.stick & (gn > 0) & (np.abs(gtn - mu * gn) > cone_tol * mu * gn)  # sliding at an old pressure
+        if not (loose.any() or over.any() or stale.any()):
+            break
+        with np.errstate(invalid="ignore", divide="ignore"):
+            st.direction = np.where(over[:, None], gamma[:, 1:] / np.maximum(gtn, 1e-300)[:, None], st.direction)
+        st.stick &= ~(loose | over)
+        st.active = gn > 0
+        slide = st.active & friction & ~st.stick
+        gamma, k = solve(slide, st.stick, np.where(slide, gn, 0.0), gamma)
+        steps += k
     st.active = gamma[:, 0] > 0
     st.stick &= st.active
     return gamma, st, steps

@@ -8,8 +8,10 @@ Open the file with ``rerun <file>.rrd``. Everything is logged on the ``sim_time`
 
     world/soft/body<i>        Mesh3D: surface triangles once (static), vertex positions and colours per frame
     world/rigid/<name>        the rigid shape once (static, body frame) and its Transform3D pose per frame
-    world/contacts/points     active contacts: points on the rigid surfaces
+    world/contacts/points     active node contacts: points on the rigid surfaces
     world/contacts/arrows     their normals (or forces, contact_arrows="force")
+    world/contacts/faces/...  the same for rigid points on soft triangles (face contacts)
+    world/contacts/soft/...   and for soft-soft and self contacts (points on the triangles)
     world/attachments         attached soft nodes
     world/monitor             the monitored nodes as points
     plots/monitor/<node>      x, y, z of each monitored node (Scalars)
@@ -54,6 +56,10 @@ _SOFT_ALBEDO = (150, 180, 220, 255)
 _RIGID_COLOR = (170, 170, 170, 255)
 _CONTACT_COLOR = (230, 40, 40, 255)
 _ARROW_COLOR = (255, 150, 30, 255)
+# entity path of each contact kind -> (point colour, arrow colour): node, face and soft contacts apart
+CONTACT_KINDS = {"world/contacts": (_CONTACT_COLOR, _ARROW_COLOR),
+                 "world/contacts/faces": ((200, 40, 200, 255), (240, 120, 240, 255)),
+                 "world/contacts/soft": ((40, 120, 230, 255), (80, 200, 255, 255))}
 _ATTACH_COLOR = (40, 200, 80, 255)
 _MONITOR_COLOR = (255, 0, 255, 255)
 
@@ -360,8 +366,9 @@ class Recorder:
             if self.is_world:
                 rec.log("plots/contacts", rr.SeriesLines(names=["active", "candidates"]), static=True)
         if "contacts" in self.content:
-            rec.log("world/contacts/points", rr.Points3D.from_fields(colors=_CONTACT_COLOR, radii=0.006), static=True)
-            rec.log("world/contacts/arrows", rr.Arrows3D.from_fields(colors=_ARROW_COLOR, radii=0.002), static=True)
+            for path, (point, arrow) in CONTACT_KINDS.items():
+                rec.log(f"{path}/points", rr.Points3D.from_fields(colors=point, radii=0.006), static=True)
+                rec.log(f"{path}/arrows", rr.Arrows3D.from_fields(colors=arrow, radii=0.002), static=True)
         if self._attach:
             rec.log("world/attachments", rr.Points3D.from_fields(colors=_ATTACH_COLOR, radii=0.008), static=True)
         if "rigid" in self.content:
@@ -454,22 +461,26 @@ class Recorder:
         for rb in self._moving:
             f[self._rigid_path(rb)] = rb.pose()
         if "contacts" in content:
-            pts, vec = [], []
-            for c, res in target.contact_results.values():
-                a = res.active
-                pts.append(c.point[a])
-                vec.append(c.normal[a] * self.arrow_length if self.contact_arrows == "normal"
-                           else res.force[a] * self.force_scale)
-            f["world/contacts/points"] = np.concatenate(pts) if pts else np.zeros((0, 3))
-            f["world/contacts/arrows"] = np.concatenate(vec) if vec else np.zeros((0, 3))
+            kinds = {"world/contacts": target.contact_results.values(), "world/contacts/faces": target.face_results.values(),
+                     "world/contacts/soft": target.pair_results}
+            for path, results in kinds.items():
+                pts, vec = [], []
+                for c, res in results:
+                    a = res.active
+                    pts.append(c.point[a])
+                    vec.append(c.normal[a] * self.arrow_length if self.contact_arrows == "normal"
+                               else res.force[a] * self.force_scale)
+                f[f"{path}/points"] = np.concatenate(pts) if pts else np.zeros((0, 3))
+                f[f"{path}/arrows"] = np.concatenate(vec) if vec else np.zeros((0, 3))
         if self._attach:
             f["world/attachments"] = np.concatenate([b.positions[ids] for b, ids in self._attach])
         if "diagnostics" in content:
             f["plots/energy"] = (kinetic, elastic)
             if self.is_world:
                 step = target.timings.get("total", 0.0)
-                active = sum(int(np.count_nonzero(r.active)) for _, r in target.contact_results.values())
-                f["plots/contacts"] = (active, len(target.contacts))
+                active = sum(int(np.count_nonzero(r.active)) for _, r in
+                             [*target.contact_results.values(), *target.face_results.values(), *target.pair_results])
+                f["plots/contacts"] = (active, len(target.contacts) + len(target.face_hits) + len(target.soft_hits))
             else:  # a bare Simulation: wall time since the recorder last returned
                 step = tic - self._last_end if self._last_step is not None else 0.0
             f["plots/step_time"] = (1e3 * step,)
@@ -506,12 +517,13 @@ class Recorder:
             elif key.startswith("world/rigid/"):
                 columns = rr.Transform3D.columns(translation=np.array([v[0] for v in values]),
                                                  quaternion=np.array([v[1] for v in values]))
-            elif key == "world/contacts/arrows":
-                origins = [f["world/contacts/points"] for _, f in frames]
+            elif key.startswith("world/contacts") and key.endswith("/arrows"):
+                origins = [f[key[:-len("arrows")] + "points"] for _, f in frames]
                 columns = rr.Arrows3D.columns(vectors=np.concatenate(values).reshape(-1, 3),
                                               origins=np.concatenate(origins).reshape(-1, 3)
                                               ).partition([len(v) for v in values])
-            elif key in ("world/contacts/points", "world/attachments", "world/monitor"):
+            elif (key.startswith("world/contacts") and key.endswith("/points")) or key in ("world/attachments",
+                                                                                           "world/monitor"):
                 columns = rr.Points3D.columns(positions=np.concatenate(values).reshape(-1, 3)
                                               ).partition([len(v) for v in values])
             elif key.startswith("plots/"):

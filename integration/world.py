@@ -35,15 +35,31 @@ from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
-from .collision import CollisionDetector, Contacts, FaceHits
+from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances
 from .coupling import RigidCoupling
-from .contact import Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts
+from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts,
+                      PairContacts)
 from .rigid import PoseScript, RigidLink, load_trimesh
+from .softcontact import SoftHits, SoftSurface, soft_contacts
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
 # the contact margin of it: resting on it, not merely near it (collision.CollisionDetector.detect)
 TOUCH = 0.1
+# soft contacts reach this many contact margins into the other body (an overlap caught late is undone)
+SOFT_DEPTH = 5.0
+# a fast rigid body found this deep [m] in a soft body after a step was missed within it (World._check_missed)
+MISSED = 1e-3
+# a node the solved step carries this deep [m] into a moving rigid link's end pose gets a contact there, and
+# the step is solved again, up to END_ROUNDS times (World._end_contacts)
+END_TOL = 1e-4
+END_ROUNDS = 2
+
+
+def _concat_contacts(a: NodeContacts, b: NodeContacts) -> NodeContacts:
+    """The node contacts of a, then b (same fields, Jacobians both or neither)."""
+    return NodeContacts(*(None if getattr(a, f) is None else np.concatenate([getattr(a, f), getattr(b, f)])
+                          for f in NodeContacts.__dataclass_fields__))
 
 
 def _quat(orientation) -> list[float]:
@@ -97,12 +113,16 @@ class World:
     (kinetic and elastic energy of the soft bodies, kinetic energy of the movable rigid bodies, and the
     gravitational potential of both, zero at the world origin), above which a step raises
     SimulationDiverged with the state kept at the last good step; method: the soft bodies' linear
-    solve ("auto", "direct", "iterative").
+    solve ("auto", "direct", "iterative"); soft_contact: contact between the soft bodies (on by default:
+    it costs nothing while they are apart; self-contact is per body, see :meth:`add_soft`); push_speed
+    [m/s]: the fastest a penetration is undone (a soft body placed partly inside a rigid or another soft
+    body is pushed out over several steps, with a warning; placed deeper than half its size inside, it is
+    refused at its first step).
     """
 
     def __init__(self, dt: float | None = None, gravity=None, gui: bool = False, solver: str = "auto",
                  contact_margin: float = 0.005, client: int | None = None, max_energy: float | None = None,
-                 method: str = "auto"):
+                 method: str = "auto", soft_contact: bool = True, push_speed: float = 0.5):
         if client is not None and gui:
             raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
         self.adapter = BulletAdapter(client, gui)
@@ -126,7 +146,8 @@ class World:
         self.friction: dict[int, float] = {}  # id(body) -> mu
         self.attachments: list[Attachment] = []
         self.detector = CollisionDetector(self.client)
-        self.contact_solver = ContactSolver()
+        self.contact_solver = ContactSolver(push_speed=_positive(push_speed, "push_speed"))
+        self._started: set[int] = set()  # id(body) of the soft bodies that took a step
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}  # id(body) -> node contacts
         self.face_results: dict[int, tuple[FaceContacts, ContactResult]] = {}  # id(body) -> face contacts
@@ -137,6 +158,11 @@ class World:
         # other (rest of the FEM step), rigid (pybullet and the coupling's rigid side); "total" is their sum
         self.timings: dict[str, float] = defaultdict(float)
         self._surface: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._soft_surface: dict[int, SoftSurface] = {}
+        self._self_contact: set[int] = set()  # id(body) of the bodies with self-contact
+        self.soft_contact = bool(soft_contact)
+        self.soft_hits = SoftHits.empty()  # soft contact candidates of the last step
+        self.pair_results: list[tuple[PairContacts, ContactResult]] = []  # soft contacts solved, last step
         self._ignore: dict[int, set] = {}  # id(body) -> {(body id, link or None)}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._known: set[int] = set()
@@ -314,30 +340,40 @@ class World:
                 rb.friction = mu
 
     # ------------------------------------------------------------------ soft bodies
-    def add_soft(self, body: FemBody, friction: float = 0.0, ignore: Iterable = ()) -> FemBody:
-        """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0);
-        ``ignore``: rigid bodies (ids or RigidLinks) or (body id, link) pairs it does not collide with."""
+    def add_soft(self, body: FemBody, friction: float = 0.0, ignore: Iterable = (), self_contact: bool = False
+                 ) -> FemBody:
+        """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0) and, the
+        smaller of the two, against other soft bodies; ``ignore``: rigid bodies (ids or RigidLinks), (body
+        id, link) pairs or soft bodies it does not collide with; ``self_contact``: keep its surface from
+        passing through itself (off by default: it costs a search of the body against itself every step)."""
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
         friction = finite_number(friction, "friction", 0.0, strict=False)
         if any(b is body for b in self.sim.bodies):
             raise InvalidInputError("this soft body is already in the world")
+        if not isinstance(self_contact, (bool, np.bool_)):
+            raise InvalidInputError(f"self_contact must be True or False, got {self_contact!r}")
         skip = set()
         for item in ignore:
-            if isinstance(item, RigidLink):
+            if isinstance(item, FemBody):
+                skip.add(("soft", id(item)))
+            elif isinstance(item, RigidLink):
                 skip.add(item.key)
             elif isinstance(item, tuple) and len(item) == 2:
                 skip.add((int(item[0]), int(item[1])))
             elif isinstance(item, (int, np.integer)):
                 skip.add((int(item), None))
             else:
-                raise InvalidInputError(f"ignore: expected rigid body ids, RigidLinks or (body id, link) pairs, "
-                                        f"got {item!r}")
+                raise InvalidInputError(f"ignore: expected rigid body ids, RigidLinks, (body id, link) pairs or "
+                                        f"soft bodies (FemBody), got {item!r}")
         self.sim.bodies.append(body)
         self.friction[id(body)] = friction
         self._ignore[id(body)] = skip
         tris = body.mesh.surface_triangles()
         self._surface[id(body)] = (np.unique(tris), tris)
+        self._soft_surface[id(body)] = SoftSurface.of(body.rest, tris)
+        if self_contact:
+            self._self_contact.add(id(body))
         return body
 
     def attach(self, body: FemBody, node_ids, rigid: RigidLink | int, link: int | None = None,
@@ -392,11 +428,77 @@ class World:
         """Contact candidates of soft body i against every rigid link it does not ignore (collision.py)."""
         surface, tris = self._surface[id(body)]
         surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
-        speed = float(np.sqrt((body.velocities[surface] ** 2).sum(axis=1).max(initial=0.0)))
-        margin = self.contact_margin + 2.0 * speed * self.dt
         links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
-        return self.detector.detect(i, body.positions, surface, tris, body.supported(), links, margin,
+        sweeps = [self._sweep(rb, body.velocities) for rb in links]
+        return self.detector.detect(i, body.positions, surface, tris, body.supported(), links, sweeps,
                                     TOUCH * self.contact_margin)
+
+    def _sweep(self, rb: RigidLink, velocities: np.ndarray) -> Sweep:
+        """The motions of a link and a soft body's nodes (velocities (N, 3)) over the step, for the contact
+        search (collision.Sweep)."""
+        if rb.id in self._kin_velocity:
+            v, w = self._kin_velocity[rb.id]
+        elif rb.movable or rb.id in self._one_way:
+            v, w = rb.velocity()
+        else:
+            return Sweep(self.contact_margin, self.dt, velocities, radius=rb.bounding_radius(), centre=rb.pose()[0])
+        return Sweep(self.contact_margin, self.dt, velocities, v, w, rb.pose()[0], rb.bounding_radius())
+
+    def _soft_pairs(self, skipped: list | None = None) -> list[tuple[int, int]]:
+        """Index pairs (a, b) of the soft bodies to search for contact (a == b: self-contact); the pairs left
+        out (soft contact off, or ignored) are appended to ``skipped`` with the reason."""
+        out = []
+        for a, ba in enumerate(self.bodies):
+            if id(ba) in self._self_contact:
+                out.append((a, a))
+            for b in range(a + 1, len(self.bodies)):
+                bb = self.bodies[b]
+                if not self.soft_contact:
+                    why = "soft contact is off (World(soft_contact=False))"
+                elif ("soft", id(bb)) in self._ignore[id(ba)] or ("soft", id(ba)) in self._ignore[id(bb)]:
+                    why = "they were told not to collide (add_soft(..., ignore=...))"
+                else:
+                    out.append((a, b))
+                    continue
+                if skipped is not None:
+                    skipped.append((a, b, why))
+        return out
+
+    def _detect_soft(self) -> SoftHits:
+        """Contact candidates between the soft bodies, and of bodies with self-contact (softcontact.py); a
+        warning, once, when bodies left out of soft contact meet (their boxes overlap)."""
+        skipped: list = []
+        pairs = self._soft_pairs(skipped)
+        for a, b, why in skipped:
+            (la, ha), (lb, hb) = (self._box(self.bodies[k]) for k in (a, b))
+            if np.all(la <= hb) and np.all(lb <= ha):
+                self._warn_once(("soft off", a, b), f"soft bodies {a} and {b} meet, but {why}: they pass through "
+                                "each other")
+        if not pairs:
+            return SoftHits.empty()
+        data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self.bodies]
+        return soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin)
+
+    def _box(self, body: FemBody) -> tuple[np.ndarray, np.ndarray]:
+        """The box (lo (3,), hi (3,)) [m] of a soft body's surface nodes."""
+        x = body.positions[self._soft_surface[id(body)].nodes]
+        return x.min(axis=0), x.max(axis=0)
+
+    def _pair_contacts(self, hits: SoftHits) -> PairContacts | None:
+        """The solver's form of soft contact candidates: rows over both bodies, friction the smaller one's."""
+        if not len(hits):
+            return None
+        m = len(hits)
+        mu_of = np.array([self.friction[id(b)] for b in self.bodies])
+        mu = np.minimum(mu_of[hits.a], mu_of[hits.b])
+        point = np.zeros((m, 3))
+        for b in np.unique(hits.b).tolist():
+            on = hits.b == b
+            point[on] = np.einsum("ms,msi->mi", hits.weights[on], self.bodies[b].positions[hits.nodes[on]])
+        parts = np.column_stack([hits.a, hits.b, hits.b, hits.b])
+        return PairContacts(hits.key, hits.normal, hits.distance, np.zeros((m, 3)), mu, np.full(m, -1), point,
+                            np.full(m, -1), parts=parts, nodes=np.column_stack([hits.node, hits.nodes]),
+                            weights=np.column_stack([np.ones(m), -hits.weights]))
 
     def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: RigidCoupling
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -414,15 +516,17 @@ class World:
         J = coupling.jacobians(self.adapter, found.rigid, found.link, found.point) if coupling.n else None
         return mu, vr, J
 
-    def _node_contacts(self, body: FemBody, found: Contacts, coupling: RigidCoupling) -> NodeContacts:
+    def _node_contacts(self, body: FemBody, found: Contacts, coupling: RigidCoupling, carried: bool = False
+                       ) -> NodeContacts:
+        """The solver's form of node contacts; carried: found at the end of the step (see NodeContacts)."""
         mu, vr, J = self._contact_data(body, found, coupling)
         return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point,
-                            found.link, J)
+                            found.link, J, np.full(len(found), carried))
 
     def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: RigidCoupling) -> FaceContacts:
         mu, vr, J = self._contact_data(body, hits, coupling)
         return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
-                            hits.nodes, hits.weights, hits.group, hits.primary)
+                            nodes=hits.nodes, weights=hits.weights, group=hits.group, primary=hits.primary)
 
     def _coupled_attachments(self, body: FemBody, coupling: RigidCoupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
         """(attachment, start points (m, 3), Jacobians (m, 3, n)) of this body's two-way attachments."""
@@ -435,18 +539,12 @@ class World:
                 out.append((att, pts, J))
         return out
 
-    def _solve_velocities(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
-                          t_next: float) -> list[np.ndarray]:
-        """The contact and coupling solve of all soft bodies (Simulation's velocity hook)."""
-        core0 = sum(self.sim.timings.values())  # core phases (factorize, solve, ...) run inside this call
-        t0 = time.perf_counter()
-        h, coupling = self.dt, self._coupling
-        u_free = {b: self.adapter.generalized_velocity(dyn) for b, dyn in coupling.dynamics.items()}
-        tr = time.perf_counter()
-        u = np.zeros(coupling.n)
-        for b, o in coupling.offset.items():
-            u[o:o + coupling.dynamics[b].n] = u_free[b]
+    def _body_steps(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
+                    u: np.ndarray) -> list[BodyStep]:
+        """Each soft body's part of the contact solve: its system, supports, pending contacts and coupled
+        attachments, with the rigid points' velocities under the free motion u (n,) of the coupled bodies."""
         steps = []
+        h, coupling = self.dt, self._coupling
         for body, system, sup in zip(bodies, systems, supports):
             c, f = self._pending.get(id(body)), self._pending_faces.get(id(body))
             for cc in (c, f):
@@ -467,10 +565,96 @@ class World:
                     pts.append(p0)
                 att = Attachments(*(np.concatenate(v) for v in (nodes, target, J, rid, lid, pts)))
             steps.append(BodyStep(system, sup, c, att, f))
+        return steps
+
+    def _end_pose(self, rb: RigidLink, du: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A moving link's pose (centre (3,), quaternion (4,)) at the end of the step: a kinematic link's
+        scripted one; a dynamic one's after pybullet's step, its centre moved on by the coupled velocity change
+        du (n,) of the solve (its rotation by the free motion alone)."""
+        if rb.motion is not None:
+            return rb.scripted_pose(self.t + self.dt)
+        c1, q1 = rb.pose()
+        coupling = self._coupling
+        if rb.id in coupling.dynamics and len(du):
+            J = coupling.jacobians(self.adapter, np.array([rb.id]), np.array([rb.link]), self._poses0[rb.key][0][None])
+            c1 = c1 + self.dt * (J[0] @ du)
+        return c1, q1
+
+    def _end_contacts(self, bodies: list[FemBody], velocities: list[np.ndarray], du: np.ndarray) -> bool:
+        """Node contacts the start of the step missed: nodes that the solved velocities (N, 3) per body carry
+        inside a moving rigid link (primitives) at its pose at the end of the step (:meth:`_end_pose`, with the
+        solve's du) join the body's node contacts, in place of a start contact of the same node; each is the
+        end pose's closest point carried back to the start with the link (so the condition n . (x_end - p_end)
+        >= 0 holds at the end), and only where the node moved into the link across that point's normal (not
+        through it: a normal on the far side would pull it through). Returns whether any joined."""
+        h, added = self.dt, False
+        moving = [rb for rb in self.rigids.values() if rb.key in self._poses0 and rb.primitive_parts() is not None]
+        if not moving:
+            return False
+        ends = {rb.key: self._end_pose(rb, du) for rb in moving}
+        for i, (body, v) in enumerate(zip(bodies, velocities)):
+            surface, _ = self._surface[id(body)]
+            surface = surface[~body.supported()[surface]]
+            x0 = body.positions[surface]
+            x1 = x0 + h * v[surface]
+            found = []
+            for rb in moving:
+                if self._ignored(body, rb):
+                    continue
+                c1, q1 = ends[rb.key]
+                near = np.einsum("ij,ij->i", x1 - c1, x1 - c1) <= (rb.bounding_radius() + self.contact_margin) ** 2
+                if not near.any():
+                    continue
+                point, normal, dist = primitive_distances(rb, rb.primitive_parts(), x1[near], (c1, q1))
+                c0, q0 = self._poses0[rb.key]
+                local = (point - c1) @ quat_matrix(q1)  # the material points, carried back to the start
+                start = local @ quat_matrix(q0).T + c0
+                moved_in = np.einsum("ij,ij->i", (x1[near] - x0[near]) - (point - start), normal) < 0
+                inside = (dist < -END_TOL) & moved_in
+                if not inside.any():
+                    continue
+                start = start[inside]
+                nodes = surface[near][inside]
+                d = np.einsum("ij,ij->i", body.positions[nodes] - start, normal[inside])
+                m = len(nodes)
+                found.append(Contacts(np.full(m, i), nodes, np.full(m, rb.id), start, normal[inside], d,
+                                      np.full(m, rb.link)))
+            found = Contacts.concat(found)
+            if not len(found):
+                continue
+            order = np.lexsort((found.distance, found.node))  # one per node: the deepest
+            found = found.select(order[np.r_[True, found.node[order][1:] != found.node[order][:-1]]])
+            new = self._node_contacts(body, found, self._coupling, carried=True)
+            old = self._pending.get(id(body))
+            if old is not None:
+                new = _concat_contacts(old.select(~np.isin(old.node, new.node)), new)
+            self._pending[id(body)] = new
+            added = True
+        return added
+
+    def _solve_velocities(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
+                          t_next: float) -> list[np.ndarray]:
+        """The contact and coupling solve of all soft bodies (Simulation's velocity hook)."""
+        core0 = sum(self.sim.timings.values())  # core phases (factorize, solve, ...) run inside this call
+        t0 = time.perf_counter()
+        h, coupling = self.dt, self._coupling
+        u_free = {b: self.adapter.generalized_velocity(dyn) for b, dyn in coupling.dynamics.items()}
+        tr = time.perf_counter()
+        u = np.zeros(coupling.n)
+        for b, o in coupling.offset.items():
+            u[o:o + coupling.dynamics[b].n] = u_free[b]
+        steps = self._body_steps(bodies, systems, supports, u)
         self._rigid_inside = time.perf_counter() - tr
         self.timings["rigid"] += self._rigid_inside
-        sol = self.contact_solver.solve(steps, h, coupling.mass_matrix() if coupling.n else None)
+        M = coupling.mass_matrix() if coupling.n else None
+        sol = self.contact_solver.solve(steps, h, M, self._pending_pairs)
+        for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
+            if not self._end_contacts(bodies, sol.velocities, sol.du):
+                break
+            steps = self._body_steps(bodies, systems, supports, u)
+            sol = self.contact_solver.solve(steps, h, M, self._pending_pairs)
         self._solution = sol
+        self.pair_results = sol.pairs
         self.contact_results = {id(b): (st.contacts, res) for b, st, res in zip(bodies, steps, sol.contacts)
                                 if res is not None}
         self.face_results = {id(b): (st.faces, res) for b, st, res in zip(bodies, steps, sol.faces) if res is not None}
@@ -517,6 +701,11 @@ class World:
         hits = [d[1] for d in detected]
         self.contacts = Contacts.concat(found)
         self.face_hits = FaceHits.concat(hits)
+        self.soft_hits = self._detect_soft()
+        self.pair_results = []
+        fresh = [i for i, b in enumerate(self.bodies) if id(b) not in self._started]
+        if fresh:
+            self._check_overlaps(fresh)
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         # the movable bodies in play, at the start configuration (before pybullet moves them)
@@ -531,7 +720,11 @@ class World:
         self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
                                for body, f in zip(self.bodies, hits) if len(f)}
         self._attach_pending = {id(body): self._coupled_attachments(body, coupling) for body in self.bodies}
+        self._pending_pairs = self._pair_contacts(self.soft_hits)
         self._rigid_inside = 0.0
+        # the moving links' poses at the start, for contacts found at the end of the step (_end_contacts)
+        self._poses0 = ({rb.key: rb.pose() for rb in self.rigids.values() if rb.movable or rb.motion is not None}
+                        if self.bodies else {})
         snapshot = self.adapter.snapshot({k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way})
         for b, lk, f, x in self._lagged:
             self.adapter.apply_force(b, lk, f, x)
@@ -552,18 +745,76 @@ class World:
             self.adapter.restore_snapshot(snapshot)
             raise
         self.sim.commit(new)
+        self._started.update(id(b) for b in self.bodies)
         for rb in self.rigids.values():
             if rb.motion is not None:
                 pos, orn = rb.scripted_pose(self.t)
                 self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
+        self._check_missed()
         self._lagged = self._one_way_reactions()
         self.timings["rigid"] += time.perf_counter() - tr
         core = dict(self.sim.timings)
         contact = self.timings.pop("velocity_solve", 0.0)  # outside the core phases
         self.timings.update(core)
-        self.timings["contact"] = max(contact, 0.0) if self._pending or self._pending_faces else 0.0
+        self.timings["contact"] = (max(contact, 0.0) if self._pending or self._pending_faces or len(self.soft_hits)
+                                   else 0.0)
         self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"] - self._rigid_inside, 0.0)
         self.timings["total"] = sum(self.timings.values())
+
+    def _check_overlaps(self, fresh: list[int]) -> None:
+        """At a soft body's first step: refuse it placed deeper than half its smallest size inside a rigid link
+        (no surface to push it out through) or overlapping another soft body (two overlapping meshes have no
+        trustworthy way out: the nearest faces of the one inside the other may be its sides), and warn that a
+        shallower overlap with a rigid link is pushed out at ``push_speed``."""
+        margin = self.contact_margin
+        for i in fresh:
+            body = self.bodies[i]
+            extent = float(np.ptp(body.positions, axis=0).min())
+            sel = (self.contacts.body == i) & (self.contacts.distance < -margin)
+            overlaps = []
+            if sel.any():
+                k = np.flatnonzero(sel)[np.argmin(self.contacts.distance[sel])]
+                rb = self.rigids[(int(self.contacts.rigid[k]), int(self.contacts.link[k]))]
+                overlaps.append((-float(self.contacts.distance[k]), f"rigid body {rb.name!r}", 0.5 * extent))
+            for a, b in self._soft_pairs():
+                if i not in (a, b) or a == b or (a != i and a in fresh):  # each pair once
+                    continue
+                j = b if a == i else a
+                other = self.bodies[j]
+                reach = max(extent, float(np.ptp(other.positions, axis=0).min()))
+                data = [(x.positions, np.zeros_like(x.positions), self._soft_surface[id(x)], x.rest) for x in (body, other)]
+                d = soft_contacts(data, [(0, 1)], margin, self.dt, reach).distance
+                if len(d) and d.min() < -margin:
+                    overlaps.append((-float(d.min()), f"soft body {j}", margin))
+            for depth, what, limit in overlaps:
+                if depth > limit + 1e-12:
+                    raise InvalidInputError(
+                        f"soft body {i} starts {1e3 * depth:.1f} mm inside {what}: more than can be pushed out "
+                        f"({1e3 * limit:.1f} mm); place it outside (or less deep) before the first step")
+                self._warn_once(("overlap", id(body), what), f"soft body {i} starts {1e3 * depth:.1f} mm inside "
+                                f"{what}: it is pushed out at up to {self.contact_solver.push_speed} m/s (push_speed)")
+
+    def _check_missed(self) -> None:
+        """After a step: a fast rigid link that ended inside a soft body was not caught within the step (its
+        contacts are linearised at the start of the step); say so once, with its speed."""
+        for i, body in enumerate(self.bodies):
+            surface, _ = self._surface[id(body)]
+            surface = surface[~body.supported()[surface]]  # supports win over contact
+            for rb in self.rigids.values():
+                if not (rb.movable or rb.motion is not None) or self._ignored(body, rb):
+                    continue
+                sweep = self._sweep(rb, body.velocities)
+                if sweep.rigid_travel() <= self.contact_margin:
+                    continue  # slow: its contacts are the start's, exact to the margin
+                found = self.detector.node_contacts(i, body.positions, surface, rb, self.contact_margin)
+                depth = -float(found.distance.min(initial=0.0))
+                if depth > MISSED:
+                    speed = float(np.linalg.norm(sweep.v))
+                    self._warn_once(("missed", id(body), rb.key), (
+                        f"rigid body {rb.name!r} moving at {speed:.3g} m/s (spinning at {np.linalg.norm(sweep.w):.3g} "
+                        f"rad/s) ended {1e3 * depth:.1f} mm inside soft body {i} at t = {self.t:.4g} s: its contact "
+                        f"was not caught within the step of {self.dt} s (it travels {1e3 * speed * self.dt:.0f} mm "
+                        "per step); it is pushed out over the next steps. A smaller dt catches it."))
 
     def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""

@@ -422,6 +422,32 @@ def test_energy_guard_raises_and_keeps_the_state_of_soft_and_rigid_bodies():
     assert world.t == before[2]
 
 
+@pytest.mark.parametrize("mu", [0.1, 0.5])
+def test_dynamic_box_on_a_soft_incline_slides_or_sticks_by_coulomb(mu):
+    """A free box on a soft slab tilted 20 degrees (two-way coupled: the dense contact problem with friction):
+    mu = 0.1 slides down with g (sin - mu cos), mu = 0.5 (> tan 20) stays. Its corners cross the slab's
+    triangles on the way: no bump (a corner is never held back by a face its neighbour holds)."""
+    th = math.radians(20)
+    Ry = np.array([[math.cos(th), 0, math.sin(th)], [0, 1, 0], [-math.sin(th), 0, math.cos(th)]])
+    world = World(dt=0.01)
+    base = sb.box_mesh((1.6, 0.4, 0.05), (16, 4, 1), "hex8", center=(0, 0, -0.025))
+    incline = sb.FemBody(sb.Mesh(base.nodes @ Ry.T, base.elements, "hex8"), sb.LinearElastic(1e7, 0.3, 1000.0))
+    incline.fix(np.flatnonzero(np.isclose(base.nodes[:, 2], -0.05)))
+    world.add_soft(incline, friction=mu)
+    box = world.add_box((0.05, 0.05, 0.025), position=(Ry @ [-0.6, 0, 0.025 + 1e-4]).tolist(),
+                        orientation=p.getQuaternionFromEuler([0, th, 0]), mass=0.5)
+    p.changeDynamics(box.id, -1, linearDamping=0, angularDamping=0, physicsClientId=world.client)
+    down = Ry @ [1.0, 0, 0]
+    v = []
+    for _ in range(70):
+        world.step()
+        v.append(np.array(box.velocity()[0]) @ down)
+    expected = max(9.81 * (math.sin(th) - mu * math.cos(th)), 0.0)
+    accel = np.polyfit(world.dt * np.arange(10, 70), v[10:], 1)[0]
+    assert accel == pytest.approx(expected, abs=0.02 * 9.81 * math.sin(th))
+    assert np.diff(v[10:]).min() > -1e-3  # never held back
+
+
 def test_contact_force_on_a_resting_box_is_its_weight():
     world = World(dt=0.01)
     world.add_plane()

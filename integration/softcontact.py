@@ -1,0 +1,209 @@
+"""Contact between soft bodies, and of a soft body with itself: surface nodes against surface triangles.
+
+A contact holds a node of body a against a point of a surface triangle of body b (barycentric weights w),
+along the triangle's outward normal n; d = n . (x_a - sum_i w_i x_bi) is the signed distance (negative: the
+node is inside b). The condition at the end of the step, n . (v_a - sum_i w_i v_bi) >= -d / h, and Coulomb
+friction are those of the rigid contacts (contact.py); the impulse acts on both bodies, equal and opposite.
+Both directions are searched (a's nodes on b's triangles, b's nodes on a's), so a corner pressing into a face
+is caught from either side. Edge-against-edge crossings between nodes are not modelled.
+
+A node counts against a triangle only inside the triangle's prism (its projection falls on the triangle,
+not on the plane of an extended one), within reach (the margin plus what the two sides close along the
+normal within the step, as collision.Sweep), and against the nearest such triangle of each other body.
+Only surfaces that face each other count (a node lying in the plane of the other body's face, beside its
+edge, is no contact with the side face beyond). Self-contact (a == b) also leaves out the node's own
+surroundings (triangles within one rest edge length of it), and never pulls a node through the body: only
+nodes on the outer side of a triangle count.
+
+Broad phase: the bodies' boxes, then a k-d tree (scipy's cKDTree) over the triangles' centres, queried with
+the nodes in reach of the other body; narrow phase vectorised over the candidate pairs.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .collision import FACING, SOFT_SLACK, barycentric, cross, vertex_normals
+
+# a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
+# that a node above the shared edge of two triangles is held by one of them
+PRISM_TOL = 0.02
+# key layout: node | (a * 1024 + b) << NODE_BITS, unique per contact and stable
+NODE_BITS = 21
+
+
+@dataclass
+class SoftSurface:
+    """A soft body's surface for soft contact, fixed at construction: triangles (T, 3) outward, nodes (s,),
+    the triangles' longest rest edge (T,) [m] and, per surface node, its incident triangles (for normals)."""
+
+    triangles: np.ndarray
+    nodes: np.ndarray
+    rest_edge: np.ndarray
+
+    @classmethod
+    def of(cls, rest: np.ndarray, triangles: np.ndarray) -> "SoftSurface":
+        P = rest[triangles]
+        edges = np.linalg.norm(P - np.roll(P, 1, axis=1), axis=2).max(axis=1)
+        return cls(np.asarray(triangles, np.int64), np.unique(triangles), edges)
+
+    def node_normals(self, x: np.ndarray) -> np.ndarray:
+        """Area-weighted unit normals (N, 3) at the surface nodes for positions x (N, 3) (zero elsewhere)."""
+        return vertex_normals(x, self.triangles)
+
+
+@dataclass
+class SoftHits:
+    """Node-against-triangle contacts between soft bodies (m entries): node (m,) of body a (m,) against the point
+    with weights (m, 3) of triangle (m,) (its nodes (m, 3)) of body b (m,); normal (m, 3): the triangle's outward
+    unit normal (from b towards a's node); distance (m,) signed [m]; key (m,): names the contact from step to
+    step."""
+
+    a: np.ndarray
+    node: np.ndarray
+    b: np.ndarray
+    triangle: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+    key: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "SoftHits":
+        z = np.zeros(0, np.int64)
+        return cls(z, z.copy(), z.copy(), z.copy(), np.zeros((0, 3), np.int64), np.zeros((0, 3)),
+                   np.zeros((0, 3)), np.zeros(0), z.copy())
+
+    def __len__(self) -> int:
+        return len(self.node)
+
+    def select(self, keep: np.ndarray) -> "SoftHits":
+        return SoftHits(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+    @classmethod
+    def concat(cls, parts: list["SoftHits"]) -> "SoftHits":
+        parts = [h for h in parts if len(h)]
+        if not parts:
+            return cls.empty()
+        return cls(*(np.concatenate([getattr(h, f.name) for h in parts]) for f in fields(cls)))
+
+
+def node_triangle_contacts(xa: np.ndarray, va: np.ndarray, nodes: np.ndarray, surface_a: SoftSurface,
+                           xb: np.ndarray, vb: np.ndarray, surface: SoftSurface, margin: float, h: float,
+                           depth: float, rest: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, ...]:
+    """Nodes ``nodes`` of a body at xa (N_a, 3) moving with va (its surface ``surface_a``) against the surface
+    triangles of a body at xb (N_b, 3) moving with vb: per node the nearest triangle that faces the node's own
+    surface (normals more than ~95 degrees apart) and whose prism holds it, with a signed distance in
+    (-depth, reach) [m] (reach: ``margin`` plus what the two close along the normal within the step h [s]).
+
+    rest: (rest positions of a, rest positions of b) for self-contact (the same body): leaves out triangles
+    within one rest edge length of the node, and nodes more than the margin inside (never pulled through a
+    wall).
+    Returns (node (m,), triangle (m,), weights (m, 3), normal (m, 3), distance (m,))."""
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    tris = surface.triangles
+    if not len(nodes) or not len(tris):
+        return none
+    P = xb[tris]  # (T, 3, 3)
+    centre = P.mean(axis=1)
+    radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
+    speed_b = np.sqrt((vb[tris] ** 2).sum(axis=2).max(axis=1))
+    speed_a = np.sqrt((va[nodes] ** 2).sum(axis=1))
+    travel_a, travel_b = SOFT_SLACK * h * speed_a, SOFT_SLACK * h * speed_b
+    reach_max = margin + depth + radius.max() + travel_a.max() + travel_b.max()
+    x = xa[nodes]
+    pairs = cKDTree(x).sparse_distance_matrix(cKDTree(centre), reach_max, output_type="ndarray")
+    if not len(pairs):
+        return none
+    i, t = pairs["i"].astype(np.int64), pairs["j"].astype(np.int64)
+    ok = pairs["v"] <= margin + depth + radius[t] + travel_a[i] + travel_b[t]
+    i, t = i[ok], t[ok]
+    if rest is not None:  # self-contact: not against the node's own surroundings
+        ra, rb = rest
+        gap = ra[nodes[i]] - np.clip(ra[nodes[i]], rb[tris[t]].min(axis=1), rb[tris[t]].max(axis=1))
+        far = np.einsum("ij,ij->i", gap, gap) > (1.01 * surface.rest_edge[t]) ** 2
+        i, t = i[far], t[far]
+    if not len(i):
+        return none
+    A, B, C = P[t, 0], P[t, 1], P[t, 2]
+    nrm = cross(B - A, C - A)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    xi = x[i]
+    d = np.einsum("ij,ij->i", xi - A, nrm)
+    w = barycentric(xi - d[:, None] * nrm, A, B, C)
+    inside = (w >= -PRISM_TOL).all(axis=1)
+    w = np.clip(w, 0.0, None)
+    w /= w.sum(axis=1, keepdims=True)
+    # surfaces facing each other only: a node on a face lying in the plane of the other body's face, next to
+    # its edge (a block sliding over another's surface), is no contact with the side face beyond that edge.
+    # Between two bodies the nearest triangle decides first whether the node is inside; within one body
+    # (self-contact) only facing triangles are candidates, the node's own neighbourhood being near too.
+    facing = np.einsum("ij,ij->i", surface_a.node_normals(xa)[nodes[i]], nrm) < FACING
+    ok = inside & facing if rest is not None else inside
+    i, t, w, nrm, d, facing = i[ok], t[ok], w[ok], nrm[ok], d[ok], facing[ok]
+    if not len(i):
+        return none
+    order = np.lexsort((np.abs(d), i))  # per node the nearest triangle: it says whether the node is inside
+    first = order[np.r_[True, i[order][1:] != i[order][:-1]]]
+    i, t, w, nrm, d, facing = i[first], t[first], w[first], nrm[first], d[first], facing[first]
+    v_rel = va[nodes[i]] - np.einsum("ms,msi->mi", w, vb[tris[t]])
+    closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)
+    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > (-margin if rest is not None else -depth))
+    return nodes[i[ok]], t[ok], w[ok], nrm[ok], d[ok]
+
+
+def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
+                  margin: float, h: float, depth: float) -> SoftHits:
+    """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
+    positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
+    distinct bodies. Pairs whose boxes (grown by their reach) do not meet cost nothing further."""
+    boxes = []
+    for x, v, surf, _ in bodies:
+        xs = x[surf.nodes]
+        grow = margin + depth + SOFT_SLACK * h * float(np.sqrt((v[surf.nodes] ** 2).sum(axis=1).max(initial=0.0)))
+        boxes.append((xs.min(axis=0) - grow, xs.max(axis=0) + grow))
+    out = []
+    for a, b in pairs:
+        if a != b and (np.any(boxes[a][0] > boxes[b][1]) or np.any(boxes[b][0] > boxes[a][1])):
+            continue
+        for p, q in ((a, b), (b, a)) if a != b else ((a, a),):
+            xp, vp, sp, rp = bodies[p]
+            xq, vq, sq, rq = bodies[q]
+            lo, hi = boxes[q]
+            cand = sp.nodes[np.all((xp[sp.nodes] >= lo) & (xp[sp.nodes] <= hi), axis=1)]
+            node, tri, w, nrm, d = node_triangle_contacts(xp, vp, cand, sp, xq, vq, sq, margin, h, depth,
+                                                          (rp, rq) if p == q else None)
+            if not len(node):
+                continue
+            m = len(node)
+            # a contact is a node against the other body (its nearest triangle may change from step to step
+            # as it slides; its friction state goes on)
+            key = node | (np.int64(p * 1024 + q) << NODE_BITS)
+            out.append(SoftHits(np.full(m, p), node, np.full(m, q), tri, sq.triangles[tri], w, nrm, d, key))
+    return without_mirrors(SoftHits.concat(out))
+
+
+def without_mirrors(hits: SoftHits) -> SoftHits:
+    """The contacts without mirror images: where node i of one surface holds against a triangle point at node
+    j (most of its weight on j) and node j against a point at node i, both hold the same gap, and two such rows
+    only split their forces arbitrarily (large and opposite, with sticking friction); the one with the smaller
+    key stays."""
+    if len(hits) < 2:
+        return hits
+    top = hits.weights.argmax(axis=1)
+    dominant = hits.weights[np.arange(len(hits)), top] > 0.5
+    code_a = hits.a << NODE_BITS | hits.node  # the node, over all bodies
+    code_b = hits.b << NODE_BITS | hits.nodes[np.arange(len(hits)), top]  # the triangle's node nearest the point
+    idx = np.flatnonzero(dominant)
+    pair = code_a[idx] << 32 | code_b[idx]
+    order = np.argsort(pair, kind="stable")
+    pair, owner = pair[order], idx[order]
+    mirror = code_b[idx] << 32 | code_a[idx]  # the same two nodes the other way round
+    at = np.clip(np.searchsorted(pair, mirror), 0, len(pair) - 1)
+    found = pair[at] == mirror
+    drop = np.zeros(len(hits), dtype=bool)
+    drop[idx[found]] = hits.key[owner[at[found]]] < hits.key[idx[found]]
+    return hits.select(~drop)
