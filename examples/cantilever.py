@@ -1,4 +1,4 @@
-"""The cantilever scene of SPEC.md section 5: build it, run it and print the monitored node.
+"""The cantilever scene of docs/method.md section 5: build it, run it and print the monitored node.
 
     python examples/cantilever.py [--element tet4|hex8|tet10] [--cells NX NY NZ] [--duration S] [--record [PATH]]
 

@@ -1,4 +1,4 @@
-"""The hanging-tube scene of SPEC.md section 5: build it, run it and print the monitored node.
+"""The hanging-tube scene of docs/method.md section 5: build it, run it and print the monitored node.
 
     python examples/hanging_tube.py [--element tet4|hex8|tet10] [--cells NX NY NZ] [--duration S] [--record [PATH]]
 

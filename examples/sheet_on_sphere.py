@@ -1,4 +1,4 @@
-"""The sheet-on-sphere scene of SPEC.md section 5: build it, run it and print the monitored node.
+"""The sheet-on-sphere scene of docs/method.md section 5: build it, run it and print the monitored node.
 
     python examples/sheet_on_sphere.py [--element tet4|hex8|tet10] [--cells NX NY NZ] [--duration S] [--record [PATH]]
 

@@ -1,4 +1,4 @@
-"""The canonical scenes of SPEC.md section 5, built on a World.
+"""The canonical scenes of docs/method.md section 5, built on a World.
 
 Each builder returns a :class:`Scene`: the world, its soft body, the monitored node and axis,
 the default duration, and metadata (scene name, element kind, cells) for logs and studies.
@@ -59,7 +59,7 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
     Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35).
 
-    friction defaults to 1.0 (SPEC.md leaves it open): the sheet balances on the sphere's top, and
+    friction defaults to 1.0 (docs/method.md leaves it open): the sheet balances on the sphere's top, and
     with little or no friction any asymmetry (the checkerboard tet cut is not mirror-symmetric,
     round-off, an iterative solver's tolerance) makes it slide sideways, so its rest shape depends on
     the resolution. Measured at 3 s, tet10 6x6x2: with mu = 0.3 the centre drifts 2.2 mm and the four
@@ -85,7 +85,7 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
                  E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
                  warping: bool = True, solver: str = "auto") -> Scene:
     """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
-    moves along x with the half-sawtooth of SPEC.md. Monitored: x of the outer bottom node at +x."""
+    moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x."""
     mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     world = World(dt=dt, solver=solver)

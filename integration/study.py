@@ -76,12 +76,12 @@ class Ladder:
 
 LADDERS: dict[str, dict[str, Ladder]] = {
     "sheet-on-sphere": {
-        # SPEC.md section 5: exactly the paper's element and node counts (Fig. 9, 10).
+        # docs/method.md section 5: exactly the paper's element and node counts (Fig. 9, 10).
         "full": Ladder(
             {"tet4": ((4, 4, 2), (8, 8, 3), (16, 16, 4), (20, 20, 5), (24, 24, 6), (26, 26, 7)),
              "hex8": ((4, 4, 2), (8, 8, 3), (12, 12, 4), (16, 16, 4), (18, 18, 5), (20, 20, 5)),
              "tet10": ((2, 2, 1), (4, 4, 1), (6, 6, 2), (8, 8, 2), (9, 9, 2))},
-            ("tet10", (12, 12, 3)), None, "the paper's ladders (SPEC.md section 5)"),
+            ("tet10", (12, 12, 3)), None, "the paper's ladders (docs/method.md section 5)"),
         "small": Ladder(
             {"tet4": ((4, 4, 2), (8, 8, 3)), "hex8": ((4, 4, 2), (8, 8, 3)), "tet10": ((2, 2, 1), (4, 4, 1))},
             ("tet10", (6, 6, 2)), 0.5, "coarse rungs, 0.5 s (tests, CI)"),

@@ -1,7 +1,7 @@
 """FemBody: a mesh, a material, precomputed element matrices, state and supports.
 
 Per-element arrays are batched over the E elements; k nodes per element. Element stiffness
-K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of SPEC.md.
+K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of docs/method.md.
 """
 from __future__ import annotations
 

@@ -52,7 +52,7 @@ def test_pareto_front_keeps_only_undominated_points():
 
 
 # ---------------------------------------------------------------------------------------- ladders
-PAPER_SHEET = {  # SPEC.md section 5 / the paper's Fig. 9: (#elements, #nodes) per rung
+PAPER_SHEET = {  # docs/method.md section 5 / the paper's Fig. 9: (#elements, #nodes) per rung
     "tet4": [(160, 75), (960, 324), (5120, 1445), (10000, 2646), (17280, 4375), (23660, 5832)],
     "hex8": [(32, 75), (192, 324), (576, 845), (1024, 1445), (1620, 2166), (2000, 2646)],
     "tet10": [(20, 71), (80, 227), (360, 773), (640, 1317), (810, 1643)],
