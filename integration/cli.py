@@ -95,13 +95,43 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     return scene
 
 
+LENGTH_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}  # suffix -> metres; "m" last, as "mm" and "cm" end in it
+
+
 def _length(text: str) -> float:
-    """A length in metres, or with a unit suffix: 0.002, 2mm, 0.2cm, 0.002m."""
-    t = text.strip().lower()
-    for suffix, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
-        if t.endswith(suffix):
-            return scale * _positive_float(t[: -len(suffix)])
-    return _positive_float(t)
+    """A length > 0 with its unit, e.g. 2mm, 0.5cm, 0.002m; returns metres. A bare number is refused: it
+    is ambiguous (2 would be 2 m, the coarsest mesh of any study)."""
+    t = text.strip().lower().replace(" ", "")
+    unit = next((u for u in LENGTH_UNITS if t.endswith(u)), None)
+    number = t[: -len(unit)] if unit else t
+    try:
+        v = float(number)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a length with a unit (mm, cm or m), e.g. 2mm, got {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite length > 0, got {text!r}")
+    if unit is None:
+        raise argparse.ArgumentTypeError(f"{text!r} has no unit: write {number}mm, {number}cm or {number}m")
+    return v * LENGTH_UNITS[unit]
+
+
+def _attach_negative_values(argv: Sequence[str], options: Sequence[str] = ("--tolerance",)) -> list[str]:
+    """``--tolerance -1mm`` as ``--tolerance=-1mm``: argparse takes a value starting with '-' that is not
+    a plain number for an option, and would answer "expected one argument" instead of naming the value."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a in options:
+            nxt = next(it, None)
+            if nxt is not None and len(nxt) > 1 and nxt[0] == "-" and (nxt[1].isdigit() or nxt[1] == "."):
+                out.append(f"{a}={nxt}")
+                continue
+            out.append(a)
+            if nxt is not None:
+                out.append(nxt)
+        else:
+            out.append(a)
+    return out
 
 
 def _nonnegative_int(text: str) -> int:
@@ -186,7 +216,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            "from a (cached) study")
     rec.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     rec.add_argument("--tolerance", type=_length, required=True, metavar="TOL",
-                     help="largest RMS error of the monitored trajectory against the reference [m] (or 2mm, 0.5cm)")
+                     help="largest RMS error of the monitored trajectory against the reference, with its unit: "
+                          "2mm, 0.5cm, 0.002m")
     rec.add_argument("--study", default=None, metavar="DIR",
                      help="study directory (default: studies/SCENE; made first if it has no results.csv)")
     add_study_arguments(rec)
@@ -195,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     bench = sub.add_parser("bench", help="benchmark: ms per step with its breakdown, the solver floor, pybullet's "
                                          "soft body, memory and scaling; JSON + markdown + plot")
     add_bench_arguments(bench)
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
     try:
         if args.command == "run":
             run_scene(args, args.scene)

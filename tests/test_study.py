@@ -182,7 +182,7 @@ def test_cli_study_and_recommend_use_the_cached_study(study, capsys):
     expect = _brute_force(study.out, tol * 1.0001)
     assert f"recommended: --element {expect['element']} --cells {expect['cells'].replace('x', ' ')}" in out
     with pytest.raises(SystemExit) as exc:
-        cli.main(["recommend", SCENE, "--tolerance", "1e-9", "--study", str(study.out)])
+        cli.main(["recommend", SCENE, "--tolerance", "1e-6mm", "--study", str(study.out)])
     assert exc.value.code == 2
     assert "no configuration" in capsys.readouterr().err
 
