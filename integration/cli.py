@@ -45,7 +45,9 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
     parser.add_argument("--duration", type=_positive_float, default=None, help="simulated time [s] (default: the scene's)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="time step [s] (default 0.01)")
     parser.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
-                        help="write a rerun recording (default path: logs/<scene>_<element>_<cells>_<time>.rrd)")
+                        help="write a rerun recording to PATH, or into the directory PATH (an existing one, or "
+                             "ending in /) as <scene>_<element>_<cells>_<time>.rrd (default: into logs/)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --record file")
     parser.add_argument("--record-every", type=_positive_int, default=1, metavar="K", help="record every K-th step")
     parser.add_argument("--print-every", type=_positive_float, default=0.1, metavar="S",
                         help="print the monitored node every S simulated seconds")
@@ -54,6 +56,11 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
 
 def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     """Build the scene from parsed flags, run it (recording on request) and print its trajectory."""
+    record_file = record_dir = None
+    if args.record is not None:  # checked before anything is built or run
+        from .recording import record_target
+
+        record_file, record_dir = record_target(args.record, overwrite=args.force)
     scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt)
     duration = args.duration if args.duration is not None else scene.duration
     axis = "xyz"[scene.axis]
@@ -65,7 +72,8 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     if args.record is not None:
         from .recording import Recorder
 
-        recorder = Recorder.attach(scene, path=args.record or None, every=args.record_every)
+        recorder = Recorder.attach(scene, path=record_file, directory=record_dir, every=args.record_every,
+                                   overwrite=args.force)
     every = max(1, int(round(args.print_every / scene.world.dt)))
     step_times: list[float] = []
     max_contacts = 0

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import atexit
 import math
+import os
+import tempfile
 import time
 import uuid
 from datetime import datetime
@@ -90,6 +92,46 @@ def default_path(scene=None, target=None, directory: str | Path = "logs") -> Pat
         path = directory / f"{stem}-{k}.rrd"
         k += 1
     return path
+
+
+def record_target(path: str | Path | None, overwrite: bool = True,
+                  directory: str | Path = "logs") -> tuple[Path | None, Path]:
+    """Where a recording goes, checked before anything runs: (file, directory), file None for a
+    :func:`default_path` name in directory.
+
+    path None or "": a default name under ``directory``; an existing directory or a path ending in a
+    separator: a default (timestamped) name inside it; anything else is the file (".rrd" appended to
+    another suffix). Raises InvalidInputError naming the path if the file exists and not ``overwrite``,
+    or if its directory cannot be created or written to."""
+    text = "" if path is None else str(path)
+    if not text:
+        file, folder = None, Path(directory)
+    elif text.endswith(("/", os.sep)) or Path(text).is_dir():
+        file, folder = None, Path(text)
+    else:
+        file = Path(text)
+        if file.suffix != ".rrd":
+            file = file.with_name(file.name + ".rrd")
+        folder = file.parent
+        if file.exists() and not overwrite:
+            raise InvalidInputError(f"the recording {file} already exists: overwrite it (--force, or "
+                                    "Recorder(overwrite=True)) or give another path")
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    reason = None
+    if not existing.is_dir():
+        reason = f"{existing} is not a directory"
+    else:
+        try:
+            tempfile.TemporaryFile(dir=existing).close()
+        except OSError as exc:
+            reason = f"{existing} is not writable ({exc.strerror or exc})"
+    if reason is None and file is not None and file.exists() and not os.access(file, os.W_OK):
+        reason = f"{file} is not writable"
+    if reason is not None:
+        raise InvalidInputError(f"cannot write a recording to {file or folder}: {reason}; give another path")
+    return file, folder
 
 
 def _link_visuals(rb) -> list:
@@ -160,7 +202,9 @@ class Recorder:
     """Records a run to a rerun ``.rrd`` file; attach with :meth:`attach`, then call it after each step.
 
     target: a :class:`integration.scenes.Scene`, an :class:`integration.world.World` or a
-    :class:`softbody.Simulation`. path: the ``.rrd`` file (default: :func:`default_path` under logs/).
+    :class:`softbody.Simulation`. path: the ``.rrd`` file, or a directory for a :func:`default_path` name in it
+    (default: under ``directory``, logs/); checked by :func:`record_target` (``overwrite=False`` refuses an
+    existing file).
     every: record every k-th step (step counter of the simulation; the state at attach time is frame 0).
     content: what to record, a subset of CONTENT: "mesh" (soft surfaces), "colors" (vertex colours
     by ``color_by``), "rigid" (shapes and poses), "contacts" (active contact points and arrows),
@@ -182,7 +226,7 @@ class Recorder:
                  monitor=None, scene=None, contact_arrows: str = "normal", arrow_length: float = 0.05,
                  force_scale: float = 0.01, plane_size: float = 4.0, batch: int = 50,
                  flush_seconds: float = 1.0, blueprint: bool = True,
-                 application_id: str = "softbody", directory: str | Path = "logs"):
+                 application_id: str = "softbody", directory: str | Path = "logs", overwrite: bool = True):
         if hasattr(target, "world") and hasattr(target, "body") and hasattr(target, "monitor"):
             scene = target if scene is None else scene
             target = target.world
@@ -232,9 +276,8 @@ class Recorder:
             self._moving = [rb for rb in target.rigids.values() if rb.mode != "fixed"]
         self._attach = self._attachments() if "attachments" in self.content else []
 
-        self.path = Path(path) if path else default_path(scene, target, directory)
-        if self.path.suffix != ".rrd":
-            self.path = self.path.with_suffix(self.path.suffix + ".rrd") if self.path.suffix else self.path.with_suffix(".rrd")
+        file, folder = record_target(path, overwrite, directory)
+        self.path = file or default_path(scene, target, folder)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream(application_id, recording_id=str(uuid.uuid4()))
         self.rec.save(self.path, default_blueprint=self._blueprint() if blueprint else None)

@@ -7,11 +7,11 @@ from integration import cli, study
 
 
 def _refused(argv: list[str], capsys) -> str:
-    """Run the command line, expect argparse's usage error (exit 2); return its one-line message."""
+    """Run the command line, expect a usage error (exit 2); return what it wrote to stderr."""
     with pytest.raises(SystemExit) as info:
         cli.main(argv)
     assert info.value.code == 2
-    return capsys.readouterr().err.strip().splitlines()[-1]
+    return capsys.readouterr().err.strip()
 
 
 # ---------------------------------------------------------------------------- recommend --tolerance
@@ -36,6 +36,65 @@ def test_bad_tolerance_is_refused_before_any_study_runs(argv, shown, capsys, tmp
 
     monkeypatch.setattr(study, "run_study", no_study)
     out = tmp_path / "study"
-    err = _refused(["recommend", "sheet-on-sphere", *argv, "--study", str(out)], capsys)
+    err = _refused(["recommend", "sheet-on-sphere", *argv, "--study", str(out)], capsys).splitlines()[-1]
     assert "argument --tolerance" in err and shown in err, err
     assert not out.exists()
+
+
+# ---------------------------------------------------------------------------- run --record PATH
+RUN = ["run", "cantilever", "--element", "tet4", "--cells", "2", "1", "1", "--duration", "0.02"]
+
+
+def _no_build(*a, **kw):
+    raise AssertionError("the scene was built before the --record path was checked")
+
+
+def test_record_into_a_directory_writes_a_timestamped_file_inside(tmp_path, capsys):
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    assert cli.main([*RUN, "--record", str(folder)]) == 0
+    inside = list(folder.iterdir())
+    assert len(inside) == 1 and inside[0].name.startswith("cantilever_tet4_2x1x1_") and inside[0].suffix == ".rrd"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["recordings"]  # no recordings.rrd beside it
+    assert str(inside[0]) in capsys.readouterr().out
+    # a path ending in a separator is a directory too, made if need be
+    assert cli.main([*RUN, "--record", str(tmp_path / "new") + "/"]) == 0
+    made = list((tmp_path / "new").iterdir())
+    assert len(made) == 1 and made[0].name.startswith("cantilever_tet4_2x1x1_")
+
+
+def test_an_existing_recording_is_kept_without_force(tmp_path, capsys, monkeypatch):
+    path = tmp_path / "run.rrd"
+    path.write_bytes(b"an earlier recording")
+    with monkeypatch.context() as m:
+        m.setattr(cli, "build_scene", _no_build)
+        err = _refused([*RUN, "--record", str(path)], capsys)
+    assert err.startswith(f"softbody: error: the recording {path} already exists") and "--force" in err, err
+    assert path.read_bytes() == b"an earlier recording"
+    assert cli.main([*RUN, "--record", str(path), "--force"]) == 0
+    from rerun.chunk import RrdReader
+
+    assert any(c.entity_path == "/world/soft/body0" for c in RrdReader(path).stream())
+
+
+@pytest.mark.parametrize("where", ["below a file", "proc"])
+def test_an_unwritable_record_path_is_one_line_before_the_run(where, tmp_path, capsys, monkeypatch):
+    if where == "below a file":
+        (tmp_path / "notes.txt").write_text("")
+        path, reason = tmp_path / "notes.txt" / "x.rrd", f"{tmp_path / 'notes.txt'} is not a directory"
+    else:
+        import os
+        import tempfile
+
+        if not os.path.isdir("/proc"):
+            pytest.skip("no /proc")
+        try:
+            tempfile.TemporaryFile(dir="/proc").close()
+            pytest.skip("/proc is writable here")
+        except OSError:
+            pass
+        path, reason = "/proc/x.rrd", "/proc is not writable"
+    monkeypatch.setattr(cli, "build_scene", _no_build)
+    err = _refused([*RUN, "--record", str(path)], capsys)
+    assert err.startswith(f"softbody: error: cannot write a recording to {path}: ") and "\n" not in err, err
+    assert reason in err
