@@ -1,6 +1,11 @@
 """The ``softbody`` command line as a new user meets it: flags, recording paths, size guard, signals, output."""
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from integration import cli, study
@@ -98,3 +103,32 @@ def test_an_unwritable_record_path_is_one_line_before_the_run(where, tmp_path, c
     err = _refused([*RUN, "--record", str(path)], capsys)
     assert err.startswith(f"softbody: error: cannot write a recording to {path}: ") and "\n" not in err, err
     assert reason in err
+
+
+# ---------------------------------------------------------------------------- output
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _python(*args: str, **kw) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    return subprocess.run([sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60, **kw)
+
+
+def test_help_has_no_pybullet_banner():
+    out = _python("-m", "softbody", "--help")
+    assert out.returncode == 0 and out.stdout.startswith("usage: softbody")
+    assert "pybullet build time" not in out.stdout + out.stderr, out.stdout + out.stderr
+    # the banner is real: pybullet imported on its own prints it
+    bare = _python("-c", "import pybullet")
+    assert "pybullet build time" in bare.stdout + bare.stderr
+
+
+def test_quiet_c_output_restores_the_descriptors(capfd):
+    from integration import quiet_c_output
+
+    with quiet_c_output():
+        os.write(1, b"hidden out\n")
+        os.write(2, b"hidden err\n")
+    os.write(1, b"shown out\n")
+    out, err = capfd.readouterr()
+    assert out == "shown out\n" and err == ""
