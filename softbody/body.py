@@ -174,6 +174,41 @@ class FemBody:
         self.fixed[~mesh.used_nodes()] = True  # unused nodes carry no mass: hold them at rest
         self.prescribed: list[tuple[np.ndarray, Motion]] = []
 
+    # ------------------------------------------------------------------ state
+    @property
+    def positions(self) -> np.ndarray:
+        """Node positions (N, 3) [m]. Assigning an array checks its shape and that it is finite (in-place
+        writes such as ``body.positions[ids] = ...`` are the caller's responsibility)."""
+        return self._positions
+
+    @positions.setter
+    def positions(self, value) -> None:
+        self._positions = self._node_array(value, "positions", "[m]")
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """Node velocities (N, 3) [m/s]; assigning checks shape and finiteness as for ``positions``."""
+        return self._velocities
+
+    @velocities.setter
+    def velocities(self, value) -> None:
+        self._velocities = self._node_array(value, "velocities", "[m/s]")
+
+    def _node_array(self, value, name: str, unit: str) -> np.ndarray:
+        """``value`` as a float (N, 3) array (no copy if it is one), or InvalidInputError naming the bad nodes."""
+        shape = (self.mesh.n_nodes, 3)
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"{name} must be a {shape} array of numbers {unit}, got {type(value).__name__}") from None
+        if a.shape != shape:
+            raise InvalidInputError(f"{name} must have shape {shape} (one row per node) {unit}, got {a.shape}")
+        bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+        if bad.size:
+            raise InvalidInputError(f"{name} must be finite {unit}: nodes {bad[:5].tolist()}{' ...' if bad.size > 5 else ''} "
+                                    f"({bad.size} of {shape[0]}) are not, e.g. node {bad[0]} = {a[bad[0]].tolist()}")
+        return a
+
     # ------------------------------------------------------------------ sizes
     @property
     def n_nodes(self) -> int:
