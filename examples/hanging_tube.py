@@ -4,11 +4,9 @@
 
 The scene itself is built in integration/scenes.py (hanging_tube()); this script only parses flags.
 """
-import argparse
+import sys
 
-from integration.cli import add_scene_arguments, run_scene
+from integration.cli import scene_main
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(parser, scene="hanging-tube")
-    run_scene(parser.parse_args(), "hanging-tube")
+    sys.exit(scene_main("hanging-tube", __doc__))

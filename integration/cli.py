@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import signal
 import sys
-from typing import Sequence
+import threading
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -210,6 +213,61 @@ def recommend_command(args: argparse.Namespace) -> None:
           f"({c['median_ms_per_step']:.1f} ms/step, error {1e3 * c['error_m']:.3f} mm)")
 
 
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: raised in the main thread so that ``finally`` blocks (closing a recording)
+    run. A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"terminated by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def signals_as_exceptions(signums: Sequence[int] = (signal.SIGTERM, signal.SIGHUP)) -> Iterator[None]:
+    """Inside the block, the first of ``signums`` raises :class:`Terminated` (later ones are ignored while the
+    program cleans up); the previous handlers are restored after. Does nothing outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame) -> None:
+        for s in signums:
+            signal.signal(s, signal.SIG_IGN)
+        raise Terminated(signum)
+
+    previous = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) -> int:
+    """Run a command: an InvalidInputError is a one-line usage error (exit 2); Ctrl-C exits 130, SIGTERM and
+    SIGHUP 128 + the signal number, after the command's ``finally`` blocks (e.g. a recording closed)."""
+    try:
+        with signals_as_exceptions():
+            command()
+    except InvalidInputError as exc:
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")
+    except KeyboardInterrupt:
+        print("\n# interrupted", file=sys.stderr)
+        return 130
+    except Terminated as exc:
+        print(f"\n# {exc}", file=sys.stderr)
+        return 128 + exc.signum
+    return 0
+
+
+def scene_main(scene: str, description: str | None = None, argv: Sequence[str] | None = None) -> int:
+    """The command line of an example script running one scene (the flags of ``softbody run``)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_arguments(parser, scene=scene)
+    args = parser.parse_args(argv)
+    return _dispatch(parser, lambda: run_scene(args, scene))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="softbody", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -235,7 +293,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                          "soft body, memory and scaling; JSON + markdown + plot")
     add_bench_arguments(bench)
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
-    try:
+
+    def command() -> None:
         if args.command == "run":
             run_scene(args, args.scene)
         elif args.command == "study":
@@ -246,12 +305,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from .bench import bench_command
 
             bench_command(args)
-    except InvalidInputError as exc:
-        parser.exit(2, f"softbody: error: {exc}\n")
-    except KeyboardInterrupt:
-        print("\n# interrupted", file=sys.stderr)
-        return 130
-    return 0
+
+    return _dispatch(parser, command)
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -132,3 +133,36 @@ def test_quiet_c_output_restores_the_descriptors(capfd):
     os.write(1, b"shown out\n")
     out, err = capfd.readouterr()
     assert out == "shown out\n" and err == ""
+
+
+# ---------------------------------------------------------------------------- signals
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_termination_during_run_record_leaves_a_verified_recording(signum, tmp_path):
+    """SIGTERM / SIGHUP during `softbody run --record`: the recording is flushed and closed (rerun verifies it,
+    with every printed time in it), and the exit code is 128 + the signal number."""
+    from test_recording import read, verify
+
+    path = tmp_path / "x.rrd"
+    env = dict(os.environ, PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    proc = subprocess.Popen([sys.executable, "-m", "softbody", "run", "sheet-on-sphere", "--cells", "2", "2", "1",
+                             "--element", "tet4", "--duration", "100", "--record", str(path)],
+                            cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        printed = []
+        for line in proc.stdout:
+            if not line.startswith("#") and not line.lstrip().startswith("t ["):
+                printed.append(float(line.split()[0]))
+            if len(printed) == 3:
+                break
+        assert len(printed) == 3, proc.stderr.read()
+        proc.send_signal(signum)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signum, err
+    assert f"terminated by {signal.Signals(signum).name}" in err and "Traceback" not in err, err
+    assert f"# recording: {path}" in out
+    verify(path)
+    data, _ = read(path)
+    times = data["/world/soft/body0"]["sim_time"]
+    assert times[0] == 0.0 and times[-1] >= printed[-1] - 1e-9
