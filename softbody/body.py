@@ -479,6 +479,12 @@ class FemBody:
         u = self.local_displacements(x, self.rotations(x))
         return 0.5 * float(np.sum(u * (self.Ke @ u[:, :, None])[:, :, 0]))
 
+    def gravitational_energy(self, gravity, x: np.ndarray | None = None) -> float:
+        """Potential energy [J] in the uniform field ``gravity`` (3,) [m/s^2] at positions x (default:
+        current): -sum_i m_i (x_i . g) with the consistent nodal masses, zero at the origin."""
+        x = self.positions if x is None else x
+        return -float(self.node_mass @ (x @ np.asarray(gravity, dtype=float)))
+
     def kinetic_energy(self, v: np.ndarray | None = None) -> float:
         v = self.velocities if v is None else v
         return 0.5 * float(np.sum(v * self.mass_product(v)))
