@@ -14,7 +14,8 @@ import numpy as np
 from softbody.elements import ELEMENT_TYPES
 from softbody.errors import InvalidInputError
 
-from .scenes import SCENES, Scene, build_scene
+from .scenes import SCENES, Scene, build_scene, scene_grid
+from .sizing import check_run_size
 
 
 def _positive_float(text: str) -> float:
@@ -64,6 +65,11 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         from .recording import record_target
 
         record_file, record_dir = record_target(args.record, overwrite=args.force)
+    grid = scene_grid(scene_name, args.element, args.cells, args.dt)
+    if grid is not None:  # memory and time estimated from the mesh size, before anything is built
+        element, cells, dt, layout = grid
+        duration = args.duration if args.duration is not None else layout.duration
+        check_run_size(scene_name, element, cells, max(1, round(duration / dt)), layout.periodic_first)
     scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt)
     duration = args.duration if args.duration is not None else scene.duration
     axis = "xyz"[scene.axis]

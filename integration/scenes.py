@@ -5,6 +5,7 @@ the default duration, and metadata (scene name, element kind, cells) for logs an
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -17,6 +18,19 @@ from .world import World
 
 E_DEFAULT, NU_DEFAULT, RHO_DEFAULT = 5.0e5, 0.33, 1000.0
 DAMPING = (0.1, 0.001)
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    """How a scene meshes its ``cells``, for estimates before building: ``periodic_first`` if the first axis
+    closes on itself (a tube's n_theta), and the scene's default ``duration`` [s]."""
+
+    periodic_first: bool
+    duration: float
+
+
+GRIDS: dict[str, GridLayout] = {"sheet-on-sphere": GridLayout(False, 3.0), "hanging-tube": GridLayout(True, 4.0),
+                                "cantilever": GridLayout(False, 2.0)}
 
 
 @dataclass
@@ -70,7 +84,8 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     world = World(dt=dt, solver=solver)
     world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
     world.add_soft(body, friction=friction)
-    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2, 3.0,
+    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2,
+                 GRIDS["sheet-on-sphere"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -94,7 +109,7 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
     world.add_soft(body)
     top = np.flatnonzero(np.isclose(mesh.nodes[:, 2], 0.0))
     world.attach(body, top, platform)
-    return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, 4.0,
+    return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, GRIDS["hanging-tube"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -108,7 +123,7 @@ def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: fl
     body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
     world = World(dt=dt, solver=solver)
     world.add_soft(body)
-    return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, 2.0,
+    return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, GRIDS["cantilever"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -119,9 +134,23 @@ SCENES: dict[str, Callable[..., Scene]] = {
 }
 
 
-def register_scene(name: str, builder: Callable[..., Scene]) -> None:
-    """Make a scene builder available to the ``softbody`` command line under ``name``."""
+def register_scene(name: str, builder: Callable[..., Scene], grid: GridLayout | None = None) -> None:
+    """Make a scene builder available to the ``softbody`` command line under ``name``; ``grid`` (if it meshes
+    ``cells`` like box_mesh or tube_mesh) lets the command line estimate a run's size before building it."""
     SCENES[name] = builder
+    if grid is not None:
+        GRIDS[name] = grid
+
+
+def scene_grid(name: str, element: str | None = None, cells: Sequence[int] | None = None,
+               dt: float | None = None) -> tuple[str, tuple[int, ...], float, GridLayout] | None:
+    """The element, cells and time step [s] that ``build_scene(name, ...)`` would use (the builder's defaults
+    for None) and the scene's grid layout; None for a scene without a known layout."""
+    if name not in SCENES or name not in GRIDS:
+        return None
+    defaults = {k: p.default for k, p in inspect.signature(SCENES[name]).parameters.items()}
+    return (element or defaults["element"], tuple(cells or defaults["cells"]), float(dt or defaults["dt"]),
+            GRIDS[name])
 
 
 def build_scene(name: str, **options) -> Scene:

@@ -2,14 +2,17 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from integration import cli, study
+import softbody
+from integration import cli, sizing, study
 
 
 def _refused(argv: list[str], capsys) -> str:
@@ -166,3 +169,44 @@ def test_termination_during_run_record_leaves_a_verified_recording(signum, tmp_p
     data, _ = read(path)
     times = data["/world/soft/body0"]["sim_time"]
     assert times[0] == 0.0 and times[-1] >= printed[-1] - 1e-9
+
+
+# ---------------------------------------------------------------------------- size guard
+def test_a_run_too_big_for_the_memory_is_refused_before_anything_is_built(capsys, monkeypatch):
+    monkeypatch.setattr(sizing, "available_memory_mb", lambda: 8000.0)
+    monkeypatch.setattr(cli, "build_scene", _no_build)
+    tic = time.perf_counter()
+    err = _refused(["run", "sheet-on-sphere", "--cells", "100", "100", "30"], capsys)  # tet10, the scene's default
+    assert time.perf_counter() - tic < 2.0
+    assert "\n" not in err and "tet10 cells 100x100x30 (2,164,461 nodes, 1,500,000 elements)" in err, err
+    assert "but 7.8 GB are available" in err
+    memory = float(re.search(r"needs about ([\d.]+) GB of memory", err).group(1))
+    assert memory > 50  # 45-60 MB per 1000 nodes
+    cells = [int(c) for c in re.search(r"--cells (\d+) (\d+) (\d+) would need", err).groups()]
+    fit = sizing.estimate("tet10", cells)
+    assert fit.memory_mb <= 0.5 * 8000.0 and sizing.estimate("tet10", [c + 1 for c in cells]).memory_mb > 0.5 * 8000.0
+    assert cells[0] == cells[1] and cells[2] < cells[0]  # the grid's proportions kept
+
+
+def test_a_large_run_is_warned_about_before_it_is_built(capsys, monkeypatch):
+    monkeypatch.setattr(sizing, "available_memory_mb", lambda: 1e6)
+
+    def built(*a, **kw):
+        raise softbody.InvalidInputError("stopped where the scene would be built")
+
+    monkeypatch.setattr(cli, "build_scene", built)
+    err = _refused(["run", "hanging-tube", "--element", "tet4", "--cells", "40", "12", "100", "--duration", "1"], capsys)
+    warning, stop = err.splitlines()
+    assert warning.startswith("# warning: hanging-tube tet4 cells 40x12x100 (52,520 nodes, 240,000 elements) needs about")
+    assert "(100 steps: " in warning and stop.endswith("stopped where the scene would be built")
+
+
+def test_the_memory_estimate_matches_a_measured_run(monkeypatch):
+    """benchmarks/memory_model.py's measurement of a fresh process: the model is within 25% of its peak."""
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from memory_model import measure
+
+    r = measure("hex8", (24, 24, 6), steps=12)
+    e = sizing.estimate("hex8", (24, 24, 6))
+    assert (e.nodes, e.elements) == (r["nodes"], r["elements"])
+    assert 0.75 < e.memory_mb / r["peak_mb"] < 1.25, (e.memory_mb, r["peak_mb"])

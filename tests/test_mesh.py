@@ -253,3 +253,16 @@ def test_read_tube_round_trip(tmp_path):
 def test_read_missing_file(tmp_path):
     with pytest.raises(ValueError, match="nope.vtu"):
         softbody.read_mesh(tmp_path / "nope.vtu")
+
+
+@pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
+def test_grid_mesh_size_counts_without_building(kind):
+    """grid_mesh_size (the size guard's input) gives the node and element counts of box_mesh and tube_mesh."""
+    from softbody.meshing import grid_mesh_size
+
+    for cells in [(1, 1, 1), (2, 3, 1), (4, 4, 2), (5, 2, 3)]:
+        m = softbody.box_mesh((1, 1, 1), cells, kind)
+        assert grid_mesh_size(cells, kind) == (m.n_nodes, m.n_elements), cells
+    for cells in [(4, 1, 1), (8, 2, 3), (6, 1, 5)]:
+        m = softbody.tube_mesh(0.1, 0.06, 1.0, cells, kind)
+        assert grid_mesh_size(cells, kind, periodic_first=True) == (m.n_nodes, m.n_elements), cells
