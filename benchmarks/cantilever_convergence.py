@@ -1,4 +1,4 @@
-"""Cantilever (SPEC.md section 5) static tip deflection under refinement, for each element type.
+"""Cantilever (docs/method.md section 5) static tip deflection under refinement, for each element type.
 
     python benchmarks/cantilever_convergence.py
 

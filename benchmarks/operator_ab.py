@@ -3,7 +3,7 @@
     python benchmarks/operator_ab.py [--configs tet10:9x9x2 hex8:20x20x5] [--steps 150] [--warmup 20]
                                      [--operators assembled matrix-free]
 
-Two copies of the scene (SPEC.md; with contact) step in turn, one with each operator (default: K'
+Two copies of the scene (docs/method.md; with contact) step in turn, one with each operator (default: K'
 assembled against matrix-free), so that a change of the machine's speed hits both alike: the median of
 the per-step ratios (second / first) is the figure to read. Also printed: PCG iterations per step and the
 largest difference of their node positions at the end [m] (both solve to the same PCG tolerance; where

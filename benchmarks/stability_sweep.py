@@ -5,7 +5,7 @@
 
 Cases, each for tet4, hex8 and tet10:
 
-- ``cantilever``: the SPEC.md beam (1.0 x 0.1 x 0.1 m, clamped at x = 0) released from rest under
+- ``cantilever``: the docs/method.md beam (1.0 x 0.1 x 0.1 m, clamped at x = 0) released from rest under
   gravity, and ``free-cube``: a 0.2 m cube, no supports, no gravity, released stretched by +10 % / -5 %
   while spinning at 1 rev/s about an oblique axis. Both over nu in {0, 0.3, 0.45, 0.49, 0.499},
   E in decades 1e2..1e9 Pa, dt in {1e-4, 1e-3, 1e-2, 1e-1} s, a fixed number of steps each.
@@ -45,7 +45,7 @@ NUS = (0.0, 0.3, 0.45, 0.49, 0.499)
 ES = tuple(10.0 ** k for k in range(2, 10))  # 1e2 .. 1e9 Pa
 DTS = (1e-4, 1e-3, 1e-2, 1e-1)
 RHO = 1000.0
-DAMPING = (0.1, 0.001)  # SPEC.md canonical Rayleigh damping
+DAMPING = (0.1, 0.001)  # docs/method.md canonical Rayleigh damping
 G = np.array([0.0, 0.0, -9.81])
 AXIS = np.array([1.0, -2.0, 0.7]) / np.linalg.norm([1.0, -2.0, 0.7])  # oblique
 # Allowed relative energy excess. Backward Euler with a fixed linear system per step is dissipative, but
@@ -171,7 +171,7 @@ def tip_nodes(body: sb.FemBody) -> np.ndarray:
 
 
 def cantilever(kind: str, nu: float, E: float, dt: float, steps: int = 40, cells=BEAM_CELLS) -> Result:
-    """The SPEC.md cantilever released from rest under gravity."""
+    """The docs/method.md cantilever released from rest under gravity."""
     body = beam_body(kind, E, nu, cells)
     body.fix(np.isclose(body.rest[:, 0], 0.0))
     res = Result("cantilever", kind, dict(nu=nu, E=E, dt=dt))
@@ -411,7 +411,7 @@ def swing(kind: str, duration: float = 60.0, dt: float = 0.01, E: float = 5e7, n
 
 
 def static_tip(kind: str, nu: float, cells=(10, 1, 1), E: float = 5e7) -> float:
-    """Static tip deflection [m] of the clamped SPEC.md cantilever under gravity (small strain)."""
+    """Static tip deflection [m] of the clamped docs/method.md cantilever under gravity (small strain)."""
     body = beam_body(kind, E, nu, cells)
     body.fix(np.isclose(body.rest[:, 0], 0.0))
     u = sb.solve_static(body, gravity=G)

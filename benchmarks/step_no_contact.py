@@ -1,4 +1,4 @@
-"""Median time per step of the sheet-on-sphere meshes of SPEC.md without contact (free fall, no World).
+"""Median time per step of the sheet-on-sphere meshes of docs/method.md without contact (free fall, no World).
 
     python benchmarks/step_no_contact.py [--steps 20] [--threads 1]
 

@@ -1,14 +1,12 @@
-"""The cantilever scene of SPEC.md section 5: build it, run it and print the monitored node.
+"""The cantilever scene of docs/method.md section 5: build it, run it and print the monitored node.
 
     python examples/cantilever.py [--element tet4|hex8|tet10] [--cells NX NY NZ] [--duration S] [--record [PATH]]
 
 The scene itself is built in integration/scenes.py (cantilever()); this script only parses flags.
 """
-import argparse
+import sys
 
-from integration.cli import add_scene_arguments, run_scene
+from integration.cli import scene_main
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_scene_arguments(parser, scene="cantilever")
-    run_scene(parser.parse_args(), "cantilever")
+    sys.exit(scene_main("cantilever", __doc__))

@@ -100,14 +100,21 @@ class Grasp:
         return row
 
 
-def run(hold: float = 2.0, E: float = 1e5, dt: float = 0.005, record: str | None = None) -> list[dict]:
-    """The whole pick-and-place; returns the report rows of its phases."""
+def run(hold: float = 2.0, E: float = 1e5, dt: float = 0.005, record: str | None = None,
+        overwrite: bool = False) -> list[dict]:
+    """The whole pick-and-place; returns the report rows of its phases. record: a recording's file or
+    directory ("" for logs/); overwrite: replace an existing file."""
+    if record is not None:
+        from integration.recording import record_target
+
+        record_target(record, overwrite)  # before the scene is built
     cid, panda, world, cube = build(E, dt)
     recorder = None
     if record is not None:
         from integration import Recorder
 
-        recorder = Recorder(world, path=record or None, monitor=[(0, int(np.argmax(cube.positions[:, 2])))])
+        recorder = Recorder(world, path=record, overwrite=overwrite,
+                            monitor=[(0, int(np.argmax(cube.positions[:, 2])))])
     size = np.ptp(cube.positions[:, 2])
     ctrl = Grasp(cid, panda, world, cube, recorder)
     rows = []
@@ -146,6 +153,10 @@ if __name__ == "__main__":
     ap.add_argument("--E", type=float, default=1e5, help="the cube's Young's modulus [Pa] (default 1e5)")
     ap.add_argument("--dt", type=float, default=0.005, help="time step [s] (default 0.005)")
     ap.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
-                    help="write a rerun recording (default path under logs/)")
+                    help="write a rerun recording to PATH or into the directory PATH (default: into logs/)")
+    ap.add_argument("--force", action="store_true", help="overwrite an existing --record file")
     args = ap.parse_args()
-    run(args.hold, args.E, args.dt, args.record)
+    try:
+        run(args.hold, args.E, args.dt, args.record, args.force)
+    except sb.InvalidInputError as exc:
+        ap.exit(2, f"{ap.prog}: error: {exc}\n")

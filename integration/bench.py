@@ -35,9 +35,9 @@ ms/step from the configuration's own process over pybullet's, minutes apart, is 
 paired steps are ``world.step()`` alone (no recorder, even with ``record``). pybullet's process holds
 our scene too, so its peak RSS is not pybullet's alone.
 
-``run_bench`` writes ``bench.json`` and ``bench.md`` (or ``scaling.*`` for the scaling ladder) and
-``scaling.png`` (ms per step and peak memory against nodes, log-log, with fitted exponents, from every
-result in ``out_dir``).
+``run_bench`` writes ``bench.json``, ``bench.md`` and ``bench.png`` (``scaling.*`` for the scaling ladder):
+the plot is ms per step and peak memory against nodes, log-log, with fitted exponents, from every result
+in ``out_dir``.
 """
 from __future__ import annotations
 
@@ -56,7 +56,8 @@ from typing import Iterable, Sequence
 
 from softbody.linsolve import THREAD_VARS
 
-from .study import environ
+from . import quiet_c_output
+from .study import _log_axes, environ
 
 # ----------------------------------------------------------------------------------------------- configurations
 
@@ -490,22 +491,6 @@ def write_tet_vtk(path, nodes, tets) -> None:
         f.writelines("10\n" for _ in range(len(tets)))
 
 
-class _Quiet:
-    """Silence C-level stdout (pybullet prints the mesh sizes when it loads a VTK file)."""
-
-    def __enter__(self):
-        sys.stdout.flush()
-        self.saved = os.dup(1)
-        self.null = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(self.null, 1)
-
-    def __exit__(self, *exc):
-        sys.stdout.flush()
-        os.dup2(self.saved, 1)
-        os.close(self.saved)
-        os.close(self.null)
-
-
 class _OurBlocks:
     """Our own scene (a fresh build of the same configuration), stepped in blocks between pybullet's
     blocks in the same process: ours/pybullet is then a median of ratios of blocks run seconds apart,
@@ -545,7 +530,7 @@ def _pybullet_run(p, vtk: str, spec: dict, nodes, k: int, n_steps: int, timed_fr
         p.setTimeStep(h / k, physicsClientId=cid)
         col = p.createCollisionShape(p.GEOM_SPHERE, radius=spec["sphere_radius"], physicsClientId=cid)
         p.createMultiBody(0, col, basePosition=[0, 0, 0], physicsClientId=cid)
-        with _Quiet():
+        with quiet_c_output():  # pybullet prints the mesh sizes when it loads a VTK file
             sb = p.loadSoftBody(vtk, basePosition=[0, 0, 0], scale=1, mass=mass, useNeoHookean=1,
                                 NeoHookeanMu=mu, NeoHookeanLambda=lam, NeoHookeanDamping=spec["pb_damping"],
                                 useSelfCollision=0, frictionCoeff=spec["friction"],
@@ -697,7 +682,7 @@ def run_bench(configs: Iterable = DEFAULT_CONFIGS, steps: int = 50, repeats: int
               pybullet_damping: float = 0.001, pybullet_margin: float = 0.002, max_disp: float = 2.0,
               timeout: float | None = None, log=print) -> list[dict]:
     """Measure each configuration in its own fresh process; write ``name``.json and ``name``.md to ``out_dir``
-    and redraw ``scaling.png`` from every result there; print the markdown table; return the result dicts.
+    and draw ``name``.png from every result there; print the markdown table; return the result dicts.
 
     pybullet runs for tet4 sheet configurations whose cells are in ``pybullet_cells`` (default: every
     tet4 sheet configuration) when ``include_pybullet``. ``method`` forces Simulation.method (None: the
@@ -762,7 +747,7 @@ def run_bench(configs: Iterable = DEFAULT_CONFIGS, steps: int = 50, repeats: int
     md = markdown(doc)
     (out / f"{name}.md").write_text(md)
     try:
-        plot_scaling(out)
+        plot_scaling(out, name)
     except Exception as exc:  # a plot must not lose the measurements
         log(f"# scaling plot failed: {type(exc).__name__}: {exc}")
     log(md)
@@ -936,9 +921,10 @@ def _all_results(out: Path) -> list[dict]:
     return list(res.values())
 
 
-def plot_scaling(out_dir: str | Path) -> Path | None:
-    """scaling.png: ms/step (solid) and floor (dashed) against nodes per element type, and the peak RSS above
-    the RSS after imports; log-log, fitted exponents in the legends."""
+def plot_scaling(out_dir: str | Path, name: str = "scaling") -> Path | None:
+    """``name``.png in out_dir: ms/step (solid) and floor (dashed) against nodes per element type, and the peak
+    RSS above the RSS after imports, from every result in out_dir; log-log with plain-number ticks, fitted
+    exponents in the legends."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -974,15 +960,15 @@ def plot_scaling(out_dir: str | Path) -> Path | None:
     ax.set_xlabel("nodes")
     ax.set_ylabel("ms per step (h = 0.01 s)")
     ax.set_title("sheet-on-sphere: cost per step")
-    ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     ax2.set_xlabel("nodes")
     ax2.set_ylabel("peak RSS - RSS after imports [MB]")
     ax2.set_title("peak memory of the run (fresh process)")
-    ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=8)
+    for a in (ax, ax2):
+        _log_axes(a)
     fig.tight_layout()
-    path = out / "scaling.png"
+    path = out / f"{name}.png"
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

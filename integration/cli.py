@@ -2,16 +2,20 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import signal
 import sys
-from typing import Sequence
+import threading
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 
 from softbody.elements import ELEMENT_TYPES
 from softbody.errors import InvalidInputError
 
-from .scenes import SCENES, Scene, build_scene
+from .scenes import SCENES, Scene, build_scene, scene_grid
+from .sizing import check_run_size
 
 
 def _positive_float(text: str) -> float:
@@ -45,7 +49,9 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
     parser.add_argument("--duration", type=_positive_float, default=None, help="simulated time [s] (default: the scene's)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="time step [s] (default 0.01)")
     parser.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
-                        help="write a rerun recording (default path: logs/<scene>_<element>_<cells>_<time>.rrd)")
+                        help="write a rerun recording to PATH, or into the directory PATH (an existing one, or "
+                             "ending in /) as <scene>_<element>_<cells>_<time>.rrd (default: into logs/)")
+    parser.add_argument("--force", action="store_true", help="overwrite an existing --record file")
     parser.add_argument("--record-every", type=_positive_int, default=1, metavar="K", help="record every K-th step")
     parser.add_argument("--print-every", type=_positive_float, default=0.1, metavar="S",
                         help="print the monitored node every S simulated seconds")
@@ -54,6 +60,16 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
 
 def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     """Build the scene from parsed flags, run it (recording on request) and print its trajectory."""
+    record_file = record_dir = None
+    if args.record is not None:  # checked before anything is built or run
+        from .recording import record_target
+
+        record_file, record_dir = record_target(args.record, overwrite=args.force)
+    grid = scene_grid(scene_name, args.element, args.cells, args.dt)
+    if grid is not None:  # memory and time estimated from the mesh size, before anything is built
+        element, cells, dt, layout = grid
+        duration = args.duration if args.duration is not None else layout.duration
+        check_run_size(scene_name, element, cells, max(1, round(duration / dt)), layout.periodic_first)
     scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt)
     duration = args.duration if args.duration is not None else scene.duration
     axis = "xyz"[scene.axis]
@@ -65,7 +81,8 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     if args.record is not None:
         from .recording import Recorder
 
-        recorder = Recorder.attach(scene, path=args.record or None, every=args.record_every)
+        recorder = Recorder.attach(scene, path=record_file, directory=record_dir, every=args.record_every,
+                                   overwrite=args.force)
     every = max(1, int(round(args.print_every / scene.world.dt)))
     step_times: list[float] = []
     max_contacts = 0
@@ -95,13 +112,43 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     return scene
 
 
+LENGTH_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}  # suffix -> metres; "m" last, as "mm" and "cm" end in it
+
+
 def _length(text: str) -> float:
-    """A length in metres, or with a unit suffix: 0.002, 2mm, 0.2cm, 0.002m."""
-    t = text.strip().lower()
-    for suffix, scale in (("mm", 1e-3), ("cm", 1e-2), ("m", 1.0)):
-        if t.endswith(suffix):
-            return scale * _positive_float(t[: -len(suffix)])
-    return _positive_float(t)
+    """A length > 0 with its unit, e.g. 2mm, 0.5cm, 0.002m; returns metres. A bare number is refused: it
+    is ambiguous (2 would be 2 m, the coarsest mesh of any study)."""
+    t = text.strip().lower().replace(" ", "")
+    unit = next((u for u in LENGTH_UNITS if t.endswith(u)), None)
+    number = t[: -len(unit)] if unit else t
+    try:
+        v = float(number)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a length with a unit (mm, cm or m), e.g. 2mm, got {text!r}") from None
+    if not math.isfinite(v) or v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite length > 0, got {text!r}")
+    if unit is None:
+        raise argparse.ArgumentTypeError(f"{text!r} has no unit: write {number}mm, {number}cm or {number}m")
+    return v * LENGTH_UNITS[unit]
+
+
+def _attach_negative_values(argv: Sequence[str], options: Sequence[str] = ("--tolerance",)) -> list[str]:
+    """``--tolerance -1mm`` as ``--tolerance=-1mm``: argparse takes a value starting with '-' that is not
+    a plain number for an option, and would answer "expected one argument" instead of naming the value."""
+    out: list[str] = []
+    it = iter(argv)
+    for a in it:
+        if a in options:
+            nxt = next(it, None)
+            if nxt is not None and len(nxt) > 1 and nxt[0] == "-" and (nxt[1].isdigit() or nxt[1] == "."):
+                out.append(f"{a}={nxt}")
+                continue
+            out.append(a)
+            if nxt is not None:
+                out.append(nxt)
+        else:
+            out.append(a)
+    return out
 
 
 def _nonnegative_int(text: str) -> int:
@@ -129,7 +176,8 @@ def add_study_arguments(parser: argparse.ArgumentParser) -> None:
                         help="linear solve per step (default: the Simulation's; direct factorises every step, "
                              "as the paper did)")
     parser.add_argument("--workers", type=_nonnegative_int, default=None,
-                        help="local worker processes (default: one per core; 0: in this process)")
+                        help="local worker processes (default 1: one run at a time, the fastest here and with undisturbed "
+                             "timings; 0: in this process)")
     parser.add_argument("--cluster", default=None, metavar="ADDRESS",
                         help="run on a Dask distributed scheduler, e.g. tcp://host:8786 (workers need softbody)")
     parser.add_argument("--force", action="store_true", help="rerun cached runs")
@@ -169,7 +217,62 @@ def recommend_command(args: argparse.Namespace) -> None:
           f"(RMS of the monitored trajectory), from the study at {out}")
     print(rec.table())
     print(f"\nrecommended: --element {c['element']} --cells {c['cells'].replace('x', ' ')}  "
-          f"({c['median_ms_per_step']:.1f} ms/step, error {1e3 * c['error_m']:.3f} mm)")
+          f"({c['cost_ms_per_step']:.1f} ms/step, error {1e3 * c['error_m']:.3f} mm)")
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: raised in the main thread so that ``finally`` blocks (closing a recording)
+    run. A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""
+
+    def __init__(self, signum: int):
+        super().__init__(f"terminated by {signal.Signals(signum).name}")
+        self.signum = signum
+
+
+@contextlib.contextmanager
+def signals_as_exceptions(signums: Sequence[int] = (signal.SIGTERM, signal.SIGHUP)) -> Iterator[None]:
+    """Inside the block, the first of ``signums`` raises :class:`Terminated` (later ones are ignored while the
+    program cleans up); the previous handlers are restored after. Does nothing outside the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame) -> None:
+        for s in signums:
+            signal.signal(s, signal.SIG_IGN)
+        raise Terminated(signum)
+
+    previous = {s: signal.signal(s, handler) for s in signums}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) -> int:
+    """Run a command: an InvalidInputError is a one-line usage error (exit 2); Ctrl-C exits 130, SIGTERM and
+    SIGHUP 128 + the signal number, after the command's ``finally`` blocks (e.g. a recording closed)."""
+    try:
+        with signals_as_exceptions():
+            command()
+    except InvalidInputError as exc:
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")
+    except KeyboardInterrupt:
+        print("\n# interrupted", file=sys.stderr)
+        return 130
+    except Terminated as exc:
+        print(f"\n# {exc}", file=sys.stderr)
+        return 128 + exc.signum
+    return 0
+
+
+def scene_main(scene: str, description: str | None = None, argv: Sequence[str] | None = None) -> int:
+    """The command line of an example script running one scene (the flags of ``softbody run``)."""
+    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_scene_arguments(parser, scene=scene)
+    args = parser.parse_args(argv)
+    return _dispatch(parser, lambda: run_scene(args, scene))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -186,7 +289,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                            "from a (cached) study")
     rec.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     rec.add_argument("--tolerance", type=_length, required=True, metavar="TOL",
-                     help="largest RMS error of the monitored trajectory against the reference [m] (or 2mm, 0.5cm)")
+                     help="largest RMS error of the monitored trajectory against the reference, with its unit: "
+                          "2mm, 0.5cm, 0.002m")
     rec.add_argument("--study", default=None, metavar="DIR",
                      help="study directory (default: studies/SCENE; made first if it has no results.csv)")
     add_study_arguments(rec)
@@ -195,8 +299,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     bench = sub.add_parser("bench", help="benchmark: ms per step with its breakdown, the solver floor, pybullet's "
                                          "soft body, memory and scaling; JSON + markdown + plot")
     add_bench_arguments(bench)
-    args = parser.parse_args(argv)
-    try:
+    args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
+
+    def command() -> None:
         if args.command == "run":
             run_scene(args, args.scene)
         elif args.command == "study":
@@ -207,12 +312,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             from .bench import bench_command
 
             bench_command(args)
-    except InvalidInputError as exc:
-        parser.exit(2, f"softbody: error: {exc}\n")
-    except KeyboardInterrupt:
-        print("\n# interrupted", file=sys.stderr)
-        return 130
-    return 0
+
+    return _dispatch(parser, command)
 
 
 if __name__ == "__main__":

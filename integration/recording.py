@@ -15,11 +15,13 @@ Open the file with ``rerun <file>.rrd``. Everything is logged on the ``sim_time`
     world/attachments         attached soft nodes
     world/monitor             the monitored nodes as points
     plots/monitor/<node>      x, y, z of each monitored node (Scalars)
-    plots/energy              kinetic and elastic energy of the soft bodies [J]
-    plots/step_time           wall time of the step [ms]
+    plots/energy              energies [J]: soft kinetic, elastic, gravitational, rigid kinetic and
+                              gravitational (World), and their total, which damping and contact can only lower
+    plots/step_time           wall time of each step from the second on [ms]
+    plots/setup_time          wall time of the first step [ms] (symbolic analysis, first factorisation)
     plots/contacts            number of active contacts (and candidates)
-    plots/color_range         min and max of the colour field (the legend of the vertex colours)
-    legend                    a text note: which field, units, colour map
+    plots/color_range         the colour map's range and the frame's min and max of the colour field
+    legend                    a text note: which field, units, colour map and its range, set-up time
 
 Frames are buffered and sent with ``send_columns`` in batches (a few log calls per batch instead of
 a dozen per step); ``close()`` (also from ``__exit__``, ``finally`` blocks and ``atexit``) sends the
@@ -32,6 +34,8 @@ from __future__ import annotations
 
 import atexit
 import math
+import os
+import tempfile
 import time
 import uuid
 from datetime import datetime
@@ -51,6 +55,9 @@ from .bullet import quat_matrix
 TIMELINE = "sim_time"
 CONTENT = ("mesh", "colors", "rigid", "contacts", "attachments", "monitor", "diagnostics")
 COLOR_FIELDS = {"von_mises": ("von Mises stress", "Pa"), "displacement": ("displacement magnitude", "m")}
+#: the colour map starts at 0 and reaches at least this fraction of the smallest Young's modulus (von Mises)
+#: or of the smallest body's largest extent (displacement), so that a body at rest shows no colours
+COLOR_FLOOR_FRACTION = 1e-3
 
 _SOFT_ALBEDO = (150, 180, 220, 255)
 _RIGID_COLOR = (170, 170, 170, 255)
@@ -96,6 +103,46 @@ def default_path(scene=None, target=None, directory: str | Path = "logs") -> Pat
         path = directory / f"{stem}-{k}.rrd"
         k += 1
     return path
+
+
+def record_target(path: str | Path | None, overwrite: bool = True,
+                  directory: str | Path = "logs") -> tuple[Path | None, Path]:
+    """Where a recording goes, checked before anything runs: (file, directory), file None for a
+    :func:`default_path` name in directory.
+
+    path None or "": a default name under ``directory``; an existing directory or a path ending in a
+    separator: a default (timestamped) name inside it; anything else is the file (".rrd" appended to
+    another suffix). Raises InvalidInputError naming the path if the file exists and not ``overwrite``,
+    or if its directory cannot be created or written to."""
+    text = "" if path is None else str(path)
+    if not text:
+        file, folder = None, Path(directory)
+    elif text.endswith(("/", os.sep)) or Path(text).is_dir():
+        file, folder = None, Path(text)
+    else:
+        file = Path(text)
+        if file.suffix != ".rrd":
+            file = file.with_name(file.name + ".rrd")
+        folder = file.parent
+        if file.exists() and not overwrite:
+            raise InvalidInputError(f"the recording {file} already exists: overwrite it (--force, or "
+                                    "Recorder(overwrite=True)) or give another path")
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    reason = None
+    if not existing.is_dir():
+        reason = f"{existing} is not a directory"
+    else:
+        try:
+            tempfile.TemporaryFile(dir=existing).close()
+        except OSError as exc:
+            reason = f"{existing} is not writable ({exc.strerror or exc})"
+    if reason is None and file is not None and file.exists() and not os.access(file, os.W_OK):
+        reason = f"{file} is not writable"
+    if reason is not None:
+        raise InvalidInputError(f"cannot write a recording to {file or folder}: {reason}; give another path")
+    return file, folder
 
 
 def _link_visuals(rb) -> list:
@@ -166,15 +213,19 @@ class Recorder:
     """Records a run to a rerun ``.rrd`` file; attach with :meth:`attach`, then call it after each step.
 
     target: a :class:`integration.scenes.Scene`, an :class:`integration.world.World` or a
-    :class:`softbody.Simulation`. path: the ``.rrd`` file (default: :func:`default_path` under logs/).
+    :class:`softbody.Simulation`. path: the ``.rrd`` file, or a directory for a :func:`default_path` name in it
+    (default: under ``directory``, logs/); checked by :func:`record_target` (``overwrite=False`` refuses an
+    existing file).
     every: record every k-th step (step counter of the simulation; the state at attach time is frame 0).
     content: what to record, a subset of CONTENT: "mesh" (soft surfaces), "colors" (vertex colours
     by ``color_by``), "rigid" (shapes and poses), "contacts" (active contact points and arrows),
     "attachments", "monitor" (trajectories of the monitored nodes), "diagnostics" (energies, step
     time, contact count). Nothing is computed for content that is off.
     color_by: "von_mises" (element stress averaged to the nodes, Pa) or "displacement" (|x - X|, m).
-    color_range: fixed (lo, hi) of the colour map; None scales every frame to its own min..max
-    (both logged under plots/color_range). colormap: a matplotlib colour map name.
+    color_range: fixed (lo, hi) of the colour map; None: from 0 to the largest value so far, at least
+    COLOR_FLOOR_FRACTION of the smallest E [Pa] (or of the smallest body's extent [m]), so that the scale
+    only grows and a body at rest stays dark (logged under plots/color_range). colormap: a matplotlib
+    colour map name.
     monitor: node ids of body 0, or (body index, node id) pairs; default the scene's monitored node.
     contact_arrows: "normal" (unit normals times ``arrow_length`` [m]) or "force" (force times
     ``force_scale`` [m/N]). plane_size [m]: edge of the square drawn for infinite planes.
@@ -188,7 +239,7 @@ class Recorder:
                  monitor=None, scene=None, contact_arrows: str = "normal", arrow_length: float = 0.05,
                  force_scale: float = 0.01, plane_size: float = 4.0, batch: int = 50,
                  flush_seconds: float = 1.0, blueprint: bool = True,
-                 application_id: str = "softbody", directory: str | Path = "logs"):
+                 application_id: str = "softbody", directory: str | Path = "logs", overwrite: bool = True):
         if hasattr(target, "world") and hasattr(target, "body") and hasattr(target, "monitor"):
             scene = target if scene is None else scene
             target = target.world
@@ -232,15 +283,20 @@ class Recorder:
         need_stress = "colors" in self.content and color_by == "von_mises"
         self._soft = [_SoftChannel(i, b, need_stress) for i, b in enumerate(bodies)]
         self._lut = _colormap(colormap) if "colors" in self.content else None
+        self._color_floor = self._color_high = 0.0
+        if "colors" in self.content and bodies and color_range is None:
+            sizes = [b.material.E for b in bodies] if color_by == "von_mises" else \
+                [float(np.ptp(b.rest, axis=0).max()) for b in bodies]
+            self._color_floor = self._color_high = COLOR_FLOOR_FRACTION * min(sizes)
+        self._setup_ms: float | None = None  # wall time of the first step [ms]
         self._monitor = self._resolve_monitor(monitor, scene, bodies) if "monitor" in self.content else []
         self._moving = []  # rigid bodies whose pose changes (dynamic or kinematic)
         if "rigid" in self.content:
             self._moving = [rb for rb in target.rigids.values() if rb.mode != "fixed"]
         self._attach = self._attachments() if "attachments" in self.content else []
 
-        self.path = Path(path) if path else default_path(scene, target, directory)
-        if self.path.suffix != ".rrd":
-            self.path = self.path.with_suffix(self.path.suffix + ".rrd") if self.path.suffix else self.path.with_suffix(".rrd")
+        file, folder = record_target(path, overwrite, directory)
+        self.path = file or default_path(scene, target, folder)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream(application_id, recording_id=str(uuid.uuid4()))
         self.rec.save(self.path, default_blueprint=self._blueprint() if blueprint else None)
@@ -251,6 +307,7 @@ class Recorder:
         self._oldest = None
         self._last_step = None
         self._last_end = time.perf_counter()
+        self._steps0 = self.sim.steps
         self._log_static()
         self._record()  # frame 0: the state at attach time
         atexit.register(self.close)
@@ -266,6 +323,10 @@ class Recorder:
         if self.closed:
             raise RuntimeError(f"recorder of {self.path} is closed")
         steps = self.sim.steps
+        if self._setup_ms is None and steps > self._steps0 and "diagnostics" in self.content:
+            self._setup_ms = self._step_ms(time.perf_counter())
+            self._send_scalars("plots/setup_time", [(float(self.target.t), (self._setup_ms,))])
+            self._log_legend()
         if steps % self.every == 0 and steps != self._last_step:
             self._record()
         self._last_end = time.perf_counter()
@@ -316,7 +377,7 @@ class Recorder:
     def _plots(self) -> list[tuple[str, str]]:
         plots = [(f"plots/monitor/{self._node_label(b, n)}", f"node {n} [m]") for b, n in self._monitor]
         if "diagnostics" in self.content:
-            plots += [("plots/energy", "energy [J]"), ("plots/step_time", "step time [ms]")]
+            plots += [("plots/energy", "energy [J]"), ("plots/step_time", "step time from the second step [ms]")]
             if self.is_world:
                 plots.append(("plots/contacts", "contacts"))
         if "colors" in self.content:
@@ -327,7 +388,7 @@ class Recorder:
     def _blueprint(self) -> rrb.Blueprint:
         left = [rrb.Spatial3DView(origin="/world", name="scene")]
         shares = [6]
-        if "colors" in self.content:
+        if self.content & {"colors", "diagnostics"}:
             left.append(rrb.TextDocumentView(origin="/legend", name="legend"))
             shares.append(1)
         plots = [rrb.TimeSeriesView(origin="/" + path, name=name) for path, name in self._plots()]
@@ -346,23 +407,20 @@ class Recorder:
                 if "colors" not in self.content:
                     static = rr.Mesh3D.from_fields(triangle_indices=s.triangles, albedo_factor=_SOFT_ALBEDO)
                 rec.log(s.path, static, static=True)
+        self._log_legend()
         if "colors" in self.content:
-            name, unit = COLOR_FIELDS[self.color_by]
-            how = (f"fixed range {self.color_range[0]:.4g} .. {self.color_range[1]:.4g} {unit}" if self.color_range
-                   else "each frame scaled from its own minimum to its maximum")
-            src = "element values averaged to the nodes" if self.color_by == "von_mises" else "|x - X| per node"
-            rec.log("legend", rr.TextDocument(
-                f"**Vertex colours**: {name} [{unit}], {src}.\n\nColour map: low (dark) to high (bright), "
-                f"{how}; the range per frame is plotted in `plots/color_range`.", media_type="text/markdown"),
-                static=True)
-            rec.log("plots/color_range", rr.SeriesLines(names=[f"min [{unit}]", f"max [{unit}]"]), static=True)
+            unit = COLOR_FIELDS[self.color_by][1]
+            rec.log("plots/color_range", rr.SeriesLines(names=[f"map low [{unit}]", f"map high [{unit}]",
+                                                               f"frame min [{unit}]", f"frame max [{unit}]"]),
+                    static=True)
         for b, n in self._monitor:
             rec.log(f"plots/monitor/{self._node_label(b, n)}", rr.SeriesLines(names=["x", "y", "z"]), static=True)
         if self._monitor and "mesh" in self.content:
             rec.log("world/monitor", rr.Points3D.from_fields(colors=_MONITOR_COLOR, radii=0.012), static=True)
         if "diagnostics" in self.content:
-            rec.log("plots/energy", rr.SeriesLines(names=["kinetic", "elastic"]), static=True)
+            rec.log("plots/energy", rr.SeriesLines(names=list(self._energy_names())), static=True)
             rec.log("plots/step_time", rr.SeriesLines(names=["step"]), static=True)
+            rec.log("plots/setup_time", rr.SeriesPoints(names=["first step"]), static=True)
             if self.is_world:
                 rec.log("plots/contacts", rr.SeriesLines(names=["active", "candidates"]), static=True)
         if "contacts" in self.content:
@@ -382,6 +440,50 @@ class Recorder:
                 if rb.mode == "fixed":
                     pos, quat = rb.pose()
                     rec.log(path, rr.Transform3D(translation=pos, quaternion=rr.Quaternion(xyzw=quat)), static=True)
+
+    def _log_legend(self) -> None:
+        """The legend (static, rewritten once the first step's time is known): colour field, map and range."""
+        lines = []
+        if "colors" in self.content:
+            name, unit = COLOR_FIELDS[self.color_by]
+            src = "element values averaged to the nodes" if self.color_by == "von_mises" else "|x - X| per node"
+            if self.color_range:
+                how = f"fixed range {self.color_range[0]:.4g} .. {self.color_range[1]:.4g} {unit}"
+            else:
+                basis = "Young's modulus" if self.color_by == "von_mises" else "body extent"
+                how = (f"from 0 to the largest value so far, at least {self._color_floor:.4g} {unit} "
+                       f"({COLOR_FLOOR_FRACTION:g} x the smallest {basis}): the range only grows")
+            lines.append(f"**Vertex colours**: {name} [{unit}], {src}. Colour map: low (dark) to high (bright), "
+                         f"{how}; map range and frame min/max in `plots/color_range`.")
+        if "diagnostics" in self.content:
+            setup = "" if self._setup_ms is None else f": {self._setup_ms:.1f} ms"
+            lines.append(f"**Set-up** (the first step: symbolic analysis, first factorisation){setup}, in "
+                         "`plots/setup_time`, not in `plots/step_time`.")
+        if lines:
+            self.rec.log("legend", rr.TextDocument("\n\n".join(lines), media_type="text/markdown"), static=True)
+
+    def _energy_names(self) -> tuple[str, ...]:
+        if self.is_world:
+            return ("soft kinetic", "elastic", "soft gravitational", "rigid kinetic", "rigid gravitational", "total")
+        return ("kinetic", "elastic", "gravitational", "total")
+
+    def _energies(self) -> tuple[float, ...]:
+        """The energies of :meth:`_energy_names` [J] (gravitational: zero at the origin)."""
+        if self.is_world:
+            e = self.target.energy()
+            return (e["soft_kinetic"], e["elastic"], e["soft_potential"], e["rigid_kinetic"], e["rigid_potential"],
+                    e["total"])
+        g = self.sim.gravity
+        k = sum(b.kinetic_energy() for b in self.sim.bodies)
+        el = sum(b.elastic_energy() for b in self.sim.bodies)
+        pot = sum(b.gravitational_energy(g) for b in self.sim.bodies)
+        return k, el, pot, k + el + pot
+
+    def _step_ms(self, now: float) -> float:
+        """Wall time of the last step [ms]: the World's own timing, else the time since the recorder last returned."""
+        if self.is_world:
+            return 1e3 * self.target.timings.get("total", 0.0)
+        return 1e3 * (now - self._last_end)
 
     @staticmethod
     def _rigid_path(rb) -> str:
@@ -411,47 +513,44 @@ class Recorder:
         raise InvalidInputError(f"cannot record rigid shape {rb.shape!r}")
 
     # ------------------------------------------------------------------ per frame
-    def _stress_and_energy(self, s: _SoftChannel) -> tuple[np.ndarray | None, float | None]:
-        """Von Mises per element (if colours need it) and the elastic energy (if diagnostics).
-
-        Both use the body's warping rotations at these positions, which the next step reuses."""
-        body = s.body
-        vm = body.von_mises() if s.average is not None else None
-        energy = body.elastic_energy() if "diagnostics" in self.content else None
-        return vm, energy
-
-    def _colors(self, s: _SoftChannel, vm: np.ndarray | None) -> tuple[np.ndarray, float, float]:
+    def _color_field(self, s: _SoftChannel) -> np.ndarray:
+        """The colour field on the surface vertices: von Mises [Pa] (element values averaged to the nodes,
+        with the warping rotations the next step reuses) or |x - X| [m]."""
         body = s.body
         if self.color_by == "von_mises":
-            field = s.average @ vm
-        else:
-            d = body.positions[s.surface] - body.rest[s.surface]
-            field = np.sqrt(np.einsum("ij,ij->i", d, d))
-        lo, hi = self.color_range if self.color_range else (float(field.min()), float(field.max()))
+            return s.average @ body.von_mises()
+        d = body.positions[s.surface] - body.rest[s.surface]
+        return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+    def _color_scale(self, frame_max: float) -> tuple[float, float]:
+        """The colour map's (lo, hi): the fixed range, or 0 .. the largest value so far (at least the floor)."""
+        if self.color_range:
+            return self.color_range
+        self._color_high = max(self._color_high, frame_max)
+        return 0.0, self._color_high
+
+    def _colors(self, field: np.ndarray, lo: float, hi: float) -> np.ndarray:
         scale = 255.0 / (hi - lo) if hi > lo else 0.0
-        idx = np.clip((field - lo) * scale, 0, 255).astype(np.intp)
-        return self._lut[idx], float(field.min()), float(field.max())
+        return self._lut[np.clip((field - lo) * scale, 0, 255).astype(np.intp)]
 
     def _record(self) -> None:
         """Collect one frame into the buffer (a single append, so an interrupt never leaves half a frame)."""
         tic = time.perf_counter()
         target, content = self.target, self.content
         f: dict[str, object] = {}
-        kinetic = elastic = 0.0
-        ranges = []
+        fields = {}
         for s in self._soft:
-            vm, energy = self._stress_and_energy(s)
             if "mesh" in content:
                 f[s.path] = s.body.positions[s.surface].astype(np.float32)
                 if "colors" in content:
-                    colors, lo, hi = self._colors(s, vm)
-                    f[s.path + "#colors"] = colors
-                    ranges.append((lo, hi))
-            if "diagnostics" in content:
-                kinetic += s.body.kinetic_energy()
-                elastic += energy
-        if ranges:
-            f["plots/color_range"] = (min(r[0] for r in ranges), max(r[1] for r in ranges))
+                    fields[s.path] = self._color_field(s)
+        if fields:
+            frame_min = min(float(v.min()) for v in fields.values())
+            frame_max = max(float(v.max()) for v in fields.values())
+            lo, hi = self._color_scale(frame_max)
+            for path, field in fields.items():
+                f[path + "#colors"] = self._colors(field, lo, hi)
+            f["plots/color_range"] = (lo, hi, frame_min, frame_max)
         if self._monitor:
             xs = np.array([self._soft[b].body.positions[n] for b, n in self._monitor])
             for (b, n), x in zip(self._monitor, xs):
@@ -475,15 +574,13 @@ class Recorder:
         if self._attach:
             f["world/attachments"] = np.concatenate([b.positions[ids] for b, ids in self._attach])
         if "diagnostics" in content:
-            f["plots/energy"] = (kinetic, elastic)
+            f["plots/energy"] = self._energies()
             if self.is_world:
-                step = target.timings.get("total", 0.0)
                 active = sum(int(np.count_nonzero(r.active)) for _, r in
                              [*target.contact_results.values(), *target.face_results.values(), *target.pair_results])
                 f["plots/contacts"] = (active, len(target.contacts) + len(target.face_hits) + len(target.soft_hits))
-            else:  # a bare Simulation: wall time since the recorder last returned
-                step = tic - self._last_end if self._last_step is not None else 0.0
-            f["plots/step_time"] = (1e3 * step,)
+            if self.sim.steps > self._steps0 + 1:  # the first step is set-up (plots/setup_time, from __call__)
+                f["plots/step_time"] = (self._step_ms(tic),)
         self._frames.append((float(target.t), f))
         self._last_step = self.sim.steps
         self.frames += 1
@@ -501,9 +598,12 @@ class Recorder:
         # whole nanoseconds, rounded (a float sum of steps like 0.09999999999999999 s reads as 0.1 s)
         times = np.round(np.array([t for t, _ in frames]) * 1e9).astype(np.int64).astype("timedelta64[ns]")
         index = [rr.TimeColumn(TIMELINE, duration=times)]
-        keys = frames[0][1].keys()
+        keys = dict.fromkeys(k for _, f in frames for k in f)
         for key in keys:
             if key.endswith("#colors"):
+                continue
+            if not all(key in f for _, f in frames):  # a plot of some frames only (step and set-up time)
+                self._send_scalars(key, [(t, f[key]) for t, f in frames if key in f])
                 continue
             values = [f[key] for _, f in frames]
             if key.startswith("world/soft/"):
@@ -531,6 +631,14 @@ class Recorder:
             else:  # pragma: no cover - every key above is produced by _record
                 raise AssertionError(key)
             rec.send_columns(key, indexes=index, columns=columns)
+
+
+    def _send_scalars(self, key: str, rows: list[tuple[float, tuple[float, ...]]]) -> None:
+        """Send one plot's rows (sim time [s], values) as a column."""
+        times = np.round(np.array([t for t, _ in rows]) * 1e9).astype(np.int64).astype("timedelta64[ns]")
+        self.rec.send_columns(key, indexes=[rr.TimeColumn(TIMELINE, duration=times)],
+                              columns=rr.Scalars.columns(scalars=np.array([v for _, v in rows], dtype=float
+                                                                          ).reshape(len(rows), -1)))
 
 
 def record(target, duration: float, path: str | Path | None = None, progress: bool = False, **options) -> Path:

@@ -1,10 +1,11 @@
-"""The canonical scenes of SPEC.md section 5, built on a World.
+"""The canonical scenes of docs/method.md section 5, built on a World.
 
 Each builder returns a :class:`Scene`: the world, its soft body, the monitored node and axis,
 the default duration, and metadata (scene name, element kind, cells) for logs and studies.
 """
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -17,6 +18,19 @@ from .world import World
 
 E_DEFAULT, NU_DEFAULT, RHO_DEFAULT = 5.0e5, 0.33, 1000.0
 DAMPING = (0.1, 0.001)
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    """How a scene meshes its ``cells``, for estimates before building: ``periodic_first`` if the first axis
+    closes on itself (a tube's n_theta), and the scene's default ``duration`` [s]."""
+
+    periodic_first: bool
+    duration: float
+
+
+GRIDS: dict[str, GridLayout] = {"sheet-on-sphere": GridLayout(False, 3.0), "hanging-tube": GridLayout(True, 4.0),
+                                "cantilever": GridLayout(False, 2.0)}
 
 
 @dataclass
@@ -59,7 +73,7 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
     Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35).
 
-    friction defaults to 1.0 (SPEC.md leaves it open): the sheet balances on the sphere's top, and
+    friction defaults to 1.0 (docs/method.md leaves it open): the sheet balances on the sphere's top, and
     with little or no friction any asymmetry (the checkerboard tet cut is not mirror-symmetric,
     round-off, an iterative solver's tolerance) makes it slide sideways, so its rest shape depends on
     the resolution. Measured at 3 s, tet10 6x6x2: with mu = 0.3 the centre drifts 2.2 mm and the four
@@ -70,7 +84,8 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     world = World(dt=dt, solver=solver)
     world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
     world.add_soft(body, friction=friction)
-    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2, 3.0,
+    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2,
+                 GRIDS["sheet-on-sphere"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -85,7 +100,7 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
                  E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
                  warping: bool = True, solver: str = "auto") -> Scene:
     """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
-    moves along x with the half-sawtooth of SPEC.md. Monitored: x of the outer bottom node at +x."""
+    moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x."""
     mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     world = World(dt=dt, solver=solver)
@@ -94,7 +109,7 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
     world.add_soft(body)
     top = np.flatnonzero(np.isclose(mesh.nodes[:, 2], 0.0))
     world.attach(body, top, platform)
-    return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, 4.0,
+    return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, GRIDS["hanging-tube"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -108,7 +123,7 @@ def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: fl
     body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
     world = World(dt=dt, solver=solver)
     world.add_soft(body)
-    return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, 2.0,
+    return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, GRIDS["cantilever"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
 
 
@@ -119,9 +134,23 @@ SCENES: dict[str, Callable[..., Scene]] = {
 }
 
 
-def register_scene(name: str, builder: Callable[..., Scene]) -> None:
-    """Make a scene builder available to the ``softbody`` command line under ``name``."""
+def register_scene(name: str, builder: Callable[..., Scene], grid: GridLayout | None = None) -> None:
+    """Make a scene builder available to the ``softbody`` command line under ``name``; ``grid`` (if it meshes
+    ``cells`` like box_mesh or tube_mesh) lets the command line estimate a run's size before building it."""
     SCENES[name] = builder
+    if grid is not None:
+        GRIDS[name] = grid
+
+
+def scene_grid(name: str, element: str | None = None, cells: Sequence[int] | None = None,
+               dt: float | None = None) -> tuple[str, tuple[int, ...], float, GridLayout] | None:
+    """The element, cells and time step [s] that ``build_scene(name, ...)`` would use (the builder's defaults
+    for None) and the scene's grid layout; None for a scene without a known layout."""
+    if name not in SCENES or name not in GRIDS:
+        return None
+    defaults = {k: p.default for k, p in inspect.signature(SCENES[name]).parameters.items()}
+    return (element or defaults["element"], tuple(cells or defaults["cells"]), float(dt or defaults["dt"]),
+            GRIDS[name])
 
 
 def build_scene(name: str, **options) -> Scene:

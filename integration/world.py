@@ -850,7 +850,7 @@ class World:
         for body, (x, v) in zip(self.bodies, states or [(b.positions, b.velocities) for b in self.bodies]):
             soft_k += body.kinetic_energy(v)
             soft_e += body.elastic_energy(x)
-            soft_p -= float(body.node_mass @ (x @ g))
+            soft_p += body.gravitational_energy(g, x)
         rig_k = rig_p = 0.0
         for rb in self.rigids.values():
             if not rb.movable:

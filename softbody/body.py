@@ -1,7 +1,7 @@
 """FemBody: a mesh, a material, precomputed element matrices, state and supports.
 
 Per-element arrays are batched over the E elements; k nodes per element. Element stiffness
-K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of SPEC.md.
+K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of docs/method.md.
 """
 from __future__ import annotations
 
@@ -173,6 +173,41 @@ class FemBody:
         self.fixed = np.zeros(mesh.n_nodes, dtype=bool)
         self.fixed[~mesh.used_nodes()] = True  # unused nodes carry no mass: hold them at rest
         self.prescribed: list[tuple[np.ndarray, Motion]] = []
+
+    # ------------------------------------------------------------------ state
+    @property
+    def positions(self) -> np.ndarray:
+        """Node positions (N, 3) [m]. Assigning an array checks its shape and that it is finite (in-place
+        writes such as ``body.positions[ids] = ...`` are the caller's responsibility)."""
+        return self._positions
+
+    @positions.setter
+    def positions(self, value) -> None:
+        self._positions = self._node_array(value, "positions", "[m]")
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """Node velocities (N, 3) [m/s]; assigning checks shape and finiteness as for ``positions``."""
+        return self._velocities
+
+    @velocities.setter
+    def velocities(self, value) -> None:
+        self._velocities = self._node_array(value, "velocities", "[m/s]")
+
+    def _node_array(self, value, name: str, unit: str) -> np.ndarray:
+        """``value`` as a float (N, 3) array (no copy if it is one), or InvalidInputError naming the bad nodes."""
+        shape = (self.mesh.n_nodes, 3)
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"{name} must be a {shape} array of numbers {unit}, got {type(value).__name__}") from None
+        if a.shape != shape:
+            raise InvalidInputError(f"{name} must have shape {shape} (one row per node) {unit}, got {a.shape}")
+        bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+        if bad.size:
+            raise InvalidInputError(f"{name} must be finite {unit}: nodes {bad[:5].tolist()}{' ...' if bad.size > 5 else ''} "
+                                    f"({bad.size} of {shape[0]}) are not, e.g. node {bad[0]} = {a[bad[0]].tolist()}")
+        return a
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -443,6 +478,12 @@ class FemBody:
         x = self.positions if x is None else x
         u = self.local_displacements(x, self.rotations(x))
         return 0.5 * float(np.sum(u * (self.Ke @ u[:, :, None])[:, :, 0]))
+
+    def gravitational_energy(self, gravity, x: np.ndarray | None = None) -> float:
+        """Potential energy [J] in the uniform field ``gravity`` (3,) [m/s^2] at positions x (default:
+        current): -sum_i m_i (x_i . g) with the consistent nodal masses, zero at the origin."""
+        x = self.positions if x is None else x
+        return -float(self.node_mass @ (x @ np.asarray(gravity, dtype=float)))
 
     def kinetic_energy(self, v: np.ndarray | None = None) -> float:
         v = self.velocities if v is None else v

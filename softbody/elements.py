@@ -1,6 +1,6 @@
 """Element types: shape functions, quadrature rules, faces and characteristic tetrahedra.
 
-Node orders follow VTK (SPEC.md section 2). Natural coordinates are xi = (xi1, xi2, xi3):
+Node orders follow VTK (docs/method.md section 2). Natural coordinates are xi = (xi1, xi2, xi3):
 for tetrahedra the unit simplex (vertex 0 at the origin, vertices 1..3 on the axes; the
 barycentric coordinates are (1 - xi1 - xi2 - xi3, xi1, xi2, xi3)), for hexahedra the cube [-1, 1]^3.
 """
@@ -70,7 +70,7 @@ def hex_rule(n: int) -> Rule:
 
 
 def tet10_stiffness_rule() -> Rule:
-    """The 4-point rule of SPEC.md: barycentric (a, b, b, b) and permutations, weight 1/4 of the volume."""
+    """The 4-point rule of docs/method.md: barycentric (a, b, b, b) and permutations, weight 1/4 of the volume."""
     a = (5.0 + 3.0 * np.sqrt(5.0)) / 20.0
     b = (5.0 - np.sqrt(5.0)) / 20.0
     bary = np.full((4, 4), b)

@@ -1,4 +1,4 @@
-"""One backward Euler step (SPEC.md section 3) with stiffness warping and exact constraints.
+"""One backward Euler step (docs/method.md section 3) with stiffness warping and exact constraints.
 
 Data flows one way through a step:
 

@@ -1,4 +1,4 @@
-"""Isotropic small-strain linear elastic material (SPEC.md section 1)."""
+"""Isotropic small-strain linear elastic material (docs/method.md section 1)."""
 from __future__ import annotations
 
 import math

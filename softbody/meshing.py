@@ -63,6 +63,19 @@ def cells_to_mesh(nodes: np.ndarray, hexes: np.ndarray, parity: np.ndarray, kind
     return to_tet10(mesh) if kind == "tet10" else mesh
 
 
+def grid_mesh_size(cells: Sequence[int], kind: str = "tet4", periodic_first: bool = False) -> tuple[int, int]:
+    """(nodes, elements) of the structured mesh ``box_mesh`` builds (``tube_mesh`` with ``periodic_first``:
+    the first axis closes on itself), without building it. tet10 adds a node on every grid edge and on one
+    diagonal of every cell face (the 5-tet cut uses face diagonals only)."""
+    _check_kind(kind)
+    nx, ny, nz = _check_cells(cells)
+    n_cells = nx * ny * nz
+    if kind == "tet10":
+        return (2 * nx if periodic_first else 2 * nx + 1) * (2 * ny + 1) * (2 * nz + 1) - n_cells, 5 * n_cells
+    nodes = (nx if periodic_first else nx + 1) * (ny + 1) * (nz + 1)
+    return nodes, n_cells if kind == "hex8" else 5 * n_cells
+
+
 def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", center=(0.0, 0.0, 0.0)) -> Mesh:
     """Structured box of size (Lx, Ly, Lz) [m] centred at ``center`` with cells (nx, ny, nz).
 

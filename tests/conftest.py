@@ -14,7 +14,7 @@ import softbody
 
 KINDS = ["tet4", "hex8", "tet10"]
 
-# SPEC.md section 2: tet10 mid-edge nodes 4..9 sit on these vertex pairs.
+# docs/method.md section 2: tet10 mid-edge nodes 4..9 sit on these vertex pairs.
 TET10_EDGES_SPEC = [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]
 
 
@@ -23,7 +23,7 @@ def lame(E: float, nu: float) -> tuple[float, float]:
 
 
 def elasticity_matrix(E: float, nu: float) -> np.ndarray:
-    """SPEC.md eq. 3 written out entry by entry."""
+    """docs/method.md eq. 3 written out entry by entry."""
     lam, mu = lame(E, nu)
     a = lam + 2 * mu
     return np.array([
@@ -37,7 +37,7 @@ def elasticity_matrix(E: float, nu: float) -> np.ndarray:
 
 
 def voigt_strain(A: np.ndarray) -> np.ndarray:
-    """Small strain of the displacement gradient A = du/dX in SPEC.md's Voigt order (engineering shear)."""
+    """Small strain of the displacement gradient A = du/dX in docs/method.md's Voigt order (engineering shear)."""
     return np.array([A[0, 0], A[1, 1], A[2, 2],
                      A[0, 1] + A[1, 0], A[1, 2] + A[2, 1], A[0, 2] + A[2, 0]])
 

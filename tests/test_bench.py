@@ -70,7 +70,7 @@ def test_run_bench_tiny_writes_json_markdown_plot_profile_and_pybullet(tmp_path)
     for col in TABLE_COLUMNS:
         assert col in cells, col
     assert "| sheet tet4 (4,4,2) | 160 | 75 | 225 |" in md
-    assert (tmp_path / "scaling.png").stat().st_size > 1000
+    assert (tmp_path / "bench.png").stat().st_size > 1000 and not (tmp_path / "scaling.png").exists()
 
 
 def test_cli_bench_tiny_without_pybullet(tmp_path, capsys):
@@ -82,7 +82,7 @@ def test_cli_bench_tiny_without_pybullet(tmp_path, capsys):
     r = doc["results"][0]
     assert "pybullet" not in r and "profile" not in r and _number(r["floor_ms"])
     assert doc["settings"]["steps"] == 2 and doc["settings"]["repeats"] == 1
-    assert (tmp_path / "bench.md").exists() and (tmp_path / "scaling.png").exists()
+    assert (tmp_path / "bench.md").exists() and (tmp_path / "bench.png").exists()
 
 
 def test_parse_config_forms():
@@ -128,3 +128,27 @@ def test_markdown_and_fits_tolerate_failed_and_partial_results():
     assert "failed: MemoryError: boom" in md and "ms/step ~ N^" in md
     fit = bench.fit_scaling(doc["results"][:2])["tet4"]
     assert fit["time_exponent"] == pytest.approx(1.0) and fit["floor_exponent"] == pytest.approx(1.0)
+
+
+def test_the_plot_of_one_tiny_result_is_named_for_its_run_with_plain_number_ticks(tmp_path, monkeypatch):
+    """One configuration (bench --tiny): bench.png, and every axis has at least two ticks read as plain numbers."""
+    from matplotlib.figure import Figure
+
+    r = {"label": "sheet tet4 (4,4,2)", "scene": "sheet-on-sphere", "element": "tet4", "nodes": 75, "ms_per_step": 2.4,
+         "floor_ms": 0.6, "peak_rss_mb": 104.0, "baseline_rss_mb": 100.0}
+    (tmp_path / "bench.json").write_text(json.dumps({"results": [r]}))
+    figures = []
+    save = Figure.savefig
+    monkeypatch.setattr(Figure, "savefig", lambda fig, *a, **kw: (figures.append(fig), save(fig, *a, **kw)))
+    assert bench.plot_scaling(tmp_path, "bench") == tmp_path / "bench.png"
+    fig, = figures
+    fig.canvas.draw()
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            lo, hi = sorted(axis.get_view_interval())
+            shown = [(t, lab.get_text()) for t, lab in zip(axis.get_majorticklocs(), axis.get_majorticklabels())
+                     if lo <= t <= hi]
+            assert len(shown) >= 2, shown
+            for t, text in shown:
+                assert float(text) == pytest.approx(t), (text, t)  # "4", "0.5", "200": no 4x10^0
+            assert not any(lab.get_text() for lab in axis.get_minorticklabels())

@@ -1,4 +1,4 @@
-"""The SPEC.md cantilever: static tip deflection under gravity, convergence, efficiency and locking.
+"""The docs/method.md cantilever: static tip deflection under gravity, convergence, efficiency and locking.
 
 Beam 1.0 x 0.1 x 0.1 m along x from x = 0, nodes at x = 0 fixed, E = 5e7 Pa, nu = 0.33, rho = 1000 kg/m^3,
 g = 9.81 m/s^2. Independent truth: Timoshenko beam theory, q L^4 / (8 E I) + q L^2 / (2 kappa G A) with
@@ -40,7 +40,7 @@ def deflection(kind: str, cells: tuple[int, int, int], nu: float = NU) -> tuple[
 
 
 def test_timoshenko_value():
-    # SPEC.md quotes Euler-Bernoulli q L^4 / (8 E I) = 29.4 mm; shear adds about 1%
+    # docs/method.md quotes Euler-Bernoulli q L^4 / (8 E I) = 29.4 mm; shear adds about 1%
     A, I = B * H, B * H**3 / 12
     assert RHO * G_ACC * A * L**4 / (8 * E * I) == pytest.approx(29.43e-3, rel=1e-3)
     assert timoshenko() == pytest.approx(29.74e-3, rel=1e-3)

@@ -1,4 +1,4 @@
-"""Backward Euler dynamics: free fall, energy, prescribed and fixed nodes (SPEC.md section 3)."""
+"""Backward Euler dynamics: free fall, energy, prescribed and fixed nodes (docs/method.md section 3)."""
 from __future__ import annotations
 
 import numpy as np

@@ -364,7 +364,7 @@ def test_tet10_affine_element_matches_high_order_quadrature(seed):
     X4 = _random_tet(seed)
     tet10 = softbody.to_tet10(softbody.Mesh(X4, [[0, 1, 2, 3]], "tet4"))
     X10 = tet10.nodes[tet10.elements[0]]
-    for n, (i, j) in enumerate(TET10_EDGES_SPEC):  # node order of SPEC.md
+    for n, (i, j) in enumerate(TET10_EDGES_SPEC):  # node order of docs/method.md
         np.testing.assert_allclose(X10[4 + n], (X4[i] + X4[j]) / 2, atol=1e-15)
     K_ref, M_ref = _tet10_matrices_highorder(X10, 4)
     K_ref5, M_ref5 = _tet10_matrices_highorder(X10, 5)  # the reference itself is converged

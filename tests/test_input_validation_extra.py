@@ -92,6 +92,27 @@ def test_body_arguments():
 # ---------------------------------------------------------------------------- prescribed motion at run time
 
 
+@pytest.mark.parametrize("name", ["positions", "velocities"])
+def test_state_assignment_is_checked(name):
+    """Assigning body.positions / body.velocities refuses NaN, inf and wrong shapes, naming the first nodes;
+    in-place writes (what the library and the tests do) keep working on a writable array."""
+    body = sb.FemBody(sb.box_mesh((1, 1, 1), (2, 2, 2), "tet4"), MAT)
+    good = getattr(body, name).copy() + 0.25
+    x = good.copy()
+    x[[4, 11, 12, 13, 20, 21, 26], 1] = [np.nan, np.inf, np.nan, np.nan, -np.inf, np.nan, np.nan]
+    msg = raises_naming(name, "[4, 11, 12, 13, 20]", "7 of 27", call=lambda: setattr(body, name, x))
+    assert "finite" in msg
+    raises_naming(name, "(27, 3)", "(3, 3)", call=lambda: setattr(body, name, np.zeros((3, 3))))
+    raises_naming(name, "(27, 3)", "(81,)", call=lambda: setattr(body, name, np.zeros(81)))
+    raises_naming(name, "str", call=lambda: setattr(body, name, "origin"))
+    assert np.all(np.isfinite(getattr(body, name)))  # refused assignments change nothing
+    setattr(body, name, good.tolist())  # any (N, 3) array-like of numbers
+    np.testing.assert_array_equal(getattr(body, name), good)
+    getattr(body, name)[:] = 0.0
+    getattr(body, name)[3] += 1.0
+    assert getattr(body, name).sum() == 3.0 and getattr(body, name).flags.writeable
+
+
 def test_prescribed_motion_checked_every_step():
     body = _body()
     top = np.flatnonzero(np.isclose(CUBE.nodes[:, 2], 0.5))

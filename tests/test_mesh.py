@@ -11,7 +11,7 @@ from conftest import TET10_EDGES_SPEC, box_boundary_mask
 
 
 def expected_counts(kind: str, cells) -> tuple[int, int]:
-    """(elements, nodes) of the structured box by the formulas of SPEC.md section 5."""
+    """(elements, nodes) of the structured box by the formulas of docs/method.md section 5."""
     nx, ny, nz = cells
     if kind == "hex8":
         return nx * ny * nz, (nx + 1) * (ny + 1) * (nz + 1)
@@ -80,7 +80,7 @@ def test_tube_geometry(kind):
     # straight-sided quadratic tets: mid-edge nodes of chords lie inside the circle (cos(pi/n_theta) r)
     r_all = np.hypot(m.nodes[:, 0], m.nodes[:, 1])
     assert r_all.min() == pytest.approx(r_i * (np.cos(np.pi / cells[0]) if kind == "tet10" else 1.0), rel=1e-12)
-    # the +x outer node of the bottom ring exists (SPEC hanging-tube monitor)
+    # the +x outer node of the bottom ring exists (the hanging-tube monitor of docs/method.md)
     assert np.any(np.all(np.isclose(m.nodes, [r_o, 0, -L], atol=1e-12), axis=1))
     # node count of the structured tube: the theta direction closes on itself
     nt, nr, nz = cells
@@ -197,7 +197,7 @@ def test_to_tet10_shares_midpoints():
     # no two nodes coincide (shared edges share their mid node) and every node is used
     assert len(np.unique(m.nodes, axis=0)) == m.n_nodes
     assert m.used_nodes().all()
-    # mid-edge nodes sit exactly at the midpoints of the SPEC edge order
+    # mid-edge nodes sit exactly at the midpoints of the edge order of docs/method.md
     for n, (i, j) in enumerate(TET10_EDGES_SPEC):
         mid = 0.5 * (m.nodes[m.elements[:, i]] + m.nodes[m.elements[:, j]])
         np.testing.assert_array_equal(m.nodes[m.elements[:, 4 + n]], mid)
@@ -253,3 +253,16 @@ def test_read_tube_round_trip(tmp_path):
 def test_read_missing_file(tmp_path):
     with pytest.raises(ValueError, match="nope.vtu"):
         softbody.read_mesh(tmp_path / "nope.vtu")
+
+
+@pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
+def test_grid_mesh_size_counts_without_building(kind):
+    """grid_mesh_size (the size guard's input) gives the node and element counts of box_mesh and tube_mesh."""
+    from softbody.meshing import grid_mesh_size
+
+    for cells in [(1, 1, 1), (2, 3, 1), (4, 4, 2), (5, 2, 3)]:
+        m = softbody.box_mesh((1, 1, 1), cells, kind)
+        assert grid_mesh_size(cells, kind) == (m.n_nodes, m.n_elements), cells
+    for cells in [(4, 1, 1), (8, 2, 3), (6, 1, 5)]:
+        m = softbody.tube_mesh(0.1, 0.06, 1.0, cells, kind)
+        assert grid_mesh_size(cells, kind, periodic_first=True) == (m.n_nodes, m.n_elements), cells

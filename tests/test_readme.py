@@ -17,3 +17,24 @@ def test_readme_block_runs_on_its_own(index, monkeypatch):
     monkeypatch.chdir(ROOT)
     code = compile(BLOCKS[index], f"README.md python block {index + 1}", "exec")
     exec(code, {"__name__": "__readme__"})
+
+
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.name)
+def test_every_linked_file_is_in_the_repository(doc):
+    """A fresh clone has every file the README and docs link to (no project-external paths)."""
+    text = doc.read_text()
+    assert "../shared" not in text
+    for target in re.findall(r"\]\(([^)#\s]+)", text):
+        if not target.startswith(("http://", "https://")):
+            assert (doc.parent / target).exists(), f"{doc.name} links to {target}, which is not in the repository"
+
+
+def test_the_method_is_documented_in_the_repository():
+    text = (ROOT / "docs" / "method.md").read_text()
+    assert "docs/method.md" in (ROOT / "README.md").read_text()
+    for needle in ("(M + h C + h^2 K) v_{n+1}", "VTK_QUADRATIC_TETRA", "{0, 2, 5, 7}", "sheet-on-sphere",
+                   "hanging-tube", "cantilever", "5.0e5 Pa"):
+        assert needle in text, needle

@@ -100,7 +100,7 @@ def test_recording_round_trip(tmp_path):
     data, static = read(rec.path)
     node = f"plots/monitor/node{scene.monitor}"
     for entity in ["world/soft/body0", "world/contacts/points", "world/contacts/arrows", node, "world/monitor",
-                   "plots/energy", "plots/step_time", "plots/contacts", "plots/color_range"]:
+                   "plots/energy", "plots/step_time", "plots/setup_time", "plots/contacts", "plots/color_range"]:
         assert "/" + entity in data, f"{entity} missing; have {sorted(data)}"
     for entity in ["world", "world/soft/body0", "world/rigid/sphere_0", "legend"]:
         assert "/" + entity in static, f"static {entity} missing; have {sorted(static)}"
@@ -122,17 +122,31 @@ def test_recording_round_trip(tmp_path):
     last = np.array(mesh["Mesh3D:vertex_positions"][-1])
     np.testing.assert_allclose(last, body.positions[surface], atol=1e-6)
     assert len(mesh["Mesh3D:vertex_colors"][-1]) == len(surface)
-    # colour legend: min and max over the surface of von Mises averaged from the elements to the nodes
+    # colour legend: the frame's min and max over the surface of von Mises averaged from the elements to the
+    # nodes, and the colour map's range: from 0 to the largest value so far, never below 1e-3 E, only growing
     vm = body.von_mises()
     nodal = np.array([vm[(body.mesh.elements == n).any(axis=1)].mean() for n in surface])
-    np.testing.assert_allclose(data["/plots/color_range"]["Scalars:scalars"][-1], [nodal.min(), nodal.max()],
-                               rtol=1e-9)
+    ranges = np.array(data["/plots/color_range"]["Scalars:scalars"])
+    np.testing.assert_allclose(ranges[-1, 2:], [nodal.min(), nodal.max()], rtol=1e-9)
+    assert np.all(ranges[:, 0] == 0.0)
+    np.testing.assert_allclose(ranges[:, 1], np.maximum(1e-3 * body.material.E, np.maximum.accumulate(ranges[:, 3])),
+                               rtol=1e-12)
+    assert ranges[-1, 1] > 1e-3 * body.material.E  # the impact loaded the sheet above the floor
     colors = np.array(mesh["Mesh3D:vertex_colors"][-1], dtype=np.uint32)
     assert len(np.unique(colors)) > 1  # a real colour field, not one flat colour
-    # diagnostics agree with the body's own energies at the end
-    ke, ee = data["/plots/energy"]["Scalars:scalars"][-1]
-    assert ke == pytest.approx(body.kinetic_energy(), rel=1e-9)
-    assert ee == pytest.approx(body.elastic_energy(), rel=1e-9)
+    # diagnostics agree with the World's own energies at the end; the total is there to check
+    energy = np.array(data["/plots/energy"]["Scalars:scalars"])
+    e = scene.world.energy()
+    np.testing.assert_allclose(energy[-1], [e["soft_kinetic"], e["elastic"], e["soft_potential"], e["rigid_kinetic"],
+                                            e["rigid_potential"], e["total"]], rtol=1e-9)
+    np.testing.assert_allclose(energy[:, 5], energy[:, :5].sum(axis=1), rtol=1e-12)
+    assert energy[0, 2] == pytest.approx(-body.node_mass @ (body.rest @ scene.world.gravity))  # at rest: all potential
+    assert np.all(np.diff(energy[:, 5]) <= 1e-9 * abs(energy[0, 5]))  # damping and contact only take energy out
+    # the first step (set-up) is logged apart; the step-time series starts at the second step
+    setup = data["/plots/setup_time"]
+    assert seconds(setup["sim_time"]) == pytest.approx([0.01]) and setup["Scalars:scalars"][0][0] > 0
+    step_times = data["/plots/step_time"]
+    np.testing.assert_allclose(seconds(step_times["sim_time"]), t_true[2:], atol=1e-9)
     active, _ = data["/plots/contacts"]["Scalars:scalars"][-1]
     assert active == sum(int(r.active.sum()) for _, r in scene.world.contact_results.values())
     # a blueprint travels with the recording
@@ -221,6 +235,23 @@ def test_rigid_shapes_attachments_and_two_recordings(tmp_path):
     assert len(data2["/world/soft/body0"]["sim_time"]) == 6
 
 
+@pytest.mark.parametrize("color_by", ["von_mises", "displacement"])
+def test_a_body_at_rest_shows_no_colours(color_by, tmp_path):
+    """The t = 0 frame of an unloaded sheet (stresses of round-off size) is all at the bottom of the colour map,
+    whose range is 0 .. 1e-3 of E (or of the sheet's size), not its own min..max."""
+    scene = sheet_on_sphere("tet4", (2, 2, 1))
+    with Recorder.attach(scene, path=tmp_path / "rest.rrd", color_by=color_by, content=("mesh", "colors")) as rec:
+        pass
+    data, static = read(rec.path)
+    colors = np.array(data["/world/soft/body0"]["Mesh3D:vertex_colors"][0], dtype=np.uint32)
+    lut = (np.asarray(__import__("matplotlib").colormaps["viridis"](0.0)) * 255 + 0.5).astype(np.uint32)
+    low = (lut[0] << 24) | (lut[1] << 16) | (lut[2] << 8) | lut[3]  # rerun packs colours as 0xRRGGBBAA
+    assert np.all(colors == low), np.unique(colors)
+    floor = 1e-3 * (scene.body.material.E if color_by == "von_mises" else 1.0)  # the sheet is 1 m wide
+    lo, hi, fmin, fmax = data["/plots/color_range"]["Scalars:scalars"][0]
+    assert (lo, hi) == (0.0, pytest.approx(floor)) and fmax < 1e-6 * floor
+
+
 def test_default_path_is_descriptive(tmp_path):
     scene = sheet_on_sphere("tet4", (2, 2, 1))
     p = default_path(scene, directory=tmp_path / "logs")
@@ -254,8 +285,12 @@ def test_bare_simulation_and_overlapping_recorders(tmp_path):
         data, _ = read(r.path)
         assert len(data["/world/soft/body0"]["sim_time"]) == frames
         assert not any(e.startswith(("/world/rigid", "/world/contacts", "/plots/contacts")) for e in data)
-    ke, ee = data["/plots/energy"]["Scalars:scalars"][-1]
+    ke, ee, pe, total = data["/plots/energy"]["Scalars:scalars"][-1]
     assert ke == pytest.approx(body.kinetic_energy(), rel=1e-9) and ee == pytest.approx(body.elastic_energy(), rel=1e-9)
+    assert pe == pytest.approx(body.gravitational_energy(sim.gravity), rel=1e-9) and total == pytest.approx(ke + ee + pe)
+    # every second step recorded: frame 0 has no step time, the set-up step is not a frame
+    assert seconds(data["/plots/step_time"]["sim_time"]) == pytest.approx(0.02 * np.arange(1, frames))
+    assert seconds(data["/plots/setup_time"]["sim_time"]) == pytest.approx([0.01])
 
 
 SCRIPT = """

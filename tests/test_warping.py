@@ -107,7 +107,7 @@ def _best_fit_rigid(X, x):
 def test_free_spinning_body_keeps_its_shape(kind):
     """A cube spinning at 2 rev/s about an oblique axis through its centre, no gravity, no damping, for 1 s.
 
-    Step h = 0.005 s. The scheme of SPEC.md section 3 moves nodes along straight lines x + h v, so every
+    Step h = 0.005 s. The scheme of docs/method.md section 3 moves nodes along straight lines x + h v, so every
     step of a rotation by omega h stretches the body by about (omega h)^2 / 2 across the axis before the
     elastic forces pull it back; at h = 0.01 s (omega h = 0.126) that alone stores ~15% of the kinetic
     energy as strain energy for E = 5e5 Pa (measured; it scales like h^2 E), so the energy criterion needs
