@@ -81,9 +81,10 @@ class Contacts:
 @dataclass(frozen=True)
 class Sweep:
     """What one rigid link and one soft body can close within a step of ``h`` [s]: ``margin`` [m] (the contact
-    margin), ``velocities`` (N, 3) [m/s] of the soft body's nodes, and the link's motion at the start of the
-    step: linear velocity ``v`` (3,) [m/s] of its centre of mass ``centre`` (3,), angular velocity ``w`` (3,)
-    [rad/s]; ``radius`` [m] its bounding radius about the centre (inf: unbounded, a plane).
+    margin), ``velocities`` (N, 3) [m/s] of the soft body's nodes and their ``speeds`` (N,), and the link's
+    motion at the start of the step: linear velocity ``v`` (3,) [m/s] of its centre of mass ``centre`` (3,),
+    angular velocity ``w`` (3,) [rad/s]; ``radius`` [m] its bounding radius about the centre (inf: unbounded,
+    a plane).
 
     Speculative contact: whatever could meet within the step is a constraint of the step, so that no speed
     tunnels. A soft point at distance d from the link, along the direction n from the rigid point facing it,
@@ -94,6 +95,7 @@ class Sweep:
     margin: float
     h: float
     velocities: np.ndarray
+    speeds: np.ndarray  # (N,) |velocities| [m/s]
     v: np.ndarray = field(default_factory=lambda: np.zeros(3))
     w: np.ndarray = field(default_factory=lambda: np.zeros(3))
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -101,8 +103,7 @@ class Sweep:
 
     def soft_travel(self, nodes: np.ndarray | None = None) -> float:
         """The farthest [m] any of the soft ``nodes`` (default: all) may travel within the step, with slack."""
-        v = self.velocities if nodes is None else self.velocities[nodes]
-        return SOFT_SLACK * self.h * float(np.sqrt(np.einsum("ij,ij->i", v, v).max(initial=0.0)))
+        return SOFT_SLACK * self.h * float((self.speeds if nodes is None else self.speeds[nodes]).max(initial=0.0))
 
     def rigid_travel(self) -> float:
         """The farthest [m] any point of the link may travel within the step, with slack (0 if unbounded)."""
@@ -270,7 +271,7 @@ class CollisionDetector:
         if len(around) and sweep is not None:  # and whose bounding spheres meet its sweep
             mid = 0.5 * (boxes[0][around] + boxes[1][around])
             half = 0.5 * (boxes[1][around] - boxes[0][around])
-            travel = sweep.soft_travel(np.unique(triangles[around]))
+            travel = sweep.soft_travel(triangles[around])
             around = around[sweep.swept(mid, np.sqrt(np.einsum("ij,ij->i", half, half)), travel)]
         elif len(around) and np.isfinite(reach):  # and whose bounding spheres meet the link's
             centre, _ = rigid.pose()
@@ -422,9 +423,9 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     (T, 3) (zero at nodes on no triangle)."""
     P = positions[triangles]
     n = cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    out = np.zeros_like(positions)
-    for k in range(3):
-        np.add.at(out, triangles[:, k], n)
+    nodes = triangles.ravel()
+    out = np.column_stack([np.bincount(nodes, weights=np.repeat(n[:, c], 3), minlength=len(positions))
+                           for c in range(3)])
     norm = np.linalg.norm(out, axis=1, keepdims=True)
     return np.divide(out, norm, out=np.zeros_like(out), where=norm > 0)
 

@@ -429,20 +429,25 @@ class World:
         surface, tris = self._surface[id(body)]
         surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
         links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
-        sweeps = [self._sweep(rb, body.velocities) for rb in links]
+        v = body.velocities
+        speeds = np.sqrt(np.einsum("ij,ij->i", v, v))
+        sweeps = [self._sweep(rb, v, speeds) for rb in links]
         return self.detector.detect(i, body.positions, surface, tris, body.supported(), links, sweeps,
                                     TOUCH * self.contact_margin)
 
-    def _sweep(self, rb: RigidLink, velocities: np.ndarray) -> Sweep:
-        """The motions of a link and a soft body's nodes (velocities (N, 3)) over the step, for the contact
-        search (collision.Sweep)."""
+    def _sweep(self, rb: RigidLink, velocities: np.ndarray, speeds: np.ndarray | None = None) -> Sweep:
+        """The motions of a link and a soft body's nodes (velocities (N, 3), speeds (N,)) over the step, for the
+        contact search (collision.Sweep)."""
+        if speeds is None:
+            speeds = np.sqrt(np.einsum("ij,ij->i", velocities, velocities))
         if rb.id in self._kin_velocity:
             v, w = self._kin_velocity[rb.id]
         elif rb.movable or rb.id in self._one_way:
             v, w = rb.velocity()
         else:
-            return Sweep(self.contact_margin, self.dt, velocities, radius=rb.bounding_radius(), centre=rb.pose()[0])
-        return Sweep(self.contact_margin, self.dt, velocities, v, w, rb.pose()[0], rb.bounding_radius())
+            return Sweep(self.contact_margin, self.dt, velocities, speeds, radius=rb.bounding_radius(),
+                         centre=rb.pose()[0])
+        return Sweep(self.contact_margin, self.dt, velocities, speeds, v, w, rb.pose()[0], rb.bounding_radius())
 
     def _soft_pairs(self, skipped: list | None = None) -> list[tuple[int, int]]:
         """Index pairs (a, b) of the soft bodies to search for contact (a == b: self-contact); the pairs left
