@@ -48,6 +48,9 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
                         help="grid cells (for the tube: n_theta n_r n_z)")
     parser.add_argument("--duration", type=_positive_float, default=None, help="simulated time [s] (default: the scene's)")
     parser.add_argument("--dt", type=_positive_float, default=None, help="time step [s] (default 0.01)")
+    parser.add_argument("--scheme", choices=("warped", "newton"), default=None,
+                        help="the step: warped (the paper's single solve, default) or newton (the nonlinear "
+                             "backward Euler step: exact where elements turn far within a step, several solves)")
     parser.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
                         help="write a rerun recording to PATH, or into the directory PATH (an existing one, or "
                              "ending in /) as <scene>_<element>_<cells>_<time>.rrd (default: into logs/)")
@@ -70,7 +73,7 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         element, cells, dt, layout = grid
         duration = args.duration if args.duration is not None else layout.duration
         check_run_size(scene_name, element, cells, max(1, round(duration / dt)), layout.periodic_first)
-    scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt)
+    scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt, scheme=args.scheme)
     duration = args.duration if args.duration is not None else scene.duration
     axis = "xyz"[scene.axis]
     body = scene.body
@@ -86,8 +89,10 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     every = max(1, int(round(args.print_every / scene.world.dt)))
     step_times: list[float] = []
     max_contacts = 0
+    newton = scene.world.sim.scheme == "newton"
     if not args.progress:
-        print(f"{'t [s]':>8} {axis + ' [m]':>10} {'contacts':>8} {'ms/step':>8}")
+        print(f"{'t [s]':>8} {axis + ' [m]':>10} {'contacts':>8} {'ms/step':>8}"
+              + (f" {'newton it':>9} {'residual':>9}" if newton else ""))
 
     def callback(world):
         nonlocal max_contacts
@@ -98,7 +103,9 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
             recorder(world)
         n = int(round(world.t / world.dt))
         if not args.progress and n % every == 0:
-            print(f"{world.t:8.3f} {scene.monitored():10.5f} {active:8d} {1e3 * step_times[-1]:8.1f}", flush=True)
+            report = world.sim.newton_report
+            print(f"{world.t:8.3f} {scene.monitored():10.5f} {active:8d} {1e3 * step_times[-1]:8.1f}"
+                  + (f" {report.iterations:9d} {report.residual:9.1e}" if newton else ""), flush=True)
 
     try:
         scene.world.run(duration, callback, progress=args.progress)

@@ -1,4 +1,5 @@
-"""The canonical scenes of docs/method.md section 5, built on a World.
+"""The canonical scenes of docs/method.md section 5, built on a World (every builder takes the time step dt
+[s] and the step's scheme, "warped" or "newton", see softbody.newton).
 
 Each builder returns a :class:`Scene`: the world, its soft body, the monitored node and axis,
 the default duration, and metadata (scene name, element kind, cells) for logs and studies.
@@ -69,7 +70,7 @@ def _nearest(nodes: np.ndarray, point) -> int:
 
 def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt: float = 0.01,
                     E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                    friction: float = 1.0, warping: bool = True, solver: str = "auto") -> Scene:
+                    friction: float = 1.0, warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
     """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
     Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35).
 
@@ -81,12 +82,12 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     all element types and resolutions end within 5 mm of each other."""
     mesh = box_mesh((1.0, 1.0, 0.25), cells, element, center=(0.0, 0.0, 0.35 + 0.125))
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
-    world = World(dt=dt, solver=solver)
+    world = World(dt=dt, solver=solver, scheme=scheme)
     world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
     world.add_soft(body, friction=friction)
     return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2,
                  GRIDS["sheet-on-sphere"].duration,
-                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 
 
 def platform_x(t: float) -> float:
@@ -98,33 +99,33 @@ def platform_x(t: float) -> float:
 
 def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: float = 0.01,
                  E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                 warping: bool = True, solver: str = "auto") -> Scene:
+                 warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
     """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
     moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x."""
     mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
-    world = World(dt=dt, solver=solver)
+    world = World(dt=dt, solver=solver, scheme=scheme)
     platform = world.add_box((0.15, 0.15, 0.01), position=(0, 0, 0.01), name="platform",
                              motion=lambda t: (platform_x(t), 0.0, 0.01))
     world.add_soft(body)
     top = np.flatnonzero(np.isclose(mesh.nodes[:, 2], 0.0))
     world.attach(body, top, platform)
     return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, GRIDS["hanging-tube"].duration,
-                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 
 
 def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: float = 0.01,
                E: float = 5.0e7, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-               warping: bool = True, solver: str = "auto") -> Scene:
+               warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
     """A 1.0 x 0.1 x 0.1 m beam along x, nodes at x = 0 fixed, sagging under gravity (no rigid bodies,
     so no pybullet work). Monitored: z of the node at the tip centre (1, 0, 0), or the nearest."""
     mesh = box_mesh((1.0, 0.1, 0.1), cells, element, center=(0.5, 0.0, 0.0))
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
-    world = World(dt=dt, solver=solver)
+    world = World(dt=dt, solver=solver, scheme=scheme)
     world.add_soft(body)
     return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, GRIDS["cantilever"].duration,
-                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt})
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 
 
 SCENES: dict[str, Callable[..., Scene]] = {

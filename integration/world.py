@@ -117,12 +117,15 @@ class World:
     it costs nothing while they are apart; self-contact is per body, see :meth:`add_soft`); push_speed
     [m/s]: the fastest a penetration is undone (a soft body placed partly inside a rigid or another soft
     body is pushed out over several steps, with a warning; placed deeper than half its size inside, it is
-    refused at its first step).
+    refused at its first step); scheme, newton_tol, newton_max_iter: the soft bodies' step, "warped" (the
+    paper's) or "newton" (the nonlinear backward Euler step, contacts and coupling solved in every
+    iteration; see softbody.Simulation and softbody.newton).
     """
 
     def __init__(self, dt: float | None = None, gravity=None, gui: bool = False, solver: str = "auto",
                  contact_margin: float = 0.005, client: int | None = None, max_energy: float | None = None,
-                 method: str = "auto", soft_contact: bool = True, push_speed: float = 0.5):
+                 method: str = "auto", soft_contact: bool = True, push_speed: float = 0.5, scheme: str = "warped",
+                 newton_tol: float = 1e-6, newton_max_iter: int = 25):
         if client is not None and gui:
             raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
         self.adapter = BulletAdapter(client, gui)
@@ -132,7 +135,8 @@ class World:
                 dt = dt0 if dt is None else dt
                 gravity = g0 if gravity is None else gravity
             self.sim = Simulation([], 0.01 if dt is None else dt, (0.0, 0.0, -9.81) if gravity is None else gravity,
-                                  solver=solver, max_energy=max_energy, method=method)
+                                  solver=solver, max_energy=max_energy, method=method, scheme=scheme,
+                                  newton_tol=newton_tol, newton_max_iter=newton_max_iter)
             self.dt = self.sim.dt
             self.gravity = self.sim.gravity
             self.adapter.set_parameters(self.dt, self.gravity)

@@ -149,6 +149,7 @@ class FemBody:
         gc = np.concatenate([-Dm_inv.sum(axis=2, keepdims=True), Dm_inv], axis=2) / len(ct)
         self._char_F = deformation_gradient_operator(mesh.elements[:, ct.reshape(-1)], gc.reshape(E, -1, 3),
                                                      mesh.n_nodes)
+        self._char_grads = gc.reshape(E, -1, 3)  # (E, 4c, 3), on the element's local nodes ct.reshape(-1)
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
@@ -344,6 +345,72 @@ class FemBody:
         if x.shape != self.positions.shape:
             raise InvalidInputError(f"positions must have shape {self.positions.shape}, got {x.shape}")
         return self.scatter_nodal(self.element_forces(x, self.rotations(x)))
+
+    def energy_gradient(self, x: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
+        """The exact gradient dPsi/dx (N, 3) [N] of the warped strain energy Psi(x) = 1/2 sum_e u_e^T K_e u_e
+        (``elastic_energy``) with R_e the polar rotation of the characteristic tetrahedra at x (R: those
+        rotations, if at hand); see :meth:`element_energy_gradients`."""
+        x = np.asarray(x, dtype=float)
+        R = self.rotations(x) if R is None else R
+        return self.scatter_nodal(self.element_energy_gradients(x[self.mesh.elements], R))
+
+    def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
+        """dPsi_e/dx_e (E, k, 3) [N] of each element's warped strain energy at its node positions xe (E, k, 3).
+
+        It is R_e K_e u_e (minus the warped forces) plus the change of R_e itself: with Y_e = sum_a x_a
+        (K_e u_e)_a^T, S = R^T F, z = (tr(S) I - S)^-1 axial(skew(R^T Y)), the energy's derivative by the
+        characteristic gradient F is 2 R [z]x, which reaches the nodes through F = sum_b x_b g_b^T. For a
+        linear tet R^T Y is symmetric and the second part vanishes (the warped force is the gradient); for
+        tet10 and hex8, whose rotation is their characteristic tet's, it does not. Where an element is so
+        inverted that tr(S) I - S is singular, its rotation's share is left out."""
+        E, k = self.mesh.elements.shape
+        ct = self.char_tets.reshape(-1)
+        F = np.einsum("eci,ecj->eij", xe[:, ct], self._char_grads)
+        if R is None:
+            R = polar_rotation_components(_components(F)).T.reshape(E, 3, 3) if self.warping else \
+                np.broadcast_to(np.eye(3), (E, 3, 3))
+        u = (xe @ R).reshape(E, -1) - self.rest[self.mesh.elements].reshape(E, -1)
+        fh = (self.Ke @ u[:, :, None]).reshape(E, k, 3)  # K_e u_e, unrotated
+        grad = fh @ np.swapaxes(R, 1, 2)
+        if not self.warping:
+            return grad
+        Y = np.einsum("eka,ekb->eab", xe - xe.mean(axis=1, keepdims=True), fh)  # (K u sums to zero)
+        B = np.swapaxes(R, 1, 2) @ Y
+        y = 0.5 * np.stack([B[:, 2, 1] - B[:, 1, 2], B[:, 0, 2] - B[:, 2, 0], B[:, 1, 0] - B[:, 0, 1]], axis=1)
+        S = np.swapaxes(R, 1, 2) @ F
+        trS = np.trace(S, axis1=1, axis2=2)
+        T = trS[:, None, None] * np.eye(3) - S
+        ok = np.abs(np.linalg.det(T)) > 1e-12 * np.abs(trS) ** 3
+        z = np.zeros((E, 3))
+        z[ok] = np.linalg.solve(T[ok], y[ok][:, :, None])[:, :, 0]
+        zx = np.zeros((E, 3, 3))
+        zx[:, 0, 1], zx[:, 0, 2], zx[:, 1, 2] = -z[:, 2], z[:, 1], -z[:, 0]
+        zx -= np.swapaxes(zx, 1, 2)
+        P = 2.0 * R @ zx  # dPsi/dF of each element's rotation
+        grad[:, ct] += np.einsum("eij,ecj->eci", P, self._char_grads)  # (the characteristic nodes are distinct)
+        return grad
+
+    def energy_hessian_blocks(self, x: np.ndarray, rel_step: float = 1e-6, project: bool = True) -> np.ndarray:
+        """The exact Hessian of the warped strain energy at x (N, 3), rotations' derivatives included, each
+        element's made positive semi-definite (its negative eigenvalues set to zero; project=False keeps
+        them), assembled as block data (nnzb, 3, 3) [N/m]. Per element by central differences of
+        :meth:`element_energy_gradients` (step ``rel_step`` times the element's size), symmetrised: a tangent
+        for Newton's method that knows how the rotations turn (the warped stiffness K' does not)."""
+        xe = np.asarray(x, dtype=float)[self.mesh.elements]
+        E, k, _ = xe.shape
+        size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+        eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
+        H = np.empty((E, 3 * k, 3 * k))
+        for j in range(3 * k):
+            d = np.zeros((E, k, 3))
+            d[:, j // 3, j % 3] = 1.0
+            H[:, :, j] = ((self.element_energy_gradients(xe + eps * d) - self.element_energy_gradients(xe - eps * d))
+                          / (2 * eps)).reshape(E, -1)
+        H = 0.5 * (H + np.swapaxes(H, 1, 2))
+        if project:
+            lam, V = np.linalg.eigh(H)
+            H = (V * np.maximum(lam, 0.0)[:, None, :]) @ np.swapaxes(V, 1, 2)
+        return self.pattern.assemble(H)
 
     def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
         """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""

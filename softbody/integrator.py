@@ -218,6 +218,10 @@ class DirectSystem:
         reaction = np.where(mask, (A @ y.reshape(-1)).reshape(-1, 3) - b, 0.0)
         return to_global(T, y), reaction
 
+    def apply(self, y: np.ndarray) -> np.ndarray:
+        """A y for y (N, 3)."""
+        return (self.body.pattern.to_bsr(self.A) @ y.reshape(-1)).reshape(-1, 3)
+
     def responses(self, cons: Constraints, values: np.ndarray | None = None,
                   loads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Homogeneous solves (the step's load dropped) for k columns at once, with the factorisation of the
@@ -521,6 +525,29 @@ class IterativeSystem:
 LinearSystem = DirectSystem | IterativeSystem
 
 
+def body_preconditioner(body: FemBody, solver: SpdSolver) -> Preconditioner:
+    """The body's preconditioner for the iterative path: its own single-precision factorisation, apart from
+    the direct solves', kept on the body from step to step (and anew for another backend)."""
+    pre = body.__dict__.get("_preconditioner")
+    if pre is None or pre.solver.backend != solver.backend:
+        p = body.pattern
+        pre = body.__dict__["_preconditioner"] = Preconditioner(
+            SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
+    return pre
+
+
+def assembled_system(body: FemBody, A: np.ndarray, b: np.ndarray, solver: SpdSolver, method: str,
+                     settings: IterativeSettings, timings: Timings | None, x0: np.ndarray,
+                     terms: tuple[np.ndarray, ...] = (), Q: np.ndarray | None = None) -> LinearSystem:
+    """A linear system A y = b (A: block data (nnzb, 3, 3), b (N, 3)) to be solved with constraints, direct
+    (factorised) or iterative (PCG from x0 (N, 3), preconditioned by the body's preconditioner, conjugated
+    with the per-node rotations Q (N, 3, 3) if given; terms: the (N, 3) parts of b, for the tolerance)."""
+    if method == "direct":
+        return DirectSystem(body, A, b, solver, timings=timings)
+    return IterativeSystem(body, A, b, x0, body_preconditioner(body, solver), settings, timings, Q, terms,
+                           None, solver)
+
+
 def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
                 settings: IterativeSettings | None = None, timings: Timings | None = None) -> LinearSystem:
     """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
@@ -539,13 +566,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         R = body.rotations(x) if body.warping else None
     c_m, c_k = 1.0 + h * alpha, h * beta + h * h
     settings = settings or IterativeSettings()
-    pre = None
-    if method != "direct":
-        pre = body.__dict__.get("_preconditioner")
-        if pre is None or pre.solver.backend != solver.backend:  # its own factorisation, apart from direct solves
-            p = body.pattern
-            pre = body.__dict__["_preconditioner"] = Preconditioner(
-                SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
+    pre = None if method == "direct" else body_preconditioner(body, solver)
     operator = settings.operator
     if operator == "auto":
         # matrix-free saves the assembly only if no refactorisation is due (stale: it needs A anyway)

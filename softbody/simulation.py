@@ -10,6 +10,7 @@ from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
 from .linsolve import BACKENDS, SpdSolver
+from .newton import NewtonReport, NewtonSettings, NewtonStepper
 
 # A hook (bodies, their step systems, their supports, t_next) -> the bodies' new velocities (N_i, 3); the
 # integration layer uses it to solve contacts and the coupling to rigid bodies for all bodies at once.
@@ -17,6 +18,7 @@ VelocitySolver = Callable[[list[FemBody], list[LinearSystem], list[Constraints],
 
 
 METHODS = ("auto", "direct", "iterative")
+SCHEMES = ("warped", "newton")
 # below this a direct factorisation per step is about as cheap; above it the iterative path is 3-7x
 # faster without contact (benchmarks/step_no_contact.py) and faster over whole runs with contact
 ITERATIVE_MIN_DOFS = 1500
@@ -43,12 +45,16 @@ class Simulation:
 
     bodies: a FemBody or a list of them; dt: step [s] > 0; gravity [m/s^2]; solver: linear solver
     backend ("auto", "pardiso", "superlu"); max_energy: optional bound [J] on each body's kinetic plus
-    elastic energy, above which a step raises SimulationDiverged.
+    elastic energy, above which a step raises SimulationDiverged; method: the linear solve ("auto",
+    "direct", "iterative"), tol its relative tolerance on the iterative path; scheme: "warped" (the
+    paper's step: rotations at the start of the step, one solve) or "newton" (the nonlinear backward Euler
+    step, softbody.newton: rotations re-evaluated, Newton iterations to the residual newton_tol, at most
+    newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals).
     """
 
     def __init__(self, bodies: FemBody | Sequence[FemBody], dt: float, gravity=(0.0, 0.0, -9.81),
                  solver: str = "auto", max_energy: float | None = None, method: str = "auto",
-                 tol: float = 1e-5):
+                 tol: float = 1e-5, scheme: str = "warped", newton_tol: float = 1e-6, newton_max_iter: int = 25):
         bodies = [bodies] if isinstance(bodies, FemBody) else list(bodies)
         for b in bodies:
             if not isinstance(b, FemBody):
@@ -70,6 +76,10 @@ class Simulation:
             raise InvalidInputError(f"tol must be a number in (0, 1), got {tol!r}")
         self.method = method
         self.settings = IterativeSettings(tol=float(tol))
+        if scheme not in SCHEMES:
+            raise InvalidInputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+        self.scheme = scheme
+        self.newton = NewtonStepper(NewtonSettings(newton_tol, newton_max_iter))
         self.max_energy = max_energy
         self.t = 0.0
         self.steps = 0
@@ -80,29 +90,47 @@ class Simulation:
         for b in bodies:
             body_solver(b, solver)  # fail early on a bad backend
 
-    def system(self, body: FemBody) -> LinearSystem:
-        """The backward Euler system of ``body`` for the next step (gravity and external_forces as loads)."""
+    def load(self, body: FemBody) -> np.ndarray:
+        """The external load (N, 3) [N] on ``body``: gravity and its external_forces."""
         f_ext = body.node_mass[:, None] * self.gravity
         extra = self.external_forces.get(id(body))
-        if extra is not None:
-            f_ext = f_ext + extra
-        method = self.method
-        if method == "auto":
-            method = "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
-        return step_system(body, self.dt, f_ext, body_solver(body, self.solver_backend), method, self.settings,
-                           self.timings)
+        return f_ext if extra is None else f_ext + extra
+
+    def linear_method(self, body: FemBody) -> str:
+        """"direct" or "iterative" for ``body`` (method "auto": iterative from ITERATIVE_MIN_DOFS on)."""
+        if self.method == "auto":
+            return "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
+        return self.method
+
+    def system(self, body: FemBody) -> LinearSystem:
+        """The warped backward Euler system of ``body`` for the next step (gravity and external_forces as loads)."""
+        return step_system(body, self.dt, self.load(body), body_solver(body, self.solver_backend),
+                           self.linear_method(body), self.settings, self.timings)
+
+    @property
+    def newton_report(self) -> NewtonReport:
+        """The last Newton step's iterations and residuals (scheme "newton")."""
+        return self.newton.report
 
     def solve_step(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The new (positions, velocities) of every body after one step, checked (SimulationDiverged) but not
         yet applied: :meth:`commit` applies them. :meth:`step` is both."""
         t_next = self.t + self.dt
         self.timings = {}
-        systems = [self.system(b) for b in self.bodies]
         supports = [support_constraints(b, t_next, self.dt) for b in self.bodies]
-        if self.velocity_solver is not None:
-            vs = self.velocity_solver(self.bodies, systems, supports, t_next)
+
+        def solve(systems: list[LinearSystem]) -> list[np.ndarray]:
+            if self.velocity_solver is not None:
+                return self.velocity_solver(self.bodies, systems, supports, t_next)
+            return [system.solve(cons)[0] for system, cons in zip(systems, supports)]
+
+        if self.scheme == "newton" and self.bodies:
+            vs = self.newton.solve(self.bodies, self.dt, [self.load(b) for b in self.bodies],
+                                   [body_solver(b, self.solver_backend) for b in self.bodies],
+                                   [self.linear_method(b) for b in self.bodies], self.settings, self.timings, solve,
+                                   t_next, self.steps + 1)
         else:
-            vs = [system.solve(cons)[0] for system, cons in zip(systems, supports)]
+            vs = solve([self.system(b) for b in self.bodies])
         new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]
         for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
             self._check(i, b, x, v)

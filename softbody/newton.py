@@ -1,0 +1,231 @@
+"""Exact backward Euler: Newton iterations on the warped step (``Simulation(..., scheme="newton")``).
+
+The paper's step (scheme "warped") takes each element's rotation at the start of the step and solves once.
+Over a step that turns elements far, that rotation is stale: a spinning body stretches. The Newton scheme
+solves the nonlinear backward Euler step instead: with v the new velocities and x = x_n + h v, it minimises
+the incremental potential
+
+    Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C_n v + Psi(x_n + h v) - h f_ext^T v
+
+(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; C_n = alpha M + beta K'_n
+the Rayleigh damping at the start of the step; f_ext gravity and loads) under the supports, and under the
+contacts and attachments of the integration layer's velocity hook, exactly as the warped step's solve.
+
+Iteration k, from the rigid prediction v_0 (the body's rigid motion carried through the step, the rest of
+its velocities as they are): the gradient g_k = M (v_k - v_n) + h C_n v_k + h dPsi/dx(x_k) - h f_ext (the exact
+gradient of Psi, FemBody.energy_gradient, rotations re-evaluated at x_k), the warped tangent
+A_k = M + h C_n + h^2 K'(x_k) (symmetric positive definite; the rotations' own derivatives left out), and
+one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a warped step (supports,
+contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
+whole step (it makes the iterate satisfy the constraints). A line search along v' - v_k halves the step until Phi falls
+by the Armijo condition (the constrained solve minimises the quadratic model over the constraints, so the
+direction descends; where friction makes it not, the full step is taken). The iteration stops when the
+residual (the gradient less the constraint impulses of the last solve, relative to the step's loads) is
+below ``tol`` after a full step, and raises SimulationDiverged with the residual history after
+``max_iter`` solves.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from .body import FemBody
+from .errors import InvalidInputError, SimulationDiverged
+from .integrator import Constraints, IterativeSettings, LinearSystem, Timings, assembled_system, timed
+from .linsolve import SpdSolver
+
+
+TANGENTS = ("auto", "warped", "exact")
+# "auto": the warped tangent until an iteration reduces the residual by less than this factor, then the exact one
+SLOW = 0.3
+
+
+@dataclass
+class NewtonSettings:
+    """tol: residual (relative to the step's loads) at which the iteration stops; max_iter: solves per step
+    at most; armijo: the sufficient decrease of the line search; min_step: the smallest line-search step;
+    tangent: "warped" (K' at the iterate: cheap, but blind to the rotations' own turning, so it converges
+    slowly where elements are strained and turn), "exact" (the energy's Hessian, rotations' derivatives
+    included, per element by central differences of the exact gradient and made positive semi-definite:
+    FemBody.energy_hessian_blocks; several times the cost of an assembly) or "auto" (warped until an
+    iteration reduces the residual by less than SLOW, then exact for the rest of the step)."""
+
+    tol: float = 1e-6
+    max_iter: int = 25
+    armijo: float = 1e-4
+    min_step: float = 1.0 / 64
+    tangent: str = "auto"
+
+    def __post_init__(self):
+        if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
+            raise InvalidInputError(f"newton tol must be a number in (0, 1), got {self.tol!r}")
+        if not (isinstance(self.max_iter, (int, np.integer)) and self.max_iter >= 1):
+            raise InvalidInputError(f"newton max_iter must be an integer >= 1, got {self.max_iter!r}")
+        if self.tangent not in TANGENTS:
+            raise InvalidInputError(f"newton tangent must be one of {TANGENTS}, got {self.tangent!r}")
+
+
+@dataclass
+class NewtonReport:
+    """The last step's iterations: the number of solves, the residual before each solve and after the last
+    (relative), the line-search step of each solve, and the tangent it ended with."""
+
+    iterations: int = 0
+    residuals: list[float] = field(default_factory=list)
+    steps: list[float] = field(default_factory=list)
+    tangent: str = "warped"
+
+    @property
+    def residual(self) -> float:
+        return self.residuals[-1] if self.residuals else float("nan")
+
+
+@dataclass
+class _BodyStep:
+    """One body's data over a Newton step: start state, loads, the damping stiffness at the start (its
+    product), and the current iterate's gradient and potential."""
+
+    body: FemBody
+    x0: np.ndarray
+    v0: np.ndarray
+    f_ext: np.ndarray
+    damping_product: Callable[[np.ndarray], np.ndarray]
+    K_damp: np.ndarray  # upper blocks of beta h K'_n, added into every tangent
+
+    def gradient(self, v: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """(g (N, 3), dPsi/dx (N, 3)) at the iterate v."""
+        body = self.body
+        dpsi = body.energy_gradient(self.x0 + h * v)
+        g = body.mass_product(v - self.v0) + h * self.damping_product(v) + h * (dpsi - self.f_ext)
+        return g, dpsi
+
+    def potential(self, v: np.ndarray, h: float) -> float:
+        """Phi(v) [J s^0]: the incremental potential of the module doc (units of energy)."""
+        body = self.body
+        dv = v - self.v0
+        return float(0.5 * np.sum(dv * body.mass_product(dv)) + 0.5 * h * np.sum(v * self.damping_product(v))
+                     + body.elastic_energy(self.x0 + h * v) - h * np.sum(self.f_ext * v))
+
+
+def rigid_prediction(body: FemBody, h: float) -> np.ndarray:
+    """A first Newton iterate (N, 3) [m/s]: the velocity that carries the body over the step h [s] with the
+    rigid motion of its current velocities (centre of mass, and the angular velocity of its angular momentum,
+    turned through the exact rotation) plus the rest of the velocity field as it is. A spinning body's
+    prediction is turned, not stretched along its tangents, so the iteration starts near the solution."""
+    x, v, m = body.positions, body.velocities, body.node_mass
+    mass = m.sum()
+    c, vc = m @ x / mass, m @ v / mass
+    r, vr = x - c, v - vc
+    L = m @ np.cross(r, vr)
+    inertia = np.eye(3) * (m @ np.einsum("ij,ij->i", r, r)) - np.einsum("i,ij,ik->jk", m, r, r)
+    try:
+        w = np.linalg.solve(inertia, L)
+    except np.linalg.LinAlgError:  # a body of collinear nodes: no rotation to predict
+        return v.copy()
+    angle = float(np.linalg.norm(w)) * h
+    if angle < 1e-12:
+        return v.copy()
+    k = w / np.linalg.norm(w)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    Q = np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+    x_new = c + h * vc + r @ Q.T + h * (vr - np.cross(w, r))
+    return (x_new - x) / h
+
+
+class NewtonStepper:
+    """Newton iterations on the backward Euler step (module doc), owned by a Simulation; ``report`` holds the
+    last step's iterations and residuals."""
+
+    def __init__(self, settings: NewtonSettings | None = None):
+        self.settings = settings or NewtonSettings()
+        self.report = NewtonReport()
+
+    def solve(self, bodies: list[FemBody], h: float, loads: list[np.ndarray], solvers: list[SpdSolver],
+              methods: list[str], iterative: IterativeSettings, timings: Timings | None,
+              solve: Callable[[list[LinearSystem]], list[np.ndarray]], time: float, step: int) -> list[np.ndarray]:
+        """The new velocities (N_i, 3) of ``bodies`` after the step h [s], under loads (N_i, 3) [N]; ``solve``
+        solves the step systems with every constraint (supports, contacts: the Simulation's)."""
+        s = self.settings
+        report = self.report = NewtonReport()
+        states = [self._start(b, h, f) for b, f in zip(bodies, loads)]
+        v = [rigid_prediction(b, h) for b in bodies]
+        scale = None
+        impulses = None  # A v' - b of the last solve, per body: the constraints' impulses
+        alpha = 1.0
+        tangent = report.tangent = "warped" if s.tangent == "auto" else s.tangent
+        for it in range(s.max_iter + 1):
+            with timed(timings, "forces"):
+                grads = [st.gradient(vi, h) for st, vi in zip(states, v)]
+            if scale is None:  # the step's loads, for the residual: inertia, elastic forces, external loads
+                scale = sum(np.linalg.norm(st.body.mass_product(st.v0)) + h * np.linalg.norm(dpsi)
+                            + h * np.linalg.norm(st.f_ext) for st, (_, dpsi) in zip(states, grads)) or 1.0
+            if impulses is not None:
+                residual = np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(grads, impulses))) / scale
+                report.residuals.append(float(residual))
+                if alpha == 1.0 and residual <= s.tol:
+                    return v
+                if tangent == "warped" and s.tangent == "auto" and len(report.residuals) > 1 \
+                        and residual > SLOW * report.residuals[-2]:
+                    tangent = report.tangent = "exact"  # the rotations' own turning matters: take it in
+            if it == s.max_iter:
+                break
+            systems = []
+            for st, vi, (g, _), solver, method in zip(states, v, grads, solvers, methods):
+                body = st.body
+                x = st.x0 + h * vi
+                with timed(timings, "assembly"):
+                    if tangent == "exact":
+                        A = body.system_blocks(st.K_damp, 1.0 + h * body.damping[0], 1.0) \
+                            + h * h * body.energy_hessian_blocks(x)
+                    else:
+                        with timed(timings, "rotations"):
+                            R = body.rotations(x)
+                        K, _ = body.warped_stiffness_upper(R)
+                        A = body.system_blocks(st.K_damp + h * h * K, 1.0 + h * body.damping[0], 1.0)
+                    Av = (body.pattern.to_bsr(A) @ vi.reshape(-1)).reshape(-1, 3)
+                b = Av - g
+                systems.append(assembled_system(body, A, b, solver, method, iterative, timings, vi, (Av, g)))
+            new = solve(systems)
+            impulses = [system.apply(vn) - system.b for system, vn in zip(systems, new)]
+            d = [vn - vi for vn, vi in zip(new, v)]
+            alpha = 1.0 if it == 0 else self._line_search(states, v, d, [g for g, _ in grads], h)
+            report.steps.append(alpha)
+            v = [vi + alpha * di for vi, di in zip(v, d)]
+            report.iterations = it + 1
+        raise SimulationDiverged(
+            f"Newton's iteration did not converge in {s.max_iter} solves at step {step} (t = {time:.6g} s): "
+            f"residuals {', '.join(f'{r:.2e}' for r in report.residuals)} (tolerance {s.tol:g}). State kept; try a "
+            "smaller dt, a looser tolerance (newton_tol) or more iterations (newton_max_iter).",
+            step=step, time=time)
+
+    @staticmethod
+    def _start(body: FemBody, h: float, f_ext: np.ndarray) -> _BodyStep:
+        alpha, beta = body.damping
+        x0, v0 = body.positions.copy(), body.velocities.copy()
+        K_n, _ = body.warped_stiffness_upper(body.rotations(x0) if body.warping else None)
+        Kb = body.pattern.to_bsr(body.stiffness_blocks(K_n)) if beta else None
+
+        def damping(v: np.ndarray) -> np.ndarray:
+            out = alpha * body.mass_product(v)
+            if Kb is not None:
+                out = out + beta * (Kb @ v.reshape(-1)).reshape(-1, 3)
+            return out
+
+        return _BodyStep(body, x0, v0, np.asarray(f_ext, float), damping, h * beta * K_n)
+
+    def _line_search(self, states: list[_BodyStep], v: list[np.ndarray], d: list[np.ndarray], g: list[np.ndarray],
+                     h: float) -> float:
+        """The step along d from v: 1, halved until Phi falls by the Armijo condition (1 if d does not descend)."""
+        slope = sum(float(np.sum(gi * di)) for gi, di in zip(g, d))
+        if slope >= 0:
+            return 1.0
+        phi0 = sum(st.potential(vi, h) for st, vi in zip(states, v))
+        alpha = 1.0
+        while alpha >= self.settings.min_step:
+            phi = sum(st.potential(vi + alpha * di, h) for st, vi, di in zip(states, v, d))
+            if phi <= phi0 + self.settings.armijo * alpha * slope:
+                return alpha
+            alpha *= 0.5
+        return alpha * 2.0
