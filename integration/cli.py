@@ -177,6 +177,8 @@ def add_study_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=_positive_float, default=None,
                         help="simulated time [s] of every run (default: the ladder's, else the scene's)")
     parser.add_argument("--dt", type=_positive_float, default=0.01, help="time step [s] (default 0.01)")
+    parser.add_argument("--scheme", choices=("warped", "newton"), default="warped",
+                        help="the step of every run: warped (the paper's, default) or newton")
     from .study import solve_methods
 
     parser.add_argument("--method", choices=solve_methods(), default=None,
@@ -197,7 +199,7 @@ def _study(args: argparse.Namespace, out):
     ladder = "small" if args.quick else args.ladder
     return run_study(args.scene, out, elements=args.elements, ladder=ladder, duration=args.duration, dt=args.dt,
                      method=args.method, workers=args.workers, cluster=args.cluster, force=args.force,
-                     progress=not args.no_progress)
+                     progress=not args.no_progress, scheme=args.scheme)
 
 
 def study_command(args: argparse.Namespace) -> None:
@@ -214,17 +216,29 @@ def recommend_command(args: argparse.Namespace) -> None:
 
     from .study import recommend
 
-    out = Path(args.study or f"studies/{args.scene}")
-    if not (out / "results.csv").exists():
-        print(f"# no study at {out}: running it first (softbody study {args.scene} --out {out})", file=sys.stderr)
-        _study(args, out)
-    rec = recommend(out, args.tolerance, scene=args.scene)
+    if args.study is not None:  # one study: its element types and resolutions, at its scheme and step
+        out = Path(args.study)
+        if not (out / "results.csv").exists():
+            print(f"# no study at {out}: running it first (softbody study {args.scene} --out {out})", file=sys.stderr)
+            _study(args, out)
+        rec = recommend(out, args.tolerance, scene=args.scene)
+        where = f"the study at {out}"
+    else:  # a study per scheme and step, against one reference
+        from .study import recommend_steps
+
+        out = Path(f"studies/{args.scene}")
+        rec = recommend_steps(args.scene, out, args.tolerance, schemes=args.schemes, dts=args.dts,
+                              elements=args.elements, ladder="small" if args.quick else args.ladder,
+                              duration=args.duration, method=args.method, workers=args.workers, cluster=args.cluster,
+                              force=args.force, progress=not args.no_progress)
+        where = f"the studies under {out} (schemes {', '.join(args.schemes)}; dt {', '.join(f'{d:g}' for d in args.dts)} s)"
     c = rec.choice
-    print(f"# {args.scene}: cheapest configuration within {1e3 * args.tolerance:g} mm of the reference "
-          f"(RMS of the monitored trajectory), from the study at {out}")
+    print(f"# {args.scene}: cheapest configuration per simulated second within {1e3 * args.tolerance:g} mm of the "
+          f"reference (RMS of the monitored trajectory), from {where}")
     print(rec.table())
-    print(f"\nrecommended: --element {c['element']} --cells {c['cells'].replace('x', ' ')}  "
-          f"({c['cost_ms_per_step']:.1f} ms/step, error {1e3 * c['error_m']:.3f} mm)")
+    print(f"\nrecommended: --element {c['element']} --cells {c['cells'].replace('x', ' ')} --scheme {c['scheme']} "
+          f"--dt {c['dt_s']:g}  ({c['cost_ms_per_step']:.1f} ms/step, {c['cost_ms_per_s']:.0f} ms per simulated "
+          f"second, error {1e3 * c['error_m']:.3f} mm)")
 
 
 class Terminated(BaseException):
@@ -292,14 +306,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     study.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     study.add_argument("--out", default=None, metavar="DIR", help="study directory (default: studies/SCENE)")
     add_study_arguments(study)
-    rec = sub.add_parser("recommend", help="the cheapest element type and resolution within a tolerance, "
-                                           "from a (cached) study")
+    rec = sub.add_parser("recommend", help="the cheapest element type, resolution, scheme and time step within a "
+                                           "tolerance, from (cached) studies")
     rec.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     rec.add_argument("--tolerance", type=_length, required=True, metavar="TOL",
                      help="largest RMS error of the monitored trajectory against the reference, with its unit: "
                           "2mm, 0.5cm, 0.002m")
     rec.add_argument("--study", default=None, metavar="DIR",
-                     help="study directory (default: studies/SCENE; made first if it has no results.csv)")
+                     help="one study directory to choose from (made first if it has no results.csv); without it, "
+                          "one study per scheme and step under studies/SCENE/, errors against one reference")
+    rec.add_argument("--schemes", nargs="+", choices=("warped", "newton"), default=["warped", "newton"],
+                     help="schemes to consider (default both)")
+    rec.add_argument("--dts", nargs="+", type=_positive_float, default=[0.01, 0.02], metavar="DT",
+                     help="time steps [s] to consider (default 0.01 0.02)")
     add_study_arguments(rec)
     from .bench import add_bench_arguments
 

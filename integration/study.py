@@ -42,6 +42,7 @@ from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
 from softbody.linsolve import THREAD_VARS as THREAD_ENV
 
 FORMAT = 2  # version of the cached run files; bump to invalidate old caches
+SCHEMES = ("warped", "newton")  # softbody.Simulation's
 ELEMENTS = ("tet4", "hex8", "tet10")
 
 
@@ -54,7 +55,7 @@ def solve_methods() -> tuple[str, ...]:
 
 
 CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
-               "dt_s", "method", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status",
+               "dt_s", "scheme", "method", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status",
                "external_load")
 
 WAITED = 1.3  # wall / CPU time per step above this: the run waited for a core
@@ -191,6 +192,7 @@ class RunResult:
     status: str = "ok"
     meta: dict = field(default_factory=dict)
     external_load: float = math.nan
+    scheme: str = "warped"
 
     @property
     def key(self) -> str:
@@ -378,9 +380,11 @@ def default_method() -> str:
 
 
 def run_configuration(scene: str, element: str, cells: Sequence[int], duration: float | None = None,
-                      dt: float = 0.01, method: str | None = None, threads: int | None = 1) -> RunResult:
+                      dt: float = 0.01, method: str | None = None, threads: int | None = 1,
+                      scheme: str = "warped") -> RunResult:
     """Build ``scene`` with ``element`` and ``cells``, run it for ``duration`` [s] (default: the scene's)
-    with step ``dt`` [s], and return its monitored trajectory, sizes, cost and peak memory.
+    with step ``dt`` [s] and the step's ``scheme`` ("warped" or "newton"), and return its monitored
+    trajectory, sizes, cost and peak memory.
 
     method: the step's linear solve, one of softbody.Simulation's methods (:func:`solve_methods`: "direct"
     factorises every step, as the paper did; "iterative" is preconditioned CG), or None for the
@@ -402,7 +406,7 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
     cpu_ms: list[float] = []
     status = "ok"
     with _PeakRss() as mem:
-        sc = build_scene(scene, element=element, cells=cells, dt=dt)
+        sc = build_scene(scene, element=element, cells=cells, dt=dt, scheme=scheme)
         try:
             sim = sc.world.sim
             if hasattr(sim, "method"):
@@ -434,7 +438,7 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
                 nodes=int(body.mesh.n_nodes), dofs=int(3 * (~body.supported()).sum()), steps=len(steps_ms),
                 median_ms_per_step=float(np.median(steps_ms)) if steps_ms else math.nan,
                 median_cpu_ms_per_step=float(np.median(cpu_ms)) if cpu_ms else math.nan,
-                peak_mem_mb=0.0, wall_s=0.0, status=status, external_load=load.cores,
+                peak_mem_mb=0.0, wall_s=0.0, status=status, external_load=load.cores, scheme=scheme,
                 meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
                       "monitor_rest": [float(v) for v in body.rest[sc.monitor]]})
         finally:
@@ -561,7 +565,8 @@ class Study:
             rows.append({
                 "scene": self.scene, "role": role, "element": r.element, "cells": cells_text(r.cells),
                 "elements": r.elements, "nodes": r.nodes, "dofs": r.dofs, "steps": r.steps,
-                "duration_s": r.duration, "dt_s": r.dt, "method": r.method, "median_ms_per_step": round(r.median_ms_per_step, 4),
+                "duration_s": r.duration, "dt_s": r.dt, "scheme": r.scheme, "method": r.method,
+                "median_ms_per_step": round(r.median_ms_per_step, 4),
                 "median_cpu_ms_per_step": round(r.median_cpu_ms_per_step, 4),
                 "peak_mem_mb": round(r.peak_mem_mb, 2), "wall_s": round(r.wall_s, 3),
                 "error_m": "" if role == "reference" else f"{self.errors[r.key]:.6e}", "status": r.status,
@@ -596,10 +601,10 @@ def _expected_cost(spec: tuple[str, Cells]) -> float:
 def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None, ladder: str | Ladder = "full",
               duration: float | None = None, dt: float = 0.01, method: str | None = None,
               workers: int | None = None, cluster=None,
-              force: bool = False, progress: bool = True, plots: bool = True) -> Study:
+              force: bool = False, progress: bool = True, plots: bool = True, scheme: str = "warped") -> Study:
     """Run (or load from ``out``'s cache) the ladder of ``scene`` for ``elements`` and its reference, then
     write results.csv, table.md and the plots to ``out``. ``duration`` overrides the ladder's; ``method``
-    is the linear solve (see :func:`run_configuration`); ``force``
+    is the linear solve, ``scheme`` the step (see :func:`run_configuration`); ``force``
     reruns cached runs; ``workers`` / ``cluster`` choose where runs go (see :func:`open_executor`)."""
     from .scenes import SCENES
 
@@ -615,6 +620,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
         raise InvalidInputError(f"method must be one of {solve_methods()}, got {method!r}")
     if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
         raise InvalidInputError(f"dt must be a finite number > 0 [s], got {dt!r}")
+    if scheme not in SCHEMES:
+        raise InvalidInputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
     if duration is None:
         duration = lad.duration if lad.duration is not None else _default_duration(scene, lad)
     duration = float(duration)
@@ -634,7 +641,7 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
             with contextlib.suppress(Exception):
                 cached = RunResult.load(path)
             if cached is not None and (cached.scene != scene or cached.duration != duration or cached.dt != dt
-                                       or cached.method != method):
+                                       or cached.method != method or cached.scheme != scheme):
                 cached = None  # a run that stopped early (status) is a deterministic result: kept
         if cached is None:
             pending.append(spec)
@@ -651,7 +658,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
             bar = tqdm(total=len(pending), desc=f"study {scene}", unit="run")
         try:
             with open_executor(workers, cluster) as ex:
-                futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method): (e, c) for e, c in pending}
+                futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method, 1, scheme): (e, c)
+                           for e, c in pending}
                 for fut in cf.as_completed(futures):
                     spec = futures[fut]
                     res = fut.result()
@@ -886,6 +894,7 @@ def read_results(study_dir: str | Path) -> list[dict]:
                 row[k] = float(row[k])
             row["error_m"] = float(row["error_m"]) if row["error_m"] else math.nan
             row["external_load"] = float(row.get("external_load") or "nan")  # absent in older studies
+            row["scheme"] = row.get("scheme") or "warped"
             row["cost_ms_per_step"] = step_cost_ms(row["median_ms_per_step"], row["median_cpu_ms_per_step"])
             rows.append(row)
     return rows
@@ -905,14 +914,15 @@ class Recommendation:
     choice: dict | None
 
     def table(self) -> str:
-        lines = [f"| rank | element | cells | nodes | ms/step (CPU if it waited) | peak MiB | error [mm] | "
-                 f"within {1e3 * self.tolerance:g} mm |",
-                 "|---:|---|---|---:|---:|---:|---:|---|"]
+        lines = [f"| rank | element | cells | nodes | scheme | dt [s] | ms/step (CPU if it waited) | ms per simulated s "
+                 f"| peak MiB | error [mm] | within {1e3 * self.tolerance:g} mm |",
+                 "|---:|---|---|---:|---|---:|---:|---:|---:|---:|---|"]
         for i, row in enumerate(self.candidates, 1):
             ok = row["error_m"] <= self.tolerance
             mark = " **<- recommended**" if row is self.choice else ""
-            lines.append(f"| {i} | {row['element']} | {row['cells']} | {row['nodes']} | {row['cost_ms_per_step']:.1f} "
-                         f"| {row['peak_mem_mb']:.1f} | {1e3 * row['error_m']:.3f} | {'yes' if ok else 'no'}{mark} |")
+            lines.append(f"| {i} | {row['element']} | {row['cells']} | {row['nodes']} | {row['scheme']} | {row['dt_s']:g} "
+                         f"| {row['cost_ms_per_step']:.1f} | {row['cost_ms_per_s']:.0f} | {row['peak_mem_mb']:.1f} "
+                         f"| {1e3 * row['error_m']:.3f} | {'yes' if ok else 'no'}{mark} |")
         return "\n".join(lines)
 
 
@@ -935,14 +945,67 @@ def recommend(study_dir: str | Path, tolerance: float, scene: str | None = None)
     scenes = {r["scene"] for r in rows}
     if scene is not None and scenes != {scene}:
         raise InvalidInputError(f"the study at {study_dir} is of {sorted(scenes)}, not {scene!r}")
-    candidates = sorted((r for r in rows if r["role"] == "ladder" and r["status"] == "ok"),
-                        key=lambda r: (r["cost_ms_per_step"], r["error_m"]))
+    return _cheapest(rows[0]["scene"], tolerance, [r for r in rows if r["role"] == "ladder"], f"the study at {study_dir}")
+
+
+def _cheapest(scene: str, tolerance: float, rows: list[dict], where: str) -> Recommendation:
+    """The Recommendation of ``rows`` (ladder runs with error_m, cost_ms_per_step, dt_s): the cheapest per
+    simulated second within ``tolerance`` [m]."""
+    for r in rows:
+        r["cost_ms_per_s"] = r["cost_ms_per_step"] / r["dt_s"]
+    candidates = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["cost_ms_per_s"], r["error_m"]))
     within = [r for r in candidates if r["error_m"] <= tolerance]
-    rec = Recommendation(rows[0]["scene"], tolerance, candidates, within[0] if within else None)
+    rec = Recommendation(scene, tolerance, candidates, within[0] if within else None)
     if rec.choice is None:
         best = min(candidates, key=lambda r: r["error_m"]) if candidates else None
         hint = (f"; the most accurate is {best['element']} {best['cells']} at {1e3 * best['error_m']:.3f} mm "
                 f"(refine the ladder or loosen the tolerance)" if best else "")
         raise NoConfigurationWithinTolerance(
-            f"no configuration of the study at {study_dir} is within {1e3 * tolerance:g} mm{hint}\n{rec.table()}", rec)
+            f"no configuration of {where} is within {1e3 * tolerance:g} mm{hint}\n{rec.table()}", rec)
     return rec
+
+
+def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequence[str] = SCHEMES,
+                    dts: Sequence[float] = (0.01, 0.02), **study) -> Recommendation:
+    """The cheapest configuration -- element type, resolution, scheme and time step -- whose error is within
+    ``tolerance`` [m], from one study per scheme and step under ``out``/<scheme>_dt<dt> (run, or loaded from
+    their caches, with the options ``study`` of :func:`run_study`). Errors are RMS differences from one
+    reference for all: the ladder's reference configuration run with the Newton scheme at half the
+    smallest step; costs are per simulated second (ms per step / dt), since a longer step needs fewer."""
+    from .scenes import SCENES
+
+    tolerance = float(tolerance)
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        raise InvalidInputError(f"tolerance must be a finite length > 0 [m], got {tolerance!r}")
+    if scene not in SCENES:
+        raise InvalidInputError(f"unknown scene {scene!r}; available: {sorted(SCENES)}")
+    bad = [s for s in schemes if s not in SCHEMES]
+    if bad or not schemes:
+        raise InvalidInputError(f"schemes must be among {SCHEMES}, got {list(schemes)!r}")
+    if not dts or not all(isinstance(d, (int, float)) and math.isfinite(d) and d > 0 for d in dts):
+        raise InvalidInputError(f"dts must be finite steps > 0 [s], got {list(dts)!r}")
+    out = Path(out)
+    studies = [run_study(scene, out / f"{scheme}_dt{dt:g}", dt=float(dt), scheme=scheme, **study)
+               for scheme in schemes for dt in sorted(set(dts))]
+    lad_ref = studies[0].reference
+    ref_dt = min(dts) / 2
+    path = out / f"reference_newton_dt{ref_dt:g}" / f"{lad_ref.key}.npz"
+    reference = None
+    if path.exists() and not study.get("force"):
+        with contextlib.suppress(Exception):
+            reference = RunResult.load(path)
+        if reference is not None and (reference.duration != lad_ref.duration or reference.scheme != "newton"):
+            reference = None
+    if reference is None:
+        reference = run_configuration(scene, lad_ref.element, lad_ref.cells, lad_ref.duration, ref_dt,
+                                      lad_ref.method, scheme="newton")
+        reference.save(path)
+    if reference.status != "ok":
+        raise SolverError(f"the reference run {reference.key} (newton, dt {ref_dt:g} s) failed: {reference.status}")
+    rows = []
+    for st in studies:
+        for row, r in zip(st.rows(), st.runs):  # rows() lists the ladder runs first, in the same order
+            row.update(cost_ms_per_step=r.cost_ms, error_m=(rms_error(r.times, r.values, reference.times,
+                                                                      reference.values) if r.status == "ok" else math.inf))
+            rows.append(row)
+    return _cheapest(scene, tolerance, rows, f"the studies under {out}")

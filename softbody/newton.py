@@ -21,8 +21,9 @@ whole step (it makes the iterate satisfy the constraints). A line search along v
 by the Armijo condition (the constrained solve minimises the quadratic model over the constraints, so the
 direction descends; where friction makes it not, the full step is taken). The iteration stops when the
 residual (the gradient less the constraint impulses of the last solve, relative to the step's loads) is
-below ``tol`` after a full step, and raises SimulationDiverged with the residual history after
-``max_iter`` solves.
+below ``tol`` after a full step (or stops falling within FLOOR x tol: its round-off floor, as for a very stiff
+body whose gradient is a small difference of large terms), and raises SimulationDiverged with the residual
+history after ``max_iter`` solves.
 """
 from __future__ import annotations
 
@@ -40,6 +41,8 @@ from .linsolve import SpdSolver
 TANGENTS = ("auto", "warped", "exact")
 # "auto": the warped tangent until an iteration reduces the residual by less than this factor, then the exact one
 SLOW = 0.3
+# a residual that stops falling within this many tolerances of it is at its round-off floor: accepted
+FLOOR = 10.0
 
 
 @dataclass
@@ -158,13 +161,15 @@ class NewtonStepper:
         for it in range(s.max_iter + 1):
             with timed(timings, "forces"):
                 grads = [st.gradient(vi, h) for st, vi in zip(states, v)]
-            if scale is None:  # the step's loads, for the residual: inertia, elastic forces, external loads
-                scale = sum(np.linalg.norm(st.body.mass_product(st.v0)) + h * np.linalg.norm(dpsi)
-                            + h * np.linalg.norm(st.f_ext) for st, (_, dpsi) in zip(states, grads)) or 1.0
             if impulses is not None:
+                if scale is None:  # the step's impulses, for the residual: the momentum change, the elastic
+                    # forces', the loads' and the constraints' (supports driven, contacts) after the first solve
+                    scale = sum(np.linalg.norm(st.body.mass_product(vi - st.v0)) + h * np.linalg.norm(dpsi)
+                                + h * np.linalg.norm(st.f_ext) + np.linalg.norm(r)
+                                for st, vi, (_, dpsi), r in zip(states, v, grads, impulses)) or 1.0
                 residual = np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(grads, impulses))) / scale
                 report.residuals.append(float(residual))
-                if alpha == 1.0 and residual <= s.tol:
+                if alpha == 1.0 and (residual <= s.tol or self._stalled(report.residuals)):
                     return v
                 if tangent == "warped" and s.tangent == "auto" and len(report.residuals) > 1 \
                         and residual > SLOW * report.residuals[-2]:
@@ -199,6 +204,14 @@ class NewtonStepper:
             f"residuals {', '.join(f'{r:.2e}' for r in report.residuals)} (tolerance {s.tol:g}). State kept; try a "
             "smaller dt, a looser tolerance (newton_tol) or more iterations (newton_max_iter).",
             step=step, time=time)
+
+    def _stalled(self, residuals: list[float]) -> bool:
+        """Whether the residual has reached the round-off floor of the step just above the tolerance: within
+        FLOOR x tol, and the last two solves took off less than a tenth of it (a stiff body's gradient is a
+        small difference of large terms, which no iteration resolves further)."""
+        tol = self.settings.tol
+        return (len(residuals) >= 3 and residuals[-1] <= FLOOR * tol
+                and min(residuals[-3:-1]) - residuals[-1] < 0.1 * residuals[-1])
 
     @staticmethod
     def _start(body: FemBody, h: float, f_ext: np.ndarray) -> _BodyStep:

@@ -270,3 +270,26 @@ def test_local_studies_run_one_configuration_at_a_time_by_default():
     with open_executor() as ex:
         pids = {ex.submit(os.getpid).result() for _ in range(3)}
     assert len(pids) == 1 and os.getpid() not in pids
+
+
+def test_recommend_across_schemes_and_steps_picks_the_cheapest_per_simulated_second(tmp_path):
+    """recommend_steps: one study per (scheme, dt), errors against one reference (Newton at half the smallest
+    step); its choice is what a brute-force pass over the rows picks, with cost = ms per step / dt."""
+    from integration.study import recommend_steps
+
+    rec = recommend_steps(SCENE, tmp_path, 1.0, schemes=("warped", "newton"), dts=(0.01, 0.02),
+                          elements=["tet10"], ladder="small", duration=0.1, workers=0, progress=False, plots=False)
+    rows = rec.candidates
+    assert {(r["scheme"], r["dt_s"]) for r in rows} == {("warped", 0.01), ("warped", 0.02), ("newton", 0.01),
+                                                       ("newton", 0.02)}
+    for r in rows:
+        assert r["cost_ms_per_s"] == pytest.approx(r["cost_ms_per_step"] / r["dt_s"])
+    tol = sorted(r["error_m"] for r in rows)[len(rows) // 2]  # half of them qualify
+    rec = recommend_steps(SCENE, tmp_path, tol, schemes=("warped", "newton"), dts=(0.01, 0.02), elements=["tet10"],
+                          ladder="small", duration=0.1, workers=0, progress=False, plots=False)  # from the caches
+    best = min((r for r in rec.candidates if r["error_m"] <= tol), key=lambda r: r["cost_ms_per_s"])
+    assert rec.choice["element"] == best["element"] and rec.choice["cells"] == best["cells"]
+    assert (rec.choice["scheme"], rec.choice["dt_s"]) == (best["scheme"], best["dt_s"])
+    assert (tmp_path / "reference_newton_dt0.005").is_dir() and (tmp_path / "newton_dt0.02" / "results.csv").exists()
+    with pytest.raises(softbody.InvalidInputError, match="schemes"):
+        recommend_steps(SCENE, tmp_path, tol, schemes=("implicit",))
