@@ -19,7 +19,8 @@ one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a 
 contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
 whole step (it makes the iterate satisfy the constraints). A line search along v' - v_k halves the step until Phi falls
 by the Armijo condition (the constrained solve minimises the quadratic model over the constraints, so the
-direction descends; where friction makes it not, the full step is taken). The iteration stops when the
+direction descends; where friction makes it not, the full step is taken); a direction along which no step
+down to ``min_step`` falls stops the step with SimulationDiverged. The iteration stops when the
 residual (the gradient less the constraint impulses of the last solve, relative to the step's loads) is
 below ``tol`` after a full step (or stops falling within FLOOR x tol: its round-off floor, as for a very stiff
 body whose gradient is a small difference of large terms), and raises SimulationDiverged with the residual
@@ -33,7 +34,7 @@ from typing import Callable
 import numpy as np
 
 from .body import FemBody
-from .errors import InvalidInputError, SimulationDiverged
+from .errors import InvalidInputError, SimulationDiverged, SolverError
 from .integrator import Constraints, IterativeSettings, LinearSystem, Timings, assembled_system, timed
 from .linsolve import SpdSolver
 
@@ -55,10 +56,10 @@ class NewtonSettings:
     FemBody.energy_hessian_blocks; several times the cost of an assembly) or "auto" (warped until an
     iteration reduces the residual by less than SLOW, then exact for the rest of the step)."""
 
-    tol: float = 1e-6
+    tol: float = 1e-5
     max_iter: int = 25
     armijo: float = 1e-4
-    min_step: float = 1.0 / 64
+    min_step: float = 1.0 / 4096
     tangent: str = "auto"
 
     def __post_init__(self):
@@ -192,10 +193,28 @@ class NewtonStepper:
                     Av = (body.pattern.to_bsr(A) @ vi.reshape(-1)).reshape(-1, 3)
                 b = Av - g
                 systems.append(assembled_system(body, A, b, solver, method, iterative, timings, vi, (Av, g)))
-            new = solve(systems)
+            try:
+                new = solve(systems)
+            except (SolverError, np.linalg.LinAlgError) as exc:  # a tangent no longer positive definite
+                raise SimulationDiverged(
+                    f"Newton's iteration failed at step {step} (t = {time:.6g} s), solve {it + 1}: {exc}; residuals "
+                    f"{', '.join(f'{r:.2e}' for r in report.residuals)}. State kept; try a smaller dt.",
+                    step=step, time=time) from exc
             impulses = [system.apply(vn) - system.b for system, vn in zip(systems, new)]
             d = [vn - vi for vn, vi in zip(new, v)]
             alpha = 1.0 if it == 0 else self._line_search(states, v, d, [g for g, _ in grads], h)
+            if alpha is None and report.residuals and report.residuals[-1] <= FLOOR * s.tol:
+                return v  # at the round-off floor the potential cannot fall measurably: as good as it gets
+            if alpha is None and tangent == "warped" and s.tangent == "auto":
+                alpha, tangent = 0.0, "exact"  # the warped tangent points nowhere useful: solve again, exactly
+                report.tangent = tangent
+            elif alpha is None:
+                raise SimulationDiverged(
+                    f"Newton's iteration found no descent at step {step} (t = {time:.6g} s), solve {it + 1}: the "
+                    f"incremental potential does not fall along the step even at {self.settings.min_step:g} of it "
+                    f"(elements turned inside out make it non-smooth); residuals "
+                    f"{', '.join(f'{r:.2e}' for r in report.residuals)}. State kept; try a smaller dt.",
+                    step=step, time=time)
             report.steps.append(alpha)
             v = [vi + alpha * di for vi, di in zip(v, d)]
             report.iterations = it + 1
@@ -229,8 +248,9 @@ class NewtonStepper:
         return _BodyStep(body, x0, v0, np.asarray(f_ext, float), damping, h * beta * K_n)
 
     def _line_search(self, states: list[_BodyStep], v: list[np.ndarray], d: list[np.ndarray], g: list[np.ndarray],
-                     h: float) -> float:
-        """The step along d from v: 1, halved until Phi falls by the Armijo condition (1 if d does not descend)."""
+                     h: float) -> float | None:
+        """The step along d from v: 1, halved until Phi falls by the Armijo condition (1 if d does not descend:
+        friction or a contact made the direction; None if no step down to min_step falls)."""
         slope = sum(float(np.sum(gi * di)) for gi, di in zip(g, d))
         if slope >= 0:
             return 1.0
@@ -241,4 +261,4 @@ class NewtonStepper:
             if phi <= phi0 + self.settings.armijo * alpha * slope:
                 return alpha
             alpha *= 0.5
-        return alpha * 2.0
+        return None

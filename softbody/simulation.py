@@ -54,7 +54,7 @@ class Simulation:
 
     def __init__(self, bodies: FemBody | Sequence[FemBody], dt: float, gravity=(0.0, 0.0, -9.81),
                  solver: str = "auto", max_energy: float | None = None, method: str = "auto",
-                 tol: float = 1e-5, scheme: str = "warped", newton_tol: float = 1e-6, newton_max_iter: int = 25):
+                 tol: float = 1e-5, scheme: str = "warped", newton_tol: float = 1e-5, newton_max_iter: int = 25):
         bodies = [bodies] if isinstance(bodies, FemBody) else list(bodies)
         for b in bodies:
             if not isinstance(b, FemBody):
