@@ -17,14 +17,15 @@ gradient of Psi, FemBody.energy_gradient, rotations re-evaluated at x_k), the wa
 A_k = M + h C_n + h^2 K'(x_k) (symmetric positive definite; the rotations' own derivatives left out), and
 one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a warped step (supports,
 contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
-whole step (it makes the iterate satisfy the constraints). A line search along v' - v_k halves the step until Phi falls
-by the Armijo condition (the constrained solve minimises the quadratic model over the constraints, so the
-direction descends; where friction makes it not, the full step is taken); a direction along which no step
-down to ``min_step`` falls stops the step with SimulationDiverged. The iteration stops when the
+whole step (it makes the iterate satisfy the constraints). Later steps are whole where they lower the residual;
+else a line search along v' - v_k halves the step until Phi falls by the Armijo condition (the constrained
+solve minimises the quadratic model over the constraints, so the direction descends; where friction makes it
+not, the full step is taken); a direction along which no step down to ``min_step`` falls stops the step with
+SimulationDiverged. The iteration stops when the
 residual (the gradient less the constraint impulses of the last solve, relative to the step's loads) is
-below ``tol`` after a full step (or stops falling within FLOOR x tol: its round-off floor, as for a very stiff
-body whose gradient is a small difference of large terms), and raises SimulationDiverged with the residual
-history after ``max_iter`` solves.
+below ``tol`` after a full step (or, in absolute terms, below the round-off of the elastic forces' terms, or
+stops falling within FLOOR x tol: a very stiff body's gradient is a small difference of large terms), and
+raises SimulationDiverged with the residual history after ``max_iter`` solves.
 """
 from __future__ import annotations
 
@@ -44,6 +45,8 @@ TANGENTS = ("auto", "warped", "exact")
 SLOW = 0.3
 # a residual that stops falling within this many tolerances of it is at its round-off floor: accepted
 FLOOR = 10.0
+# relative round-off of the elastic forces' terms, below which an absolute residual is as good as zero
+ROUNDOFF = 1e-12
 
 
 @dataclass
@@ -155,22 +158,29 @@ class NewtonStepper:
         report = self.report = NewtonReport()
         states = [self._start(b, h, f) for b, f in zip(bodies, loads)]
         v = [rigid_prediction(b, h) for b in bodies]
+        # the residual's own round-off [N s]: the elastic forces are differences of terms of the size of
+        # sum_e |K_e X_e|, which a stiff body at rest makes far larger than the step's impulses
+        roundoff = ROUNDOFF * h * np.sqrt(sum(float(np.sum((b.Ke @ b.rest[b.mesh.elements].reshape(
+            b.mesh.n_elements, -1, 1)) ** 2)) for b in bodies))
         scale = None
         impulses = None  # A v' - b of the last solve, per body: the constraints' impulses
         alpha = 1.0
         tangent = report.tangent = "warped" if s.tangent == "auto" else s.tangent
+        grads = None
         for it in range(s.max_iter + 1):
-            with timed(timings, "forces"):
-                grads = [st.gradient(vi, h) for st, vi in zip(states, v)]
+            if grads is None:
+                with timed(timings, "forces"):
+                    grads = [st.gradient(vi, h) for st, vi in zip(states, v)]
             if impulses is not None:
                 if scale is None:  # the step's impulses, for the residual: the momentum change, the elastic
                     # forces', the loads' and the constraints' (supports driven, contacts) after the first solve
                     scale = sum(np.linalg.norm(st.body.mass_product(vi - st.v0)) + h * np.linalg.norm(dpsi)
                                 + h * np.linalg.norm(st.f_ext) + np.linalg.norm(r)
                                 for st, vi, (_, dpsi), r in zip(states, v, grads, impulses)) or 1.0
-                residual = np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(grads, impulses))) / scale
+                absolute = np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(grads, impulses)))
+                residual = absolute / scale
                 report.residuals.append(float(residual))
-                if alpha == 1.0 and (residual <= s.tol or self._stalled(report.residuals)):
+                if alpha == 1.0 and (residual <= s.tol or absolute <= roundoff or self._stalled(report.residuals)):
                     return v
                 if tangent == "warped" and s.tangent == "auto" and len(report.residuals) > 1 \
                         and residual > SLOW * report.residuals[-2]:
@@ -202,8 +212,14 @@ class NewtonStepper:
                     step=step, time=time) from exc
             impulses = [system.apply(vn) - system.b for system, vn in zip(systems, new)]
             d = [vn - vi for vn, vi in zip(new, v)]
-            alpha = 1.0 if it == 0 else self._line_search(states, v, d, [g for g, _ in grads], h)
-            if alpha is None and report.residuals and report.residuals[-1] <= FLOOR * s.tol:
+            with timed(timings, "forces"):
+                full = [st.gradient(vn, h) for st, vn in zip(states, new)]
+            if it == 0 or (scale is not None and np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(full, impulses)))
+                           < (1.0 - 1e-4) * report.residuals[-1] * scale):
+                alpha = 1.0  # the whole step lowers the residual (with contacts, Phi alone does not tell)
+            else:
+                alpha = self._line_search(states, v, d, [g for g, _ in grads], h)
+            if alpha is None and report.residuals and (report.residuals[-1] <= FLOOR * s.tol or absolute <= 10 * roundoff):
                 return v  # at the round-off floor the potential cannot fall measurably: as good as it gets
             if alpha is None and tangent == "warped" and s.tangent == "auto":
                 alpha, tangent = 0.0, "exact"  # the warped tangent points nowhere useful: solve again, exactly
@@ -217,6 +233,7 @@ class NewtonStepper:
                     step=step, time=time)
             report.steps.append(alpha)
             v = [vi + alpha * di for vi, di in zip(v, d)]
+            grads = full if alpha == 1.0 else None
             report.iterations = it + 1
         raise SimulationDiverged(
             f"Newton's iteration did not converge in {s.max_iter} solves at step {step} (t = {time:.6g} s): "
