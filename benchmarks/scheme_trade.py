@@ -4,8 +4,10 @@ small-step reference, over a ladder of step sizes, for the canonical scenes and 
     python benchmarks/scheme_trade.py --out docs/scheme_trade.md --plot docs/img/scheme_trade.png
 
 Per scene and scheme and step h: the largest difference of the monitored coordinate [mm] from the reference
-run (Newton at h = 1 ms, interpolated to the run's times) over the run, and the median wall time per step
-[ms] (one thread). A run that raises (SimulationDiverged) is reported as such.
+run (Newton at h = 1 ms, interpolated to the run's times) over the run, the median wall time per step [ms]
+(one thread), and for the spinning cube the largest relative change of any node-to-node distance (a rigid
+spin keeps them; the warped step stretches the cube). A run that raises (SimulationDiverged) is reported
+as such.
 """
 from __future__ import annotations
 
@@ -42,9 +44,18 @@ class Spin:
         self.body.velocities[:] = np.cross(2 * math.pi * 5 * axis, mesh.nodes)
         self.sim = sb.Simulation(self.body, dt, gravity=(0, 0, 0), scheme=scheme)
         self.monitor = int(np.argmax(mesh.nodes.sum(axis=1)))
+        self._pairs = np.triu_indices(mesh.n_nodes, 1)
+        self._d0 = self._distances(mesh.nodes)
+
+    def _distances(self, x: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(x[:, None] - x[None], axis=2)[self._pairs]
 
     def monitored(self) -> float:
         return float(self.body.positions[self.monitor, 0])
+
+    def shape_change(self) -> float:
+        """The largest relative change of any node-to-node distance now (a rigid spin keeps them all)."""
+        return float(np.abs(self._distances(self.body.positions) / self._d0 - 1).max())
 
 
 SCENES = {
@@ -55,11 +66,12 @@ SCENES = {
 }
 
 
-def run(build, dt: float, scheme: str, duration: float) -> tuple[np.ndarray, np.ndarray, float, str]:
-    """(times, monitored values, median ms per step, error text) of one run."""
+def run(build, dt: float, scheme: str, duration: float) -> tuple[np.ndarray, np.ndarray, float, float, str]:
+    """(times, monitored values, median ms per step, largest shape change (NaN but for the spin), error text)
+    of one run."""
     scene = build(dt, scheme)
     step = scene.world.step if hasattr(scene, "world") else scene.sim.step
-    ts, xs, ms = [0.0], [scene.monitored()], []
+    ts, xs, ms, shape = [0.0], [scene.monitored()], [], 0.0 if hasattr(scene, "shape_change") else math.nan
     try:
         for n in range(int(round(duration / dt))):
             tic = time.perf_counter()
@@ -67,9 +79,11 @@ def run(build, dt: float, scheme: str, duration: float) -> tuple[np.ndarray, np.
             ms.append(1e3 * (time.perf_counter() - tic))
             ts.append((n + 1) * dt)
             xs.append(scene.monitored())
+            if hasattr(scene, "shape_change"):
+                shape = max(shape, scene.shape_change())
     except sb.SimulationDiverged as exc:
-        return np.array(ts), np.array(xs), float(np.median(ms)) if ms else math.nan, str(exc).split(":")[0]
-    return np.array(ts), np.array(xs), float(np.median(ms)), ""
+        return np.array(ts), np.array(xs), float(np.median(ms)) if ms else math.nan, shape, str(exc).split(":")[0]
+    return np.array(ts), np.array(xs), float(np.median(ms)), shape, ""
 
 
 def main(argv=None) -> int:
@@ -79,23 +93,25 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     rows, curves = [], {}
     for name, (build, duration) in SCENES.items():
-        t_ref, x_ref, _, err = run(build, REFERENCE_DT, "newton", duration)
+        t_ref, x_ref, _, _, err = run(build, REFERENCE_DT, "newton", duration)
         if err:
             raise SystemExit(f"the reference run of {name} failed: {err}")
         for scheme in ("warped", "newton"):
             for dt in LADDER:
-                t, x, ms, err = run(build, dt, scheme, duration)
+                t, x, ms, shape, err = run(build, dt, scheme, duration)
                 error = float(np.abs(x - np.interp(t, t_ref, x_ref)).max())
                 if err or not np.isfinite(error):
-                    rows.append((name, scheme, dt, ms, math.nan, err or "non-finite"))
+                    rows.append((name, scheme, dt, ms, math.nan, shape, err or "non-finite"))
                 else:
-                    rows.append((name, scheme, dt, ms, error, ""))
+                    rows.append((name, scheme, dt, ms, error, shape, ""))
                     curves.setdefault((name, scheme), []).append((ms, 1e3 * error, dt))
                 print(rows[-1], flush=True)
-    lines = ["| scene | scheme | h [s] | ms/step | largest error [mm] |", "|---|---|---:|---:|---:|"]
-    for name, scheme, dt, ms, error, err in rows:
+    lines = ["| scene | scheme | h [s] | ms/step | largest error [mm] | largest shape change (spin) |",
+             "|---|---|---:|---:|---:|---:|"]
+    for name, scheme, dt, ms, error, shape, err in rows:
         lines.append(f"| {name} | {scheme} | {dt:g} | {ms:.1f} | "
-                     + (f"{1e3 * error:.3g}" if not err else f"failed: {err}") + " |")
+                     + (f"{1e3 * error:.3g}" if not err else f"failed: {err}")
+                     + (f" | {100 * shape:.2f}% |" if np.isfinite(shape) else " | - |"))
     Path(args.out).write_text("\n".join(lines) + "\n")
     import matplotlib
 

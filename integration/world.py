@@ -125,7 +125,7 @@ class World:
     def __init__(self, dt: float | None = None, gravity=None, gui: bool = False, solver: str = "auto",
                  contact_margin: float = 0.005, client: int | None = None, max_energy: float | None = None,
                  method: str = "auto", soft_contact: bool = True, push_speed: float = 0.5, scheme: str = "warped",
-                 newton_tol: float = 1e-6, newton_max_iter: int = 25):
+                 newton_tol: float = 1e-5, newton_max_iter: int = 25):
         if client is not None and gui:
             raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
         self.adapter = BulletAdapter(client, gui)
