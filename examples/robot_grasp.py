@@ -24,7 +24,7 @@ ARM, FINGERS, HAND = list(range(7)), [9, 10], 11  # panda.urdf: arm joints, fing
 HOME = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785]
 
 
-def build(E: float = 1e5, dt: float = 0.005, size: float = 0.05) -> tuple[int, int, World, sb.FemBody]:
+def build(E: float = 1e5, dt: float = 0.005, size: float = 0.05, scheme: str = "warped") -> tuple[int, int, World, sb.FemBody]:
     """The user's scene: a table, a Panda on a fixed base, a soft cube on the table; the World joined to it."""
     cid = p.connect(p.DIRECT)
     p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
@@ -38,7 +38,7 @@ def build(E: float = 1e5, dt: float = 0.005, size: float = 0.05) -> tuple[int, i
         p.resetJointState(panda, j, 0.04, physicsClientId=cid)
     mesh = sb.box_mesh((size, size, size), (2, 2, 2), "tet10", center=(0.5, 0.0, size / 2 + 0.0015))
     cube = sb.FemBody(mesh, sb.LinearElastic(E, 0.3, 500.0), damping=(1.0, 0.002))
-    world = World(client=cid)  # time step and gravity from the client
+    world = World(client=cid, scheme=scheme)  # time step and gravity from the client
     world.add_soft(cube, friction=1.0)
     return cid, panda, world, cube
 
@@ -101,14 +101,14 @@ class Grasp:
 
 
 def run(hold: float = 2.0, E: float = 1e5, dt: float = 0.005, record: str | None = None,
-        overwrite: bool = False) -> list[dict]:
+        overwrite: bool = False, scheme: str = "warped") -> list[dict]:
     """The whole pick-and-place; returns the report rows of its phases. record: a recording's file or
-    directory ("" for logs/); overwrite: replace an existing file."""
+    directory ("" for logs/); overwrite: replace an existing file; scheme: the soft step ("warped" or "newton")."""
     if record is not None:
         from integration.recording import record_target
 
         record_target(record, overwrite)  # before the scene is built
-    cid, panda, world, cube = build(E, dt)
+    cid, panda, world, cube = build(E, dt, scheme=scheme)
     recorder = None
     if record is not None:
         from integration import Recorder
@@ -155,8 +155,9 @@ if __name__ == "__main__":
     ap.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
                     help="write a rerun recording to PATH or into the directory PATH (default: into logs/)")
     ap.add_argument("--force", action="store_true", help="overwrite an existing --record file")
+    ap.add_argument("--scheme", choices=("warped", "newton"), default="warped", help="the soft body's step (default warped)")
     args = ap.parse_args()
     try:
-        run(args.hold, args.E, args.dt, args.record, args.force)
+        run(args.hold, args.E, args.dt, args.record, args.force, args.scheme)
     except sb.InvalidInputError as exc:
         ap.exit(2, f"{ap.prog}: error: {exc}\n")

@@ -25,10 +25,14 @@ SimulationDiverged. The iteration stops when the
 residual (the gradient less the constraint impulses of the last solve, relative to the step's loads) is
 below ``tol`` after a full step (or, in absolute terms, below the round-off of the elastic forces' terms, or
 stops falling within FLOOR x tol: a very stiff body's gradient is a small difference of large terms), and
-raises SimulationDiverged with the residual history after ``max_iter`` solves.
+raises SimulationDiverged with the residual history after ``max_iter`` solves. With contacts (the hook adds
+them), the iterates may switch between active sets and stick/slip states: a residual within CYCLE tolerances
+that cycles, or that the whole step raises, is accepted as the last solve taken whole (a RuntimeWarning at the
+first such step; NewtonReport.cycled, NewtonStepper.cycled_steps).
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -47,6 +51,11 @@ SLOW = 0.3
 FLOOR = 10.0
 # relative round-off of the elastic forces' terms, below which an absolute residual is as good as zero
 ROUNDOFF = 1e-12
+# contacts and friction may make the iterates switch between active sets or stick/slip states (a contact at
+# the edge of its cone), so that the residual cycles or no step along the direction lowers it: accepted
+# within this many tolerances (the contact solve itself ends on its friction iteration; non-penetration
+# holds exactly after every solve)
+CYCLE = 1000.0
 
 
 @dataclass
@@ -83,6 +92,7 @@ class NewtonReport:
     residuals: list[float] = field(default_factory=list)
     steps: list[float] = field(default_factory=list)
     tangent: str = "warped"
+    cycled: bool = False  # accepted within CYCLE tolerances where contacts switching stall it, not at the tolerance
 
     @property
     def residual(self) -> float:
@@ -141,6 +151,17 @@ def rigid_prediction(body: FemBody, h: float) -> np.ndarray:
     return (x_new - x) / h
 
 
+def cycling(residuals: list[float], bound: float, period: int = 2, repeats: int = 2, rel: float = 0.02) -> bool:
+    """Whether the last residuals repeat with ``period`` (each within ``rel`` of the one ``period`` solves
+    before, ``repeats`` times over) at or below ``bound``: iterates alternating between friction states
+    rather than converging."""
+    n = period * repeats
+    if len(residuals) < n + period or residuals[-1] > bound:
+        return False
+    tail = np.asarray(residuals[-(n + period):])
+    return bool(np.all(np.abs(tail[period:] - tail[:-period]) <= rel * tail[period:]))
+
+
 class NewtonStepper:
     """Newton iterations on the backward Euler step (module doc), owned by a Simulation; ``report`` holds the
     last step's iterations and residuals."""
@@ -148,12 +169,27 @@ class NewtonStepper:
     def __init__(self, settings: NewtonSettings | None = None):
         self.settings = settings or NewtonSettings()
         self.report = NewtonReport()
+        self.cycled_steps = 0  # steps accepted on contact switching (NewtonReport.cycled), over the run
+
+    def _accept_cycle(self, report: NewtonReport, step: int, time: float) -> None:
+        """Count a step accepted on contact switching, and say so at the first."""
+        report.cycled = True
+        self.cycled_steps += 1
+        if self.cycled_steps == 1:
+            warnings.warn(
+                f"Newton's step {step} (t = {time:.6g} s) stalled on contacts switching between iterates at residual "
+                f"{report.residuals[-1]:.2e} (tolerance {self.settings.tol:g}): accepted, as later such steps are "
+                "(counted in cycled_steps of the Simulation's newton); a smaller dt lets it converge",
+                RuntimeWarning, stacklevel=4)
 
     def solve(self, bodies: list[FemBody], h: float, loads: list[np.ndarray], solvers: list[SpdSolver],
               methods: list[str], iterative: IterativeSettings, timings: Timings | None,
-              solve: Callable[[list[LinearSystem]], list[np.ndarray]], time: float, step: int) -> list[np.ndarray]:
+              solve: Callable[[list[LinearSystem]], list[np.ndarray]], time: float, step: int,
+              contacts: bool = False) -> list[np.ndarray]:
         """The new velocities (N_i, 3) of ``bodies`` after the step h [s], under loads (N_i, 3) [N]; ``solve``
-        solves the step systems with every constraint (supports, contacts: the Simulation's)."""
+        solves the step systems with every constraint (supports, contacts: the Simulation's); contacts: whether
+        ``solve`` adds contacts and friction (then a residual within CYCLE tolerances that cycles, or that the
+        whole step raises, is accepted: the active set and the stick/slip states switch between iterates)."""
         s = self.settings
         report = self.report = NewtonReport()
         states = [self._start(b, h, f) for b, f in zip(bodies, loads)]
@@ -181,6 +217,9 @@ class NewtonStepper:
                 residual = absolute / scale
                 report.residuals.append(float(residual))
                 if alpha == 1.0 and (residual <= s.tol or absolute <= roundoff or self._stalled(report.residuals)):
+                    return v
+                if alpha == 1.0 and contacts and cycling(report.residuals, CYCLE * s.tol):
+                    self._accept_cycle(report, step, time)
                     return v
                 if tangent == "warped" and s.tangent == "auto" and len(report.residuals) > 1 \
                         and residual > SLOW * report.residuals[-2]:
@@ -218,6 +257,14 @@ class NewtonStepper:
                            < (1.0 - 1e-4) * report.residuals[-1] * scale):
                 alpha = 1.0  # the whole step lowers the residual (with contacts, Phi alone does not tell)
             else:
+                if contacts and report.residuals[-1] <= CYCLE * s.tol:
+                    # near the tolerance, the whole step raises the residual: the contacts' switching between
+                    # iterates sets the floor; the last solve is taken whole (its contacts, friction and rigid
+                    # velocity changes belong to it), as a warped step from an iterate this close
+                    self._accept_cycle(report, step, time)
+                    report.iterations = it + 1
+                    report.steps.append(1.0)
+                    return new
                 alpha = self._line_search(states, v, d, [g for g, _ in grads], h)
             if alpha is None and report.residuals and (report.residuals[-1] <= FLOOR * s.tol or absolute <= 10 * roundoff):
                 return v  # at the round-off floor the potential cannot fall measurably: as good as it gets

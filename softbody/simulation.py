@@ -128,7 +128,7 @@ class Simulation:
             vs = self.newton.solve(self.bodies, self.dt, [self.load(b) for b in self.bodies],
                                    [body_solver(b, self.solver_backend) for b in self.bodies],
                                    [self.linear_method(b) for b in self.bodies], self.settings, self.timings, solve,
-                                   t_next, self.steps + 1)
+                                   t_next, self.steps + 1, contacts=self.velocity_solver is not None)
         else:
             vs = solve([self.system(b) for b in self.bodies])
         new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]

@@ -182,3 +182,15 @@ def test_contact_scenes_under_newton():
     t = world.dt * np.arange(1, len(xs) + 1)
     accel = 2 * np.polyfit(t[30:], xs[30:], 2)[0]
     assert accel == pytest.approx(9.81 * (math.sin(th) - 0.1 * math.cos(th)), rel=0.1)
+
+
+def test_cycling_residuals_are_told_from_converging_ones():
+    """The pattern a Newton step with switching contacts is accepted on (newton.cycling): residuals repeating
+    with period 2 near the tolerance; not a falling sequence, nor a cycle far above the bound."""
+    from softbody.newton import cycling
+
+    assert cycling([1e-3, 3e-4, 2.0e-4, 3e-4, 2.0e-4, 3e-4, 2.0e-4], 1e-3)
+    assert cycling([1e-3, 4.17e-3, 4.22e-3, 4.17e-3, 4.22e-3, 4.17e-3, 4.22e-3], 1e-2)
+    assert not cycling([1e-3, 5e-4, 3e-4, 2.0e-4, 1e-4, 5e-5], 1e-3)
+    assert not cycling([1e-1, 3e-2, 2.0e-2, 3e-2, 2.0e-2, 3e-2, 2.0e-2], 1e-3)
+    assert not cycling([3e-4, 2e-4, 3e-4], 1e-3)  # too short to tell

@@ -492,3 +492,24 @@ def test_grasp_example_picks_the_cube_and_records_the_robot(tmp_path):
     links = {e for e in data if e.startswith("/world/rigid/panda")}
     assert len(links) == 11  # the base and the ten links with a collision shape move, each with its pose
     assert sum(e.startswith("/world/rigid/panda") and e.endswith("shape0") for e in static) == 11
+
+
+@pytest.mark.slow  # about a minute: the Newton step costs several solves per step
+def test_grasp_example_with_the_newton_step():
+    """The same pick-and-place with scheme="newton": friction between the fingers and the cube makes the
+    iterates alternate between stick/slip states at the start of the lift; the step is accepted on that
+    cycle (NewtonReport.cycled) instead of refusing the run, and the grasp holds as with the warped step."""
+    import importlib.util
+    from pathlib import Path
+
+    sys_path = Path(__file__).resolve().parents[1] / "examples" / "robot_grasp.py"
+    spec = importlib.util.spec_from_file_location("robot_grasp", sys_path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    with pytest.warns(RuntimeWarning, match="stalled on contacts"):
+        rows = {r["phase"]: r for r in example.run(hold=0.2, dt=0.01, scheme="newton")}
+    assert rows["close"]["cube_z"] < 0.03 < 0.2 < rows["hold"]["cube_z"]
+    assert min(rows["hold"]["grip_left"], rows["hold"]["grip_right"]) > 0.5
+    assert rows["hold"]["slip_mm"] < 3.0
+    assert max(r.get("penetration_mm", 0.0) for r in rows.values()) < 1.0
+    assert rows["release"]["cube_z"] < 0.03
