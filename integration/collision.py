@@ -326,7 +326,11 @@ class CollisionDetector:
                 keep &= ~rigid.round_parts()[None] | ~tri_touch[round_tris].any(axis=1)[:, None]
             tk, sk = np.nonzero(keep)
             ti, q = round_tris[tk], pts[tk, sk]
-            group = tk * S + sk  # the rigid point's identity: every support point is its own
+            # the rigid point's identity: triangles in one plane share their support point (a sphere over a flat
+            # sheet), which must be one rigid point, so that it takes one of them (two contacts on one spot make
+            # the contact forces ill-determined: the friction problem is singular, and its solution gained energy)
+            _, group = np.unique(np.c_[sk, np.round(q / (1e-9 + 1e-6 * margin))], axis=0, return_inverse=True)
+            group = group.reshape(-1)
             feature = sk  # which part or corner, the same from step to step
             centre = rigid.support_centres()[sk]
         else:

@@ -564,7 +564,8 @@ class ContactSolver:
             if f is not None and len(f):  # a point on a triangle of held nodes only is held already
                 f = f.select(~np.isin(f.nodes, held).all(axis=1))
             prepared.append((_stack(cons), np.concatenate(G) if n else None, c, f))
-            dense.append(n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
+            dense.append((n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
+                         or (f is not None and len(f) > 0 and bool(np.any(f.mu > 0))))
             held_by.append(held)
         dense = np.array(dense, dtype=bool)
         if pairs is not None and len(pairs):  # a soft contact between held nodes only is held already

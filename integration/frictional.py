@@ -164,16 +164,24 @@ def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarr
     # (sliding at the normal impulse of the solve before, or sticking with its tangents free), or a sticking
     # impulse outside the cone. Solve again with those sliding at the cone's edge (or free, without pressure)
     # until none is left; non-penetration holds after every solve.
+    # So is friction that drives the slide it should resist (the friction iteration found the slide reversed but
+    # had no solve left to stick it): it would feed energy into the scene; such contacts stick, and a sticking
+    # contact the last solve did not hold (its state changed after it) is solved again.
     for _ in range(2 * m):
         gn, gtn = gamma[:, 0], np.linalg.norm(gamma[:, 1:], axis=1)
+        w = (w0 + D @ gamma.ravel()).reshape(m, 3)
+        wtn = np.linalg.norm(w[:, 1:], axis=1)
         loose = (gn <= 0) & (gtn > 0)
         over = st.stick & (gn > 0) & (gtn > mu * gn * (1 + cone_tol))
         stale = ~st.stick & (gn > 0) & (np.abs(gtn - mu * gn) > cone_tol * mu * gn)  # sliding at an old pressure
-        if not (loose.any() or over.any() or stale.any()):
+        driving = ~st.stick & friction & (gn > 0) & (np.einsum("mi,mi->m", w[:, 1:], gamma[:, 1:])
+                                                       > velocity_tol * gtn)
+        unheld = st.stick & (gn > 0) & ~over & (wtn > max(velocity_tol, 1e-9) * 10)
+        if not (loose.any() or over.any() or stale.any() or driving.any() or unheld.any()):
             break
         with np.errstate(invalid="ignore", divide="ignore"):
             st.direction = np.where(over[:, None], gamma[:, 1:] / np.maximum(gtn, 1e-300)[:, None], st.direction)
-        st.stick &= ~(loose | over)
+        st.stick = (st.stick & ~(loose | over)) | driving
         st.active = gn > 0
         slide = st.active & friction & ~st.stick
         gamma, k = solve(slide, st.stick, np.where(slide, gn, 0.0), gamma)
