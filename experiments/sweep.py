@@ -583,7 +583,7 @@ def write_plots(result: SweepResult) -> list[Path]:
         texts = [value_text(v) for v in values]
         numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
         xs = [float(v) for v in values] if numeric else list(range(len(values)))
-        others = [k for k in result.grid if k != param]
+        others = [k for k in result.grid if k != param and len(result.grid[k]) > 1]  # (one value: no line of its own)
         groups: dict[tuple, list] = {}
         for r in rows:
             groups.setdefault(tuple(r[k] for k in others), []).append(r)
