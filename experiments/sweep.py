@@ -63,9 +63,9 @@ COLUMN_DOCS = {
     "monitor_min": "its smallest value over the run, the start included",
     "monitor_max": "its largest value over the run, the start included",
     "travel_xy_mm": "horizontal distance the centroid of the soft bodies' nodes moved, start to end [mm]",
-    "slip_mm": "tangential sliding of the soft nodes in contact with rigid links against them: per step the mean "
-               "over the active node contacts of |tangential relative velocity| x dt, summed over the steps [mm] "
-               "(0 while everything sticks)",
+    "slip_mm": "tangential sliding of the soft bodies against the rigid links they touch: per step the mean over "
+               "the active contacts (nodes on links, links' points on soft triangles) of the tangential relative "
+               "speed times dt, summed over the steps [mm] (0 while everything sticks)",
     "energy_start_J": "the scene's total energy at the start [J] (World.energy: soft and rigid, kinetic, elastic, "
                       "gravitational)",
     "energy_drift_J": "total energy at the end minus at the start [J] (damping and friction make it negative; "
