@@ -155,7 +155,10 @@ def _namespace(spec: SceneSpec) -> dict:
     key = spec.digest
     if key not in _NAMESPACES:
         ns: dict = {"__name__": f"softbody_sweep_{spec.name}", "__file__": spec.path or "<sweep scene>"}
-        exec(compile(spec.source, spec.path or "<sweep scene>", "exec"), ns)  # noqa: S102 - the user's own file
+        try:
+            exec(compile(spec.source, spec.path or "<sweep scene>", "exec"), ns)  # noqa: S102 - the user's own file
+        except Exception as exc:  # noqa: BLE001 - named, with the file
+            raise InvalidInputError(f"the scene file {spec.path} failed to load: {type(exc).__name__}: {exc}") from exc
         if not callable(ns.get("scene")):
             raise InvalidInputError(f"{spec.path}: a sweep scene file must define scene(**params) returning a World")
         _NAMESPACES[key] = ns
@@ -512,7 +515,10 @@ def run_sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], out: str
 
 
 def sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], **options) -> list[dict]:
-    """The rows of :func:`run_sweep` (one dict per run, in grid order: parameters, then metrics)."""
+    """The rows of :func:`run_sweep` (one dict per run, in grid order: the parameters as text, as in the CSV
+    (cells as 6x6x2), then the metrics as numbers, NaN where a failed run has none). With local workers (the
+    default, one process) a script calling it needs the ``if __name__ == "__main__":`` guard of multiprocessing;
+    ``workers=0`` runs in the calling process."""
     return run_sweep(scene, params, **options).rows
 
 

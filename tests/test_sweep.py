@@ -185,6 +185,10 @@ def test_bad_sweeps_are_usage_errors_naming_what_is_valid(tmp_path):
     not_a_scene.write_text("x = 1\n")
     with pytest.raises(InvalidInputError, match="must define scene"):
         run_sweep(not_a_scene, {"a": [1]}, workers=0, progress=False)
+    broken = tmp_path / "broken.py"
+    broken.write_text("import no_such_module_here\n")
+    with pytest.raises(InvalidInputError, match="broken.py failed to load: ModuleNotFoundError"):
+        run_sweep(broken, {"a": [1]}, workers=0, progress=False)
     with pytest.raises(SystemExit) as exc:
         cli.main(["sweep", "cantilever", "--param", "E=1e5", "--param", "E=2e5"])
     assert exc.value.code == 2
