@@ -2,11 +2,12 @@
 
 Why gmsh: its Python API (``pip install gmsh``, a self-contained wheel, the ``mesh`` extra) re-meshes a
 triangulated surface to a target edge length (``classifySurfaces`` + ``createGeometry``: the input triangles
-become the geometry, so the new surface nodes lie on them) and fills it with Delaunay tets; it is maintained
-by the same group since 1997, deterministic on one thread, and reports defects of the input (intersecting
-facets) instead of meshing past them. fTetWild (pytetwild) meshes dirty surfaces robustly, but its wheel
-pulls in pyvista and VTK, and it changes the shape it repairs; here a surface must be clean: small holes
-(one missing triangle or quad) are filled with a warning, anything else is an error naming the defect.
+become the geometry, so the new surface nodes lie on them) and fills it with Delaunay tets. It has been
+developed by its original authors since 1997, is deterministic on one thread, and reports defects of the
+input (intersecting facets) instead of meshing past them. fTetWild (pytetwild) meshes dirty surfaces
+robustly, but its wheel pulls in pyvista and VTK, and it changes the shape it repairs; here a surface must
+be clean: small holes (one missing triangle or quad) are filled with a warning, anything else is an error
+naming the defect.
 """
 from __future__ import annotations
 
@@ -15,12 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .elements import TET10_EDGES
 from .errors import InvalidInputError, MeshError
 from .mesh import Mesh
 
 SURFACE_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf")
-GMSH_TET10 = np.array([0, 1, 2, 3, 4, 5, 6, 7, 9, 8])  # gmsh's 10-node tet -> VTK: last two edges swapped
 
 
 def _as_trimesh(surface):
