@@ -21,7 +21,7 @@ Layout of a sweep directory (all but runs/ rewritten from the cached runs on eve
     DIR/summary.md                     the grid, failures, the table, and each parameter's effect
     DIR/plots/<param>.png              every metric against that parameter, one line per combination of the others
     DIR/trajectories.png               the monitored value against time, one line per run
-    DIR/recordings/<label>.rrd         with record=True: a rerun recording of each run
+    DIR/recordings/<label>-<hash>.rrd  with record=True: a rerun recording of each run made
 """
 from __future__ import annotations
 
@@ -485,7 +485,7 @@ def run_sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], out: str
             with open_executor(workers, cluster) as ex:
                 futures = {}
                 for key, p in pending:
-                    rec = str(out_dir / "recordings" / f"{label(p)}.rrd") if record else None
+                    rec = str(out_dir / "recordings" / f"{key}.rrd") if record else None  # key: unique
                     futures[ex.submit(run_point, spec, p, duration, dt, rec, 1)] = key
                 for fut in cf.as_completed(futures):
                     key = futures[fut]

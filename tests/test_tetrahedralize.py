@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import softbody
-from softbody.elements import TET10_EDGES, element_type, jacobians
+from softbody.elements import TET10_EDGES, jacobians
 
 pytest.importorskip("gmsh")
 trimesh = pytest.importorskip("trimesh")
