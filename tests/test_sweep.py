@@ -208,6 +208,16 @@ def test_the_command_line(tmp_path, capsys):
     assert float(rows[0]["monitor_min"]) < float(rows[1]["monitor_min"])
 
 
+def test_record_writes_one_recording_per_run_made(tmp_path):
+    result = run_sweep("cantilever", {"E": [5e6, 5e7], "cells": [(4, 1, 1)]}, tmp_path, duration=0.03, workers=0,
+                       record=True, progress=False)
+    files = sorted((tmp_path / "recordings").glob("*.rrd"))
+    assert len(files) == 2 and all(f.stat().st_size > 1000 for f in files)
+    assert [f.stem for f in files] == sorted(result.executed)
+    with pytest.raises(InvalidInputError, match="record=True needs an out directory"):
+        run_sweep("cantilever", {"E": [5e6]}, record=True, workers=0, progress=False)
+
+
 def test_contact_force_of_one_soft_body(tmp_path):
     import softbody as sb
     from integration import World
