@@ -1,4 +1,5 @@
-"""The ``softbody`` command line: run canonical scenes, convergence studies of them, recommendations and benchmarks."""
+"""The ``softbody`` command line: run canonical scenes, convergence studies of them, recommendations, parameter sweeps
+(experiments.sweep) and benchmarks."""
 from __future__ import annotations
 
 import argparse
@@ -241,6 +242,31 @@ def recommend_command(args: argparse.Namespace) -> None:
           f"second, error {1e3 * c['error_m']:.3f} mm)")
 
 
+def sweep_command(args: argparse.Namespace) -> None:
+    from pathlib import Path
+
+    from experiments.sweep import parse_param, run_sweep
+
+    params: dict[str, list] = {}
+    for text in args.param:
+        name, values = parse_param(text)
+        if name in params:
+            raise InvalidInputError(f"--param {name} is given twice; put all its values in one flag")
+        params[name] = values
+    out = args.out or f"sweeps/{Path(args.scene).stem}"
+    result = run_sweep(args.scene, params, out, duration=args.duration, dt=args.dt, workers=args.workers,
+                       cluster=args.cluster, record=args.record, force=args.force, progress=not args.no_progress)
+    rows = result.rows
+    shown = list(result.grid) + ["status", "steps", "ms_per_step", "max_penetration_mm", "monitor_end", "slip_mm"]
+    print("| " + " | ".join(shown) + " |")
+    for row in rows:
+        print("| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in (row[c] for c in shown)) + " |")
+    failed = sum(r["status"] != "ok" for r in rows)
+    print(f"# {len(rows)} runs ({len(result.executed)} made, {len(rows) - len(result.executed)} from the cache"
+          f"{f', {failed} failed: see summary.md' if failed else ''}); written to {result.out}/: results.csv, "
+          "summary.md, plots/, trajectories.png" + (", recordings/" if args.record else ""))
+
+
 class Terminated(BaseException):
     """SIGTERM or SIGHUP arrived: raised in the main thread so that ``finally`` blocks (closing a recording)
     run. A BaseException, like KeyboardInterrupt, so that no ``except Exception`` swallows it."""
@@ -320,6 +346,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     rec.add_argument("--dts", nargs="+", type=_positive_float, default=[0.01, 0.02], metavar="DT",
                      help="time steps [s] to consider (default 0.01 0.02)")
     add_study_arguments(rec)
+    sweep = sub.add_parser("sweep", help="a parameter sweep: the full grid over --param NAME=V1,V2,..., one row of "
+                                         "metrics per run: CSV, plots, summary ([docs/sweeps.md])")
+    sweep.add_argument("scene", help=f"a scene name ({', '.join(sorted(SCENES))}) or the path of a Python file "
+                                     "defining scene(**params) -> World (optionally monitor(world) -> float and "
+                                     "metrics(world) -> dict)")
+    sweep.add_argument("--param", action="append", required=True, metavar="NAME=V1,V2,...",
+                       help="a swept parameter and its values (repeat the flag for more; cells as 6x6x2)")
+    sweep.add_argument("--duration", type=_positive_float, default=None, help="simulated time of every run [s] "
+                                                                             "(default: the scene's)")
+    sweep.add_argument("--dt", type=_positive_float, default=None, help="time step of every run [s] (default: the "
+                                                                       "scene's)")
+    sweep.add_argument("--out", default=None, metavar="DIR", help="sweep directory (default: sweeps/<scene>)")
+    where = sweep.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_nonnegative_int, default=None,
+                       help="local worker processes (default 1; 0: in this process)")
+    where.add_argument("--cluster", default=None, metavar="ADDRESS",
+                       help="run on a Dask distributed scheduler, e.g. tcp://host:8786 (workers need softbody)")
+    sweep.add_argument("--record", action="store_true", help="a rerun recording of every run in DIR/recordings/")
+    sweep.add_argument("--force", action="store_true", help="rerun cached runs")
+    sweep.add_argument("--no-progress", action="store_true", help="no progress bar")
     from .bench import add_bench_arguments
 
     bench = sub.add_parser("bench", help="benchmark: ms per step with its breakdown, the solver floor, pybullet's "
@@ -334,6 +380,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             study_command(args)
         elif args.command == "recommend":
             recommend_command(args)
+        elif args.command == "sweep":
+            sweep_command(args)
         elif args.command == "bench":
             from .bench import bench_command
 

@@ -70,9 +70,14 @@ def _nearest(nodes: np.ndarray, point) -> int:
 
 def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt: float = 0.01,
                     E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                    friction: float = 1.0, warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
+                    friction: float = 1.0, warping: bool = True, solver: str = "auto", scheme: str = "warped",
+                    height: float = 0.05, offset: float = 0.0) -> Scene:
     """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
     Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35).
+
+    height: the drop, the gap between the sheet's bottom and the sphere's top [m] (0.05: the paper's);
+    offset: the sheet's centre along x [m] (0: centred; off-centre it lands on the sphere's flank and slides
+    unless friction holds it). The monitored corner moves with them: (offset - 0.5, -0.5, 0.3 + height).
 
     friction defaults to 1.0 (docs/method.md leaves it open): the sheet balances on the sphere's top, and
     with little or no friction any asymmetry (the checkerboard tet cut is not mirror-symmetric,
@@ -80,12 +85,17 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
     the resolution. Measured at 3 s, tet10 6x6x2: with mu = 0.3 the centre drifts 2.2 mm and the four
     corners rest between 0.221 and 0.238 m; with mu = 1.0 it stays centred and the corners agree, and
     all element types and resolutions end within 5 mm of each other."""
-    mesh = box_mesh((1.0, 1.0, 0.25), cells, element, center=(0.0, 0.0, 0.35 + 0.125))
+    if not (np.isfinite(height) and height >= 0):
+        raise InvalidInputError(f"height must be a gap >= 0 [m] above the sphere, got {height!r}")
+    if not np.isfinite(offset):
+        raise InvalidInputError(f"offset must be a finite length [m], got {offset!r}")
+    bottom = 0.3 + float(height)
+    mesh = box_mesh((1.0, 1.0, 0.25), cells, element, center=(float(offset), 0.0, bottom + 0.125))
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     world = World(dt=dt, solver=solver, scheme=scheme)
     world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
     world.add_soft(body, friction=friction)
-    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (-0.5, -0.5, 0.35)), 2,
+    return Scene("sheet-on-sphere", world, body, _nearest(mesh.nodes, (offset - 0.5, -0.5, bottom)), 2,
                  GRIDS["sheet-on-sphere"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 
@@ -99,15 +109,17 @@ def platform_x(t: float) -> float:
 
 def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: float = 0.01,
                  E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                 warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
+                 warping: bool = True, solver: str = "auto", scheme: str = "warped", friction: float = 0.0) -> Scene:
     """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
-    moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x."""
+    moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x.
+    friction: the tube's against the platform (its top is attached, so contact with the platform is off:
+    it matters only if a user adds obstacles)."""
     mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     world = World(dt=dt, solver=solver, scheme=scheme)
     platform = world.add_box((0.15, 0.15, 0.01), position=(0, 0, 0.01), name="platform",
                              motion=lambda t: (platform_x(t), 0.0, 0.01))
-    world.add_soft(body)
+    world.add_soft(body, friction=friction)
     top = np.flatnonzero(np.isclose(mesh.nodes[:, 2], 0.0))
     world.attach(body, top, platform)
     return Scene("hanging-tube", world, body, _nearest(mesh.nodes, (0.1, 0.0, -1.0)), 0, GRIDS["hanging-tube"].duration,
@@ -116,14 +128,15 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
 
 def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: float = 0.01,
                E: float = 5.0e7, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-               warping: bool = True, solver: str = "auto", scheme: str = "warped") -> Scene:
+               warping: bool = True, solver: str = "auto", scheme: str = "warped", friction: float = 0.0) -> Scene:
     """A 1.0 x 0.1 x 0.1 m beam along x, nodes at x = 0 fixed, sagging under gravity (no rigid bodies,
-    so no pybullet work). Monitored: z of the node at the tip centre (1, 0, 0), or the nearest."""
+    so no pybullet work). Monitored: z of the node at the tip centre (1, 0, 0), or the nearest.
+    friction: the beam's against rigid bodies a user adds (it touches none here)."""
     mesh = box_mesh((1.0, 0.1, 0.1), cells, element, center=(0.5, 0.0, 0.0))
     body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
     body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
     world = World(dt=dt, solver=solver, scheme=scheme)
-    world.add_soft(body)
+    world.add_soft(body, friction=friction)
     return Scene("cantilever", world, body, _nearest(mesh.nodes, (1.0, 0.0, 0.0)), 2, GRIDS["cantilever"].duration,
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 

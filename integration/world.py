@@ -884,19 +884,25 @@ class World:
                 f"{e['elastic']:.3g}, rigid kinetic {e['rigid_kinetic']:.3g} J. State kept at t = {self.t:.6g} s; "
                 "try a smaller dt or more damping.", step=self.sim.steps + 1, time=self.t + self.dt)
 
-    def contact_force(self, body_id, link: int | None = None) -> np.ndarray:
+    def contact_force(self, body_id, link: int | None = None, soft: FemBody | None = None) -> np.ndarray:
         """The total force (3,) [N] the soft bodies exerted on rigid body ``body_id`` (a RigidLink or an id;
-        all its links, or one ``link``) over the last step: contacts and attachments."""
+        all its links, or one ``link``) over the last step: contacts and attachments. ``soft``: only the
+        force of that soft body (one added with :meth:`add_soft`)."""
         if isinstance(body_id, RigidLink):
             body_id, link = body_id.id, body_id.link if link is None else link
+        if soft is not None and all(b is not soft for b in self.bodies):
+            raise InvalidInputError("soft must be a soft body of this World (added with add_soft)")
         total = np.zeros(3)
-        for c, res in [*self.contact_results.values(), *self.face_results.values()]:
+        results = [*self.contact_results.items(), *self.face_results.items()]
+        for key, (c, res) in results:
+            if soft is not None and key != id(soft):
+                continue
             sel = res.active & (c.rigid == body_id)
             if link is not None:
                 sel &= c.link == link
             total -= res.force[sel].sum(axis=0)
         for att, f in self.attachment_forces:
-            if att.rigid.id == body_id and (link is None or att.rigid.link == link):
+            if att.rigid.id == body_id and (link is None or att.rigid.link == link) and soft in (None, att.body):
                 total -= f.sum(axis=0)
         return total
 

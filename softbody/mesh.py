@@ -15,6 +15,30 @@ def _list_some(idx: np.ndarray, limit: int = 10) -> str:
     return s + (f", ... ({len(idx)} in all)" if len(idx) > limit else "")
 
 
+# Node permutations that mirror an element (an inverted element becomes a positive one): tet4 and tet10
+# swap vertices 1 and 2 (and tet10's midside nodes with them: edges 01 <-> 02, 13 <-> 23, 12 stays);
+# hex8 swaps its bottom and top faces.
+MIRROR = {"tet4": np.array([0, 2, 1, 3]), "tet10": np.array([0, 2, 1, 3, 6, 5, 4, 7, 9, 8]),
+          "hex8": np.array([4, 5, 6, 7, 0, 1, 2, 3])}
+
+
+def reorient(nodes: np.ndarray, elements: np.ndarray, kind: str) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror the node order of the elements that are inverted everywhere (negative Jacobian at every check
+    point of their kind), so that they are positive.
+
+    nodes (N, 3) [m], elements (E, k) in VTK order; returns (elements (E, k), indices of the flipped
+    elements). Elements with Jacobians of both signs (tangled, not merely mirrored) are left as they are:
+    :class:`Mesh` refuses them."""
+    et = element_type(kind)
+    elements = np.asarray(elements).astype(np.int64)
+    detJ = np.linalg.det(jacobians(et, np.asarray(nodes, float)[elements], et.check_points))
+    flip = np.flatnonzero((detJ < 0).all(axis=1))
+    if flip.size:
+        elements = elements.copy()
+        elements[flip] = elements[flip][:, MIRROR[et.name]]
+    return elements, flip
+
+
 class Mesh:
     """A volumetric mesh of a single element kind.
 

@@ -4,11 +4,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Sequence
 
+import warnings
+
 import numpy as np
 
 from .elements import ELEMENT_TYPES, TET10_EDGES
 from .errors import InvalidInputError, MeshError
-from .mesh import Mesh
+from .mesh import Mesh, _list_some, reorient
 
 # Freudenthal 5-tet cuts of a hex cell (hex8 local node order). Cut A has the inner tet {0, 2, 5, 7},
 # cut B {1, 3, 4, 6}; alternating them in a checkerboard makes the face diagonals of neighbours match.
@@ -97,20 +99,35 @@ def box_mesh(size: Sequence[float], cells: Sequence[int], kind: str = "tet4", ce
     return cells_to_mesh(nodes, hexes, i + j + k, kind)
 
 
+def _cube_to_ball(p: np.ndarray) -> np.ndarray:
+    """The smooth map of the cube [-1, 1]^3 onto the unit ball (its faces onto the sphere), points (n, 3)."""
+    x, y, z = p.T
+    return np.column_stack([x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
+                            y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
+                            z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3)])
+
+
 def ball_mesh(radius: float, cells: int, kind: str = "tet4", center=(0.0, 0.0, 0.0)) -> Mesh:
-    """A ball of ``radius`` [m]: a cube grid of cells^3 cells mapped onto the sphere (smooth cube-to-ball map)."""
+    """A ball of ``radius`` [m]: a cube grid of cells^3 cells mapped onto the sphere (smooth cube-to-ball map).
+
+    tet10: the midside nodes of surface edges are moved radially onto the sphere (the faces curve with it),
+    the others stay at their edges' midpoints. Volume against the sphere's: -0.64% at 2 cells, -0.15% at 3,
+    -0.05% at 4 (tet4 and hex8, flat faces: -11% at 3 cells, -6% at 4)."""
     _check_kind(kind)
     if not (isinstance(radius, (int, float, np.number)) and np.isfinite(radius) and radius > 0):
         raise InvalidInputError(f"radius must be > 0, got {radius!r}")
     center = _check_center(center)
     n = _check_cells((cells, cells, cells))[0]
     cube = box_mesh((2.0, 2.0, 2.0), (n, n, n), "hex8" if kind == "hex8" else "tet4")
-    x, y, z = cube.nodes.T
-    mapped = np.column_stack([x * np.sqrt(1 - y**2 / 2 - z**2 / 2 + y**2 * z**2 / 3),
-                              y * np.sqrt(1 - z**2 / 2 - x**2 / 2 + z**2 * x**2 / 3),
-                              z * np.sqrt(1 - x**2 / 2 - y**2 / 2 + x**2 * y**2 / 3)])
-    mesh = Mesh(radius * mapped + center, cube.elements, cube.kind)
-    return to_tet10(mesh) if kind == "tet10" else mesh
+    mesh = Mesh(radius * _cube_to_ball(cube.nodes), cube.elements, cube.kind)
+    if kind == "tet10":
+        mesh = to_tet10(mesh)
+        surface = mesh.surface_nodes()
+        mid = surface[surface >= cube.n_nodes]  # midside nodes of surface edges: onto the sphere, radially
+        nodes = mesh.nodes.copy()
+        nodes[mid] *= radius / np.linalg.norm(nodes[mid], axis=1)[:, None]
+        mesh = Mesh(nodes, mesh.elements, "tet10")
+    return mesh.translated(center)
 
 
 def tube_mesh(r_outer: float, r_inner: float, length: float, cells: Sequence[int], kind: str = "tet4") -> Mesh:
@@ -155,9 +172,13 @@ def to_tet10(mesh: Mesh) -> Mesh:
 _MESHIO_KINDS = {"tetra": "tet4", "hexahedron": "hex8", "tetra10": "tet10"}
 
 
-def read_mesh(path: str | Path) -> Mesh:
+def read_mesh(path: str | Path, strict: bool = False) -> Mesh:
     """Read a volume mesh through meshio (VTK, VTU, Gmsh, ...). The file must hold exactly one of
-    tetra / hexahedron / tetra10 cell blocks (surface cells are ignored)."""
+    tetra / hexahedron / tetra10 cell blocks (surface cells are ignored).
+
+    Elements inverted everywhere (a mirrored node order, as some exporters write) are re-oriented with a
+    warning that counts them; ``strict=True`` refuses them instead (MeshError). Tangled elements (Jacobians
+    of both signs) and flat ones are always refused."""
     import meshio
 
     path = Path(path)
@@ -179,4 +200,19 @@ def read_mesh(path: str | Path) -> Mesh:
     pts = np.asarray(m.points, dtype=float)
     if pts.shape[1] == 2:
         raise MeshError(f"{str(path)!r} has 2-D points; a volume mesh needs 3-D coordinates")
-    return Mesh(pts, np.vstack(data), kind)
+    elements = np.vstack(data)
+    if strict:
+        return Mesh(pts, elements, kind)
+    try:
+        Mesh(pts, elements, kind)
+    except MeshError as exc:
+        if "inverted" not in str(exc):
+            raise
+    else:
+        return Mesh(pts, elements, kind)
+    fixed, flipped = reorient(pts, elements, kind)
+    mesh = Mesh(pts, fixed, kind)  # still refuses tangled elements
+    warnings.warn(f"{str(path)!r}: re-oriented {len(flipped)} of {len(elements)} inverted {kind} elements "
+                  f"(mirrored node order; elements {_list_some(flipped)}); read_mesh(..., strict=True) refuses them",
+                  stacklevel=2)
+    return mesh

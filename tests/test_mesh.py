@@ -266,3 +266,49 @@ def test_grid_mesh_size_counts_without_building(kind):
     for cells in [(4, 1, 1), (8, 2, 3), (6, 1, 5)]:
         m = softbody.tube_mesh(0.1, 0.06, 1.0, cells, kind)
         assert grid_mesh_size(cells, kind, periodic_first=True) == (m.n_nodes, m.n_elements), cells
+
+
+# ---------------------------------------------------------------------------- ball, re-orientation
+def test_ball_mesh_tet10_has_its_surface_midside_nodes_on_the_sphere():
+    r, c = 0.1, np.array([0.3, -0.2, 1.0])
+    m = softbody.ball_mesh(r, 3, "tet10", center=c)
+    surf = m.surface_nodes()
+    np.testing.assert_allclose(np.linalg.norm(m.nodes[surf] - c, axis=1), r, rtol=1e-12)
+    assert m.volume() == pytest.approx(4 / 3 * np.pi * r**3, rel=5e-3)
+    assert abs(softbody.ball_mesh(r, 3, "tet4").volume() / (4 / 3 * np.pi * r**3) - 1) > 0.05  # flat faces
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh"])
+def test_read_mesh_reorients_mirrored_elements_with_a_warning_and_strict_refuses(kind, suffix, tmp_path):
+    import meshio
+
+    from softbody.mesh import MIRROR
+
+    m = softbody.box_mesh((1.0, 0.8, 0.6), (2, 2, 1), kind)
+    bad = m.elements.copy()
+    flip = np.arange(0, m.n_elements, 3)
+    bad[flip] = bad[flip][:, MIRROR[kind]]
+    path = tmp_path / f"mirrored{suffix}"
+    meshio.write(str(path), meshio.Mesh(m.nodes, [(m.element_type.meshio_name, bad)]),
+                 file_format="gmsh" if suffix == ".msh" else None)
+    with pytest.warns(UserWarning, match=f"re-oriented {len(flip)} of {m.n_elements} inverted {kind}"):
+        r = softbody.read_mesh(path)
+    assert r.volume() == pytest.approx(m.volume(), rel=1e-12)
+    assert (r.element_volumes() > 0).all()
+    # the same element, its nodes in an order that is positive: the same set of nodes per element
+    np.testing.assert_array_equal(np.sort(r.elements, axis=1), np.sort(m.elements, axis=1))
+    with pytest.raises(softbody.MeshError, match="inverted"):
+        softbody.read_mesh(path, strict=True)
+
+
+def test_read_mesh_still_refuses_tangled_elements(tmp_path):
+    import meshio
+
+    m = softbody.box_mesh((1.0, 1.0, 1.0), (1, 1, 1), "tet10")
+    nodes = m.nodes.copy()
+    e0 = m.elements[0]
+    nodes[e0[4]] = nodes[e0[0]] + 3.0 * (nodes[e0[1]] - nodes[e0[0]])  # a midside node far past its edge's end
+    path = tmp_path / "tangled.vtu"
+    meshio.write(str(path), meshio.Mesh(nodes, [("tetra10", m.elements)]))
+    with pytest.raises(softbody.MeshError, match="inverted|zero volume"):
+        softbody.read_mesh(path)
