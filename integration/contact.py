@@ -515,14 +515,16 @@ class ContactSolver:
     """
 
     def __init__(self, max_iterations: int = 30, velocity_tol: float = 1e-7, slip_tol: float = 1e-3,
-                 friction_switches: int = 1, cone_tol: float = 1e-3, push_speed: float = 0.5):
+                 friction_switches: int = 10, cone_tol: float = 1e-3, push_speed: float = 0.5):
         self.max_iterations = max_iterations
         self.push_speed = push_speed
         self.velocity_tol = velocity_tol
         self.slip_tol = slip_tol
         # stick/slip may change only in the first friction_switches iterations of a step; later changes
-        # are carried to the next step (lagged friction: a contact on the cone's edge would otherwise
-        # flip forever, and each flip costs a solve). Non-penetration stays exact in every iteration.
+        # are carried to the next step (a contact on the cone's edge would otherwise flip forever, and each
+        # flip costs a solve). One switching iteration was too few: contacts that touched down sticking held
+        # more than mu times their pressure for a step (a rolling ball: 4-7x Coulomb's bound, every step).
+        # Non-penetration stays exact in every iteration.
         self.friction_switches = friction_switches
         self.cone_tol = cone_tol
         # (kind, id(body)) -> (active keys, sticking keys, {slipping key: friction force (3,) world [N]})
