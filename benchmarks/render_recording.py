@@ -56,10 +56,11 @@ def _wait_for_port(port: int, proc: subprocess.Popen, timeout: float) -> None:
 
 
 def render(recording: str | Path, times: Sequence[float], out: str | Path, size: str = "1600x1000",
-           view: str | None = None, timeout: float = 60.0) -> list[Path]:
+           view: str | None = None, timeout: float = 60.0, settle: float = 8.0) -> list[Path]:
     """Screenshots (PNG files ``<out>_t<time>.png``) of ``recording`` at the sim_time ``times`` [s], taken by
     rerun's native viewer running headless on 127.0.0.1 (stopped before returning); ``view``: the name of one
-    view to capture (default: the whole viewer, ``size`` WIDTHxHEIGHT pixels)."""
+    view to capture (default: the whole viewer, ``size`` WIDTHxHEIGHT pixels); ``settle`` [s]: wait before the
+    first picture, until the viewer's start-up notifications have faded."""
     import rerun.experimental as rrx
 
     recording = Path(recording).resolve()
@@ -78,17 +79,21 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
         _wait_for_port(port, proc, timeout)
         client = rrx.ViewerClient.connect(f"rerun+http://127.0.0.1:{port}/proxy")
         client.open(str(recording))
+        deadline = time.monotonic() + timeout
+        while client.get_state().loading and time.monotonic() < deadline:
+            time.sleep(0.3)
         view_id = None
         if view is not None:
             deadline = time.monotonic() + timeout
             while view_id is None and time.monotonic() < deadline:
                 state = client.get_state()
-                view_id = next((v.id for v in _views(state) if getattr(v, "name", None) == view), None)
+                view_id = next((v.view_id for v in state.views if v.name == view), None)
                 time.sleep(0.5)
             if view_id is None:
                 raise ValueError(f"no view named {view!r} in {recording.name}")
         out = Path(out)
         out.parent.mkdir(parents=True, exist_ok=True)
+        time.sleep(settle)  # the viewer's start-up notifications fade out
         for t in times:
             client.set_time("sim_time", duration=float(t), play_state="paused")
             time.sleep(1.0)  # let the viewer load and paint the frame
@@ -113,15 +118,6 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
     return paths
 
 
-def _views(state) -> list:
-    """The views of a ViewerState (their ids and names), whatever the nesting."""
-    for attr in ("views", "view_reports"):
-        views = getattr(state, attr, None)
-        if views:
-            return list(views.values()) if isinstance(views, dict) else list(views)
-    return []
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("recording")
@@ -129,10 +125,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="path prefix of the PNGs (default: next to the recording)")
     ap.add_argument("--size", default="1600x1000", help="viewer window WIDTHxHEIGHT [px]")
     ap.add_argument("--view", default=None, help="capture only the view of this name, e.g. scene")
+    ap.add_argument("--settle", type=float, default=8.0, help="seconds to wait before the first picture")
     args = ap.parse_args(argv)
     out = args.out or str(Path(args.recording).with_suffix(""))
     try:
-        for p in render(args.recording, args.at, out, args.size, args.view):
+        for p in render(args.recording, args.at, out, args.size, args.view, settle=args.settle):
             print(p)
     except RenderUnavailable as exc:
         print(f"cannot render: {exc}", file=sys.stderr)

@@ -72,6 +72,9 @@ COLOR_FIELDS = {"von_mises": ("von Mises stress", "kPa", 1e-3), "displacement": 
 COLOR_MODES = ("element", "nodal")
 #: the 3D views' vertical field of view assumed for framing [rad] (rerun's default eye is about 60 degrees)
 VIEW_FOV = math.radians(50.0)
+#: width / height assumed for the scene view and the contacts view of the blueprint (a 1600 x 1000 viewer gives
+#: about 960 x 690 and 640 x 380 px)
+SCENE_ASPECT, CONTACTS_ASPECT = 1.3, 1.6
 #: direction from the scene's centre to the eye of the three-quarter view (azimuth -55 deg, elevation 30 deg)
 EYE_DIRECTION = np.array([math.cos(math.radians(30)) * math.cos(math.radians(-55)),
                           math.cos(math.radians(30)) * math.sin(math.radians(-55)), math.sin(math.radians(30))])
@@ -209,35 +212,54 @@ def _bodies_of(target) -> list[FemBody]:
     return list(getattr(target, "bodies", []))
 
 
-def three_quarter_eye(lo, hi, fov: float = VIEW_FOV, direction: np.ndarray = EYE_DIRECTION,
-                      aspect: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """The eye position (3,) and look target (3,) [m] of a view that frames the box lo..hi (3,) [m] whole: the
-    target is the box's centre, the eye along ``direction`` (unit, towards the eye) at the distance where the
-    box's bounding sphere fits the vertical field of view ``fov`` [rad] (and the horizontal one, fov widened
-    by ``aspect`` = width / height)."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise InvalidInputError(f"bounds must be two finite points (3,), got {lo!r} and {hi!r}")
+def three_quarter_eye(points, radii=None, fov: float = VIEW_FOV, direction: np.ndarray = EYE_DIRECTION,
+                      aspect: float = 1.0, margin: float = 0.06) -> tuple[np.ndarray, np.ndarray]:
+    """The eye position (3,) and look target (3,) [m] of a view that shows every ball (points (n, 3) [m], radii
+    (n,) [m], default 0) whole: the target is the centre of their box, the eye along ``direction`` (unit, towards
+    the eye), as close as it can be with everything inside the field of view ``fov`` [rad] (vertical;
+    horizontal: widened by ``aspect`` = width / height) shrunk by ``margin`` on each side."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    radii = np.zeros(len(points)) if radii is None else np.broadcast_to(np.asarray(radii, float), (len(points),))
+    if not len(points) or not (np.all(np.isfinite(points)) and np.all(np.isfinite(radii))):
+        raise InvalidInputError(f"the view needs finite points (n, 3) and radii (n,), got {points!r}, {radii!r}")
+    lo, hi = (points - radii[:, None]).min(axis=0), (points + radii[:, None]).max(axis=0)
     center = 0.5 * (lo + hi)
-    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-3)
-    half = min(0.5 * fov, math.atan(aspect * math.tan(0.5 * fov)))
     d = np.asarray(direction, float)
-    return center + d / np.linalg.norm(d) * radius / math.sin(half) * 1.05, center
+    d = d / np.linalg.norm(d)
+    inner = 2 * math.atan((1 - 2 * margin) * math.tan(0.5 * fov))
+    near, far = 0.0, 1.0 + 4 * float(np.linalg.norm(hi - lo)) / math.tan(0.5 * inner) / min(aspect, 1.0)
+    for _ in range(50):  # bisection on the distance: the nearest eye that shows everything
+        mid = 0.5 * (near + far)
+        if frames(center + mid * d, center, points, radii, inner, aspect):
+            far = mid
+        else:
+            near = mid
+    return center + far * d, center
 
 
-def frames_box(eye: np.ndarray, target: np.ndarray, lo, hi, fov: float = VIEW_FOV, aspect: float = 1.0) -> bool:
-    """True if every corner of the box lo..hi lies inside the view from ``eye`` towards ``target`` (up +z) with the
-    vertical field of view fov [rad] and width / height ``aspect``."""
+def frames(eye: np.ndarray, target: np.ndarray, points, radii=None, fov: float = VIEW_FOV,
+           aspect: float = 1.0) -> bool:
+    """True if every ball (points (n, 3), radii (n,) [m]) lies whole inside the view from ``eye`` towards
+    ``target`` (up +z) with the vertical field of view ``fov`` [rad] and width / height ``aspect``."""
+    points = np.asarray(points, float).reshape(-1, 3)
+    radii = np.zeros(len(points)) if radii is None else np.broadcast_to(np.asarray(radii, float), (len(points),))
     fwd = np.asarray(target, float) - eye
     fwd /= np.linalg.norm(fwd)
     right = np.cross(fwd, [0.0, 0.0, 1.0])
     right /= np.linalg.norm(right)
     up = np.cross(right, fwd)
-    corners = np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T - eye
-    depth = corners @ fwd
-    t = math.tan(0.5 * fov)
-    return bool(np.all(depth > 0) and np.all(np.abs(corners @ up) <= t * depth)
-                and np.all(np.abs(corners @ right) <= aspect * t * depth))
+    rel = points - eye
+    depth = rel @ fwd
+    ty, tx = math.tan(0.5 * fov), aspect * math.tan(0.5 * fov)
+    # a ball is inside a side plane of the frustum if its centre is at least r from it
+    inside_y = np.abs(rel @ up) * np.cos(math.atan(ty)) + radii <= depth * np.sin(math.atan(ty))
+    inside_x = np.abs(rel @ right) * np.cos(math.atan(tx)) + radii <= depth * np.sin(math.atan(tx))
+    return bool(np.all(depth > radii) and np.all(inside_y) and np.all(inside_x))
+
+
+def box_corners(lo, hi) -> np.ndarray:
+    """The 8 corners (8, 3) of the box lo..hi."""
+    return np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
 
 
 def colorbar_png(colormap: str, lo: float, hi: float, label: str, width: int = 900, height: int = 130) -> bytes:
@@ -428,11 +450,14 @@ class Recorder:
         self._attach = self._attachments() if "attachments" in self.content else []
         self._newton = getattr(self.sim, "scheme", "warped") == "newton" and "diagnostics" in self.content
         self._series = iter(SERIES_COLORS * 4)  # explicit series colours, handed out in order
-        self._lo, self._hi = self._start_bounds()  # [m] the scene's box: bodies, links, kinematic motion
-        self.bounds = (self._lo.copy(), self._hi.copy())  # over the recorded frames, updated per frame
+        # what the 3D views frame [m]: the soft bodies' box, and per rigid link the box of its centre's path and
+        # its bounding radius; from the scene at attach (kinematic links over its duration), grown per frame
+        self._soft_box, self._link_paths = self._start_bounds()
+        self.start_framing = self.framing()
         if self.force_scale is None:
             weight = sum(b.total_mass for b in bodies) * float(np.linalg.norm(getattr(self.sim, "gravity", 9.81)))
-            self.force_scale = 0.2 * float(np.max(self._hi - self._lo)) / max(weight, 1e-12)
+            lo, hi = self.bounds
+            self.force_scale = 0.5 * float(np.max(hi - lo)) / max(weight, 1e-12)
         self._with_blueprint = blueprint
 
         file, folder = record_target(path, overwrite, directory)
@@ -482,7 +507,7 @@ class Recorder:
             self._flush()
             self._final_colors()
             if self._with_blueprint:
-                self.rec.send_blueprint(self._blueprint(*self.bounds), make_active=True, make_default=True)
+                self.rec.send_blueprint(self._blueprint(self.framing()), make_active=True, make_default=True)
         finally:
             self.rec.flush()
             self.rec.disconnect()
@@ -518,12 +543,17 @@ class Recorder:
     def _node_label(self, b: int, n: int) -> str:
         return f"node{n}" if len(self._soft) == 1 else f"body{b}_node{n}"
 
-    def _start_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """The scene's box lo, hi (3,) [m] at attach time: the soft bodies, the rigid links (bounding spheres;
-        planes left out), kinematic links over the scene's duration, and the soft bodies carried along by
-        their motion (a body hanging from a moving platform)."""
-        boxes = [(b.positions.min(axis=0), b.positions.max(axis=0)) for b in _bodies_of(self.target)]
-        soft = (np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0)) if boxes else None
+    def _start_bounds(self) -> tuple[list[np.ndarray], dict]:
+        """At attach time: the soft bodies' box [lo, hi] [m], and per rigid link (planes left out) [lo, hi, r]: the box
+        of its centre's path (kinematic links: over the scene's duration) and its bounding radius [m]. Soft bodies
+        are taken to be carried along by the kinematic links' motion (a body hanging from a moving platform)."""
+        bodies = _bodies_of(self.target)
+        if bodies:
+            soft = [np.min([b.positions.min(axis=0) for b in bodies], axis=0),
+                    np.max([b.positions.max(axis=0) for b in bodies], axis=0)]
+        else:
+            soft = [np.full(3, np.inf), np.full(3, -np.inf)]
+        links = {}
         if self.is_world:
             duration = getattr(self.scene, "duration", None) if self.scene is not None else None
             for rb in self.target.rigids.values():
@@ -531,17 +561,36 @@ class Recorder:
                 if not math.isfinite(r):
                     continue
                 c, _ = rb.pose()
-                boxes.append((c - r, c + r))
+                path = c[None, :]
                 if rb.motion is not None and duration:
                     ts = float(self.target.t) + np.linspace(0.0, float(duration), 41)
-                    path = np.array([rb.scripted_pose(t)[0] for t in ts])
-                    boxes.append((path.min(axis=0) - r, path.max(axis=0) + r))
-                    if soft is not None:
+                    path = np.vstack([path, [rb.scripted_pose(t)[0] for t in ts]])
+                    if bodies:
                         shift = path - c
-                        boxes.append((soft[0] + shift.min(axis=0), soft[1] + shift.max(axis=0)))
-        if not boxes:
-            return -np.ones(3), np.ones(3)
-        return np.min([lo for lo, _ in boxes], axis=0), np.max([hi for _, hi in boxes], axis=0)
+                        soft = [np.minimum(soft[0], soft[0] + shift.min(axis=0)),
+                                np.maximum(soft[1], soft[1] + shift.max(axis=0))]
+                links[rb.key] = [path.min(axis=0), path.max(axis=0), r]
+        return soft, links
+
+    def framing(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the 3D views frame: points (n, 3) and radii (n,) [m] (the corners of the soft bodies' box, the
+        corners of each rigid link's path box with its bounding radius), so far."""
+        pts, rad = [], []
+        if np.all(np.isfinite(self._soft_box[0])):
+            pts.append(box_corners(*self._soft_box))
+            rad.append(np.zeros(8))
+        for lo, hi, r in self._link_paths.values():
+            pts.append(box_corners(lo, hi))
+            rad.append(np.full(8, r))
+        if not pts:
+            return np.array([[-1.0, -1, -1], [1, 1, 1]]), np.zeros(2)
+        return np.concatenate(pts), np.concatenate(rad)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The box lo, hi (3,) [m] of everything framed so far."""
+        pts, rad = self.framing()
+        return (pts - rad[:, None]).min(axis=0), (pts + rad[:, None]).max(axis=0)
 
     def _colors_of(self, n: int) -> list[tuple[int, int, int]]:
         return [next(self._series) for _ in range(n)]
@@ -565,18 +614,19 @@ class Recorder:
             plots.append(("plots/color_range", f"{name}: frame min and max [{unit}]"))
         return plots
 
-    def _blueprint(self, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> rrb.Blueprint:
-        """Scene view framed three-quarter on lo..hi (default: the scene's bounds), colour bar and legend under it;
-        on the right the contacts (soft bodies hidden), the monitored coordinate and the other plots in tabs."""
-        lo = self._lo if lo is None else lo
-        hi = self._hi if hi is None else hi
-        eye, target = three_quarter_eye(lo, hi)
+    def _blueprint(self, framing: tuple[np.ndarray, np.ndarray] | None = None) -> rrb.Blueprint:
+        """Scene view framed three-quarter on ``framing`` (points, radii; default: the scene's at attach), colour bar
+        and legend under it; on the right the contacts (soft bodies hidden), the monitored coordinate and the
+        other plots in tabs."""
+        framing = self.start_framing if framing is None else framing
+        eye, target = three_quarter_eye(*framing, aspect=SCENE_ASPECT)
         self.camera = (eye, target)
 
-        def eye_controls():
+        def eye_controls(aspect: float):
+            eye, target = three_quarter_eye(*framing, aspect=aspect)
             return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=eye, look_target=target, eye_up=(0, 0, 1))
 
-        scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls())
+        scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls(SCENE_ASPECT))
         left, shares = [scene], [5]
         under = []
         if "colors" in self.content:
@@ -590,7 +640,7 @@ class Recorder:
         if self.is_world and "contacts" in self.content:
             right.append(rrb.Spatial3DView(origin="/world", name="contacts (soft bodies hidden)",
                                            contents=["+ /world/**", "- /world/soft/**", "- /world/monitor"],
-                                           eye_controls=eye_controls()))
+                                           eye_controls=eye_controls(CONTACTS_ASPECT)))
             rshares.append(3)
         listed = self._plots()
         plots = [rrb.TimeSeriesView(origin="/" + path, name=name, plot_legend=rrb.PlotLegend(visible=True))
@@ -787,10 +837,10 @@ class Recorder:
         scale = 255.0 / (hi - lo) if hi > lo else 0.0
         return self._lut[np.clip((field - lo) * scale, 0, 255).astype(np.intp)]
 
-    def _grow_bounds(self, points: np.ndarray, pad: float = 0.0) -> None:
-        lo, hi = self.bounds
-        np.minimum(lo, points.min(axis=0) - pad, out=lo)
-        np.maximum(hi, points.max(axis=0) + pad, out=hi)
+    def _grow_bounds(self, box: list[np.ndarray], points: np.ndarray) -> None:
+        """Grow box [lo, hi] in place to hold points (n, 3)."""
+        np.minimum(box[0], points.min(axis=0), out=box[0])
+        np.maximum(box[1], points.max(axis=0), out=box[1])
 
     def _record(self) -> None:
         """Collect one frame into the buffer (a single append, so an interrupt never leaves half a frame)."""
@@ -804,7 +854,7 @@ class Recorder:
                 f[s.path + "#normals"] = s.normals()
                 if "colors" in content:
                     fields[s.path] = self._color_field(s)
-            self._grow_bounds(s.body.positions)
+            self._grow_bounds(self._soft_box, s.body.positions)
         if fields:
             frame_min = min(float(v.min()) for v in fields.values())
             frame_max = max(float(v.max()) for v in fields.values())
@@ -825,9 +875,8 @@ class Recorder:
                 f["world/monitor"] = xs
         for rb in self._moving:
             f[self._rigid_path(rb)] = pose = rb.pose()
-            r = rb.bounding_radius()
-            if math.isfinite(r):
-                self._grow_bounds(pose[0][None, :], r)
+            if rb.key in self._link_paths:
+                self._grow_bounds(self._link_paths[rb.key], pose[0][None, :])
         if "contacts" in content:
             kinds = {"world/contacts": target.contact_results.values(), "world/contacts/faces": target.face_results.values(),
                      "world/contacts/soft": target.pair_results}
