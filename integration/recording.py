@@ -368,7 +368,7 @@ class Recorder:
     recording (re-sent for every frame at close). colormap: a matplotlib colour map name (named on the colour bar).
     monitor: node ids of body 0, or (body index, node id) pairs; default the scene's monitored node.
     contact_arrows: "force" (the contact force on the soft body, out of the rigid body, times ``force_scale``
-    [m/N]; None: the soft bodies' weight draws 0.2 of the scene's size) or "normal" (unit normals times
+    [m/N]; None: the soft bodies' weight draws a quarter of the scene's size) or "normal" (unit normals times
     ``arrow_length`` [m]). plane_size [m]: edge of the square drawn for infinite planes.
     batch: frames buffered before they are sent; flush_seconds: also send when the oldest buffered
     frame is older than this (so a viewer following the file stays current).
@@ -457,7 +457,7 @@ class Recorder:
         if self.force_scale is None:
             weight = sum(b.total_mass for b in bodies) * float(np.linalg.norm(getattr(self.sim, "gravity", 9.81)))
             lo, hi = self.bounds
-            self.force_scale = 0.5 * float(np.max(hi - lo)) / max(weight, 1e-12)
+            self.force_scale = 0.25 * float(np.max(hi - lo)) / max(weight, 1e-12)
         self._with_blueprint = blueprint
 
         file, folder = record_target(path, overwrite, directory)
@@ -626,7 +626,8 @@ class Recorder:
             eye, target = three_quarter_eye(*framing, aspect=aspect)
             return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=eye, look_target=target, eye_up=(0, 0, 1))
 
-        scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls(SCENE_ASPECT))
+        scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls(SCENE_ASPECT),
+                                  contents=["+ /world/**", "- /world/contacts/**"])  # contacts: their own view
         left, shares = [scene], [5]
         under = []
         if "colors" in self.content:
