@@ -587,6 +587,12 @@ class Recorder:
         return np.concatenate(pts), np.concatenate(rad)
 
     @property
+    def camera(self) -> tuple[np.ndarray, np.ndarray]:
+        """The scene view's eye position and look target (3,) [m] for everything framed so far (the blueprint's at
+        attach, and at close)."""
+        return three_quarter_eye(*self.framing(), aspect=SCENE_ASPECT)
+
+    @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The box lo, hi (3,) [m] of everything framed so far."""
         pts, rad = self.framing()
@@ -619,8 +625,6 @@ class Recorder:
         and legend under it; on the right the contacts (soft bodies hidden), the monitored coordinate and the
         other plots in tabs."""
         framing = self.start_framing if framing is None else framing
-        eye, target = three_quarter_eye(*framing, aspect=SCENE_ASPECT)
-        self.camera = (eye, target)
 
         def eye_controls(aspect: float):
             eye, target = three_quarter_eye(*framing, aspect=aspect)

@@ -169,3 +169,20 @@ def test_headless_render_shows_the_sheet(tmp_path):
     assert 0.08 < share < 0.8, share
     rows, cols = np.flatnonzero(coloured.any(axis=1)), np.flatnonzero(coloured.any(axis=0))
     assert rows[0] > 2 and cols[0] > 2 and rows[-1] < img.shape[0] - 3 and cols[-1] < img.shape[1] - 3
+
+
+def test_command_line_sets_the_stress_range(tmp_path, capsys):
+    from integration import cli
+
+    path = tmp_path / "cli.rrd"
+    run = ["run", "cantilever", "--element", "tet4", "--cells", "2", "1", "1", "--duration", "0.02"]
+    assert cli.main([*run, "--record", str(path), "--stress-range", "0", "50", "--color-mode", "nodal"]) == 0
+    legend = static_components(path)["/legend"]["TextDocument:text"][0]
+    assert "a fixed range 0 .. 50 kPa" in legend and "volume-weighted mean" in legend
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as info:
+        cli.main([*run, "--record", str(tmp_path / "bad.rrd"), "--stress-range", "50", "0"])
+    assert info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert "--stress-range needs LO < HI" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "bad.rrd").exists()
