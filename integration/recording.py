@@ -70,8 +70,11 @@ CONTENT = ("mesh", "colors", "rigid", "contacts", "attachments", "monitor", "dia
 #: colour field -> (name, display unit, display unit per SI unit)
 COLOR_FIELDS = {"von_mises": ("von Mises stress", "kPa", 1e-3), "displacement": ("displacement magnitude", "mm", 1e3)}
 COLOR_MODES = ("element", "nodal")
-#: the 3D views' vertical field of view assumed for framing [rad] (rerun's default eye is about 60 degrees)
+#: the 3D views' vertical field of view assumed for framing [rad] (rerun's default eye has 55 degrees)
 VIEW_FOV = math.radians(50.0)
+#: memory [bytes] for the colour sources kept until close (to redraw frames on the run's final range); beyond
+#: it later frames are not kept, and the legend says from when on frames may be drawn on a smaller range
+FIELD_BUDGET = 256 * 2**20
 #: width / height assumed for the scene view and the contacts view of the blueprint (a 1600 x 1000 viewer gives
 #: about 960 x 690 and 640 x 380 px)
 SCENE_ASPECT, CONTACTS_ASPECT = 1.3, 1.6
@@ -406,10 +409,12 @@ class Recorder:
             raise InvalidInputError(f"color_mode must be one of {COLOR_MODES} ('nodal' for displacement), "
                                     f"got {color_mode!r}")
         self.color_mode = color_mode
-        import matplotlib
+        if "colors" in self.content and "mesh" in self.content:
+            import matplotlib
 
-        if colormap not in matplotlib.colormaps:
-            raise InvalidInputError(f"colormap {colormap!r} is not a matplotlib colour map, e.g. 'viridis', 'magma'")
+            if colormap not in matplotlib.colormaps:
+                raise InvalidInputError(f"colormap {colormap!r} is not a matplotlib colour map, e.g. 'viridis', "
+                                        "'magma'")
         self.colormap = colormap
         if "mesh" not in self.content:
             self.content.discard("colors")
@@ -436,6 +441,10 @@ class Recorder:
         mode = color_mode if "colors" in self.content else "nodal"
         self._soft = [_SoftChannel(i, b, need_stress, mode) for i, b in enumerate(bodies)]
         self._fields: list[tuple[float, dict[str, np.ndarray], float]] = []  # per frame: colour sources, hi
+        self._field_bytes = 0
+        self._unkept: list[tuple[float, float]] = []  # (time, hi) of frames past FIELD_BUDGET
+        self._stale_from: float | None = None  # the first frame left on a smaller range at close (past the budget)
+        self._bar_range: tuple[float, float] | None = None
         self._lut = _colormap(colormap) if "colors" in self.content else None
         self._color_floor = self._color_high = 0.0
         if "colors" in self.content and bodies and color_range is None:
@@ -449,7 +458,7 @@ class Recorder:
             self._moving = [rb for rb in target.rigids.values() if rb.mode != "fixed"]
         self._attach = self._attachments() if "attachments" in self.content else []
         self._newton = getattr(self.sim, "scheme", "warped") == "newton" and "diagnostics" in self.content
-        self._series = iter(SERIES_COLORS * 4)  # explicit series colours, handed out in order
+        self._series = 0  # explicit series colours, handed out in order (_colors_of)
         # what the 3D views frame [m]: the soft bodies' box, and per rigid link the box of its centre's path and
         # its bounding radius; from the scene at attach (kinematic links over its duration), grown per frame
         self._soft_box, self._link_paths = self._start_bounds()
@@ -599,7 +608,18 @@ class Recorder:
         return (pts - rad[:, None]).min(axis=0), (pts + rad[:, None]).max(axis=0)
 
     def _colors_of(self, n: int) -> list[tuple[int, int, int]]:
-        return [next(self._series) for _ in range(n)]
+        """The next n series colours: SERIES_COLORS, then hues spaced by the golden ratio (distinct)."""
+        import colorsys
+
+        out = []
+        for i in range(self._series, self._series + n):
+            if i < len(SERIES_COLORS):
+                out.append(SERIES_COLORS[i])
+            else:
+                rgb = colorsys.hsv_to_rgb((0.13 + 0.618034 * i) % 1.0, 0.55 + 0.3 * (i % 2), 0.95 - 0.2 * (i % 3 == 0))
+                out.append(tuple(int(round(255 * c)) for c in rgb))
+        self._series += n
+        return out
 
     def _plots(self) -> list[tuple[str, str]]:
         """(entity, title) of the time-series views, the monitored coordinate first."""
@@ -716,6 +736,9 @@ class Recorder:
 
     def _log_colorbar(self, lo: float, hi: float) -> None:
         """The colour bar image (static; rewritten at close with the run's range)."""
+        if self._bar_range == (lo, hi):
+            return
+        self._bar_range = (lo, hi)
         name, unit, k = COLOR_FIELDS[self.color_by]
         how = "per element face" if self.color_mode == "element" else "nodal average" if self.color_by == "von_mises" \
             else "per node"
@@ -743,6 +766,9 @@ class Recorder:
                 final = "the run's largest value" if self.closed else "the largest value so far (the run's at close)"
                 how = (f"one range for the whole recording, 0 .. {k * self._color_high:.4g} {unit}: {final}, at "
                        f"least {k * self._color_floor:.4g} {unit} ({COLOR_FLOOR_FRACTION:g} x the smallest {basis})")
+                if self._stale_from is not None:
+                    how += (f" (frames from t = {self._stale_from:g} s on were past the recorder's memory budget and "
+                            "may be drawn on a smaller range)")
             lines.append(f"**Colours**: {name} [{unit}], {src}. Colour map **{self.colormap}** (dark: low, bright: "
                          f"high), {how}. Frame min/max in `plots/color_range`.")
         if "contacts" in self.content and self.is_world:
@@ -869,7 +895,12 @@ class Recorder:
             k = COLOR_FIELDS[self.color_by][2]
             f["plots/color_range"] = (k * frame_min, k * frame_max)
             if not self.color_range:  # kept for the final range at close (float32, one value per element or node)
-                self._fields.append((float(target.t), fields, hi))
+                size = sum(v.nbytes for v in fields.values())
+                if self._field_bytes + size <= FIELD_BUDGET:
+                    self._fields.append((float(target.t), fields, hi))
+                    self._field_bytes += size
+                else:
+                    self._unkept.append((float(target.t), hi))
         if self._monitor:
             xs = np.array([self._soft[b].body.positions[n] for b, n in self._monitor])
             for (b, n), x in zip(self._monitor, xs):
@@ -972,6 +1003,7 @@ class Recorder:
             return
         frames, self._fields = self._fields, []
         lo, hi = self._color_scale(0.0, grow=False)
+        self._stale_from = next((t for t, used in self._unkept if used != hi), None)
         for s in self._soft:
             stale = [(t, fl[s.path]) for t, fl, used in frames if used != hi]
             if not stale:

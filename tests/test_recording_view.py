@@ -186,3 +186,20 @@ def test_command_line_sets_the_stress_range(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "--stress-range needs LO < HI" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "bad.rrd").exists()
+
+
+def test_many_series_stay_distinct_and_a_memory_budget_is_said(tmp_path, monkeypatch):
+    """Past the 16 named colours, series get distinct hues; frames past the colour memory budget are named in the
+    legend, not silently left on a smaller range."""
+    import integration.recording as recording
+
+    monkeypatch.setattr(recording, "FIELD_BUDGET", 1)  # keep nothing
+    scene = sheet_on_sphere("tet4", (2, 2, 1))
+    with Recorder.attach(scene, path=tmp_path / "many.rrd", monitor=list(range(12))) as rec:
+        scene.run(0.2, rec)
+    static = static_components(rec.path)
+    colours = [c for e, comps in static.items() if e.startswith("/plots/")
+               for c in (comps.get("SeriesLines:colors") or comps.get("SeriesPoints:colors"))]
+    assert len(colours) > 40 and len(set(colours)) == len(colours)
+    legend = static["/legend"]["TextDocument:text"][0]
+    assert "past the recorder's memory budget" in legend
