@@ -187,8 +187,12 @@ def _link_visuals(rb) -> list:
         if sh.kind == "box":
             out.append(rr.Boxes3D(half_sizes=[sh.size], centers=[pos], quaternions=[rr.Quaternion(xyzw=quat)],
                                   colors=color, fill_mode="solid"))
-        elif sh.kind == "sphere":
-            out.append(rr.Ellipsoids3D(half_sizes=[[sh.size[0]] * 3], centers=[pos], colors=color, fill_mode="solid"))
+        elif sh.kind == "sphere":  # a smooth mesh with normals, as the World's own spheres
+            import trimesh
+
+            ball = trimesh.creation.icosphere(subdivisions=3, radius=float(sh.size[0]))
+            out.append(rr.Mesh3D(vertex_positions=ball.vertices + pos, triangle_indices=ball.faces,
+                                 vertex_normals=ball.vertex_normals, albedo_factor=color))
         elif sh.kind == "capsule":  # rerun's capsule runs from its origin along +z: start it half a length down
             r, length = sh.size
             out.append(rr.Capsules3D(lengths=[length], radii=[r], translations=[pos - 0.5 * length * R[:, 2]],

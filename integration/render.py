@@ -18,8 +18,10 @@ import argparse
 import os
 import shutil
 import socket
+import re
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Sequence
@@ -66,11 +68,13 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
     recording = Path(recording).resolve()
     if not recording.is_file():
         raise FileNotFoundError(f"no recording at {recording}")
+    if not re.fullmatch(r"[1-9][0-9]*x[1-9][0-9]*", size):
+        raise ValueError(f"size must be WIDTHxHEIGHT in pixels, e.g. 1600x1000, got {size!r}")
     exe = _rerun_binary()
     if exe is None:
         raise RenderUnavailable("the rerun binary (from rerun-sdk) is not on PATH")
     port = _free_port()
-    log = open(Path(os.environ.get("TMPDIR", "/tmp")) / f"rerun-headless-{port}.log", "w")
+    log = tempfile.NamedTemporaryFile("w", prefix="rerun-headless-", suffix=".log", delete=False)
     proc = subprocess.Popen([exe, "--headless", "--bind", "127.0.0.1", "--port", str(port), "--hide-welcome-screen",
                              "--window-size", size, "--memory-limit", "2GiB"],
                             stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "RERUN_APP_ONLY": "true"})
@@ -104,8 +108,14 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
     except RenderUnavailable:
         raise
     except Exception as exc:
-        if proc.poll() is not None:
-            raise RenderUnavailable(f"the headless viewer stopped ({exc}); see {log.name}") from exc
+        try:  # a viewer without a graphics adapter panics soon after it starts listening
+            proc.wait(3)
+        except subprocess.TimeoutExpired:
+            pass
+        log.flush()
+        text = Path(log.name).read_text(errors="replace")
+        if proc.poll() is not None or "graphics adapter" in text:
+            raise RenderUnavailable(f"the headless viewer stopped ({exc}); its log: {log.name}") from exc
         raise
     finally:
         proc.terminate()
@@ -115,6 +125,7 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
             proc.kill()
             proc.wait(10)
         log.close()
+    Path(log.name).unlink(missing_ok=True)  # kept only when something went wrong
     return paths
 
 
