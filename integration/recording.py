@@ -375,7 +375,7 @@ class Recorder:
     recording (re-sent for every frame at close). colormap: a matplotlib colour map name (named on the colour bar).
     monitor: node ids of body 0, or (body index, node id) pairs; default the scene's monitored node.
     contact_arrows: "force" (the contact force on the soft body, out of the rigid body, times ``force_scale``
-    [m/N]; None: the soft bodies' weight draws a quarter of the scene's size) or "normal" (unit normals times
+    [m/N]; None: the soft bodies' weight draws half their size) or "normal" (unit normals times
     ``arrow_length`` [m]). plane_size [m]: edge of the square drawn for infinite planes.
     batch: frames buffered before they are sent; flush_seconds: also send when the oldest buffered
     frame is older than this (so a viewer following the file stays current).
@@ -466,11 +466,12 @@ class Recorder:
         # what the 3D views frame [m]: the soft bodies' box, and per rigid link the box of its centre's path and
         # its bounding radius; from the scene at attach (kinematic links over its duration), grown per frame
         self._soft_box, self._link_paths = self._start_bounds()
-        self.start_framing = self.framing()
+        self._contact_box = [np.full(3, np.inf), np.full(3, -np.inf)]
+        self.start_framing = (self.framing(), self.framing(soft=False))
         if self.force_scale is None:
             weight = sum(b.total_mass for b in bodies) * float(np.linalg.norm(getattr(self.sim, "gravity", 9.81)))
-            lo, hi = self.bounds
-            self.force_scale = 0.25 * float(np.max(hi - lo)) / max(weight, 1e-12)
+            extent = float(np.max(self._soft_box[1] - self._soft_box[0])) if bodies else 1.0
+            self.force_scale = 0.5 * extent / max(weight, 1e-12)
         self._with_blueprint = blueprint
 
         file, folder = record_target(path, overwrite, directory)
@@ -520,7 +521,8 @@ class Recorder:
             self._flush()
             self._final_colors()
             if self._with_blueprint:
-                self.rec.send_blueprint(self._blueprint(self.framing()), make_active=True, make_default=True)
+                self.rec.send_blueprint(self._blueprint((self.framing(), self.framing(soft=False))),
+                                        make_active=True, make_default=True)
         finally:
             self.rec.flush()
             self.rec.disconnect()
@@ -585,9 +587,16 @@ class Recorder:
                 links[rb.key] = [path.min(axis=0), path.max(axis=0), r]
         return soft, links
 
-    def framing(self) -> tuple[np.ndarray, np.ndarray]:
+    def framing(self, soft: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """What the 3D views frame: points (n, 3) and radii (n,) [m] (the corners of the soft bodies' box, the
-        corners of each rigid link's path box with its bounding radius), so far."""
+        corners of each rigid link's path box with its bounding radius), so far; soft=False: the rigid links only
+        (the contacts view; everything if there are none)."""
+        if not soft and self._link_paths:
+            boxes = [(lo, hi, r) for lo, hi, r in self._link_paths.values()]
+            if np.all(np.isfinite(self._contact_box[0])):  # the contact points and their arrows so far
+                boxes.append((*self._contact_box, 0.0))
+            return (np.concatenate([box_corners(lo, hi) for lo, hi, _ in boxes]),
+                    np.concatenate([np.full(8, r) for _, _, r in boxes]))
         pts, rad = [], []
         if np.all(np.isfinite(self._soft_box[0])):
             pts.append(box_corners(*self._soft_box))
@@ -644,14 +653,15 @@ class Recorder:
             plots.append(("plots/color_range", f"{name}: frame min and max [{unit}]"))
         return plots
 
-    def _blueprint(self, framing: tuple[np.ndarray, np.ndarray] | None = None) -> rrb.Blueprint:
-        """Scene view framed three-quarter on ``framing`` (points, radii; default: the scene's at attach), colour bar
-        and legend under it; on the right the contacts (soft bodies hidden), the monitored coordinate and the
-        other plots in tabs."""
+    def _blueprint(self, framing: tuple | None = None) -> rrb.Blueprint:
+        """Scene view framed three-quarter on ``framing`` (everything, the rigid links: each points and radii, see
+        :meth:`framing`; default: the scene's at attach), colour bar and legend under it; on the right the
+        contacts (soft bodies hidden, framed on the rigid links), the monitored coordinate and the other plots in
+        tabs."""
         framing = self.start_framing if framing is None else framing
 
-        def eye_controls(aspect: float):
-            eye, target = three_quarter_eye(*framing, aspect=aspect)
+        def eye_controls(aspect: float, which: int = 0):
+            eye, target = three_quarter_eye(*framing[which], aspect=aspect)
             return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=eye, look_target=target, eye_up=(0, 0, 1))
 
         scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls(SCENE_ASPECT),
@@ -669,7 +679,7 @@ class Recorder:
         if self.is_world and "contacts" in self.content:
             right.append(rrb.Spatial3DView(origin="/world", name="contacts (soft bodies hidden)",
                                            contents=["+ /world/**", "- /world/soft/**", "- /world/monitor"],
-                                           eye_controls=eye_controls(CONTACTS_ASPECT)))
+                                           eye_controls=eye_controls(CONTACTS_ASPECT, 1)))
             rshares.append(3)
         listed = self._plots()
         plots = [rrb.TimeSeriesView(origin="/" + path, name=name, plot_legend=rrb.PlotLegend(visible=True))
@@ -927,8 +937,10 @@ class Recorder:
                     pts.append(c.point[a])
                     vec.append(c.normal[a] * self.arrow_length if self.contact_arrows == "normal"
                                else res.force[a] * self.force_scale)
-                f[f"{path}/points"] = np.concatenate(pts) if pts else np.zeros((0, 3))
-                f[f"{path}/arrows"] = np.concatenate(vec) if vec else np.zeros((0, 3))
+                f[f"{path}/points"] = p = np.concatenate(pts) if pts else np.zeros((0, 3))
+                f[f"{path}/arrows"] = v = np.concatenate(vec) if vec else np.zeros((0, 3))
+                if len(p):
+                    self._grow_bounds(self._contact_box, np.concatenate([p, p + v]))
         if self._attach:
             f["world/attachments"] = np.concatenate([b.positions[ids] for b, ids in self._attach])
         if "diagnostics" in content:
