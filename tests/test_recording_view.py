@@ -203,3 +203,29 @@ def test_many_series_stay_distinct_and_a_memory_budget_is_said(tmp_path, monkeyp
     assert len(colours) > 40 and len(set(colours)) == len(colours)
     legend = static["/legend"]["TextDocument:text"][0]
     assert "past the recorder's memory budget" in legend
+
+
+def test_contacts_view_frames_the_rigid_links_and_the_arrows(tmp_path):
+    from integration.recording import CONTACTS_ASPECT
+
+    scene = sheet_on_sphere("tet4", (2, 2, 1))
+    world = scene.world
+    with Recorder.attach(scene, path=tmp_path / "contacts.rrd") as rec:
+        while world.t < 0.15 or not any(r.active.any() for _, r in world.contact_results.values()):
+            assert world.t < 1.0, "the sheet never touched the sphere"
+            world.step()
+            rec(world)
+    pts, radii = rec.framing(soft=False)
+    lo, hi = (pts - radii[:, None]).min(axis=0), (pts + radii[:, None]).max(axis=0)
+    np.testing.assert_allclose(lo[:2], [-0.3, -0.3], atol=1e-9)  # the sphere, not the sheet
+    data, _ = read(rec.path)
+    p = np.array(data["/world/contacts/points"]["Points3D:positions"][-1])
+    v = np.array(data["/world/contacts/arrows"]["Arrows3D:vectors"][-1])
+    assert len(p) and np.all(p + v >= lo - 1e-6) and np.all(p + v <= hi + 1e-6)
+    # the arrows point out of the sphere, their length the force times the scale (weight: half the sheet's size)
+    assert np.all(np.einsum("ij,ij->i", v, p) > 0)
+    force = sum(r.force[r.active].sum(axis=0) for _, r in scene.world.contact_results.values())
+    np.testing.assert_allclose(v.sum(axis=0), force * rec.force_scale, rtol=1e-5, atol=1e-9)
+    weight = scene.body.total_mass * 9.81
+    assert rec.force_scale == pytest.approx(0.5 * 1.0 / weight, rel=0.05)
+    assert frames(*three_quarter_eye(pts, radii, aspect=CONTACTS_ASPECT), pts, radii, VIEW_FOV, CONTACTS_ASPECT)
