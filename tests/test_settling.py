@@ -5,7 +5,7 @@ about 3.4 s. That is no cycle of the contact solve: the sheet's lowest bending m
 Rayleigh damping and backward Euler alone) lifts the second ring of nodes around the top of the sphere off it
 and sets it down again, by up to 1.2 mm at 2 s, 0.4 mm at 2.5-3 s; at rest those nodes hover 88 um above the
 sphere, so the set settles once the swing is smaller than that. The same happens without friction. These tests
-pin that down: every switch is a real lift-off or landing (no set flips within a step or at rest), the
+pin that down: every switch is a real lift-off or landing (no flicker of a node that stays put), the
 scene's energy never rises across a switch, and once the swing has died out the set is constant.
 """
 from __future__ import annotations
@@ -41,14 +41,13 @@ def test_active_set_settles(settled_run):
 
 def test_every_switch_is_a_real_lift(settled_run):
     """A node leaving the set moves off the sphere by more than 50 um before it lands again (no flicker), and
-    the total energy never rises by more than round-off across a switch."""
-    left_at = {}
+    the total energy (975 J) never rises by more than 1e-6 of it across a switch (the warped step's own
+    linearisation error is below that: at most 1.4e-4 J in a step)."""
     max_gap = {}
     for k in range(1, len(settled_run)):
         t, s, gaps, e = settled_run[k]
         _, s0, _, e0 = settled_run[k - 1]
         for n in s0 - s:
-            left_at[n] = k
             max_gap[n] = 0.0
         for n in list(max_gap):
             if n in gaps:
