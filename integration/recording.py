@@ -769,7 +769,7 @@ class Recorder:
             if self.color_by == "displacement":
                 src = "the node's |x - X|, interpolated over the triangles"
             elif self.color_mode == "element":
-                src = ("each element's value (at its centre: the mean over its quadrature points) on its boundary "
+                src = ("each element's value at its centre (unrotated small-strain stress) on its boundary "
                        "faces, not averaged: a colour step is a step between elements")
             else:
                 src = "the volume-weighted mean of the elements at each surface node, interpolated over the triangles"
