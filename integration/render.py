@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import signal
 import socket
 import re
 import subprocess
@@ -32,10 +33,33 @@ class RenderUnavailable(RuntimeError):
 
 
 def _rerun_binary() -> str | None:
+    """The viewer binary itself (rerun_cli's, not the Python launcher script, which would outlive a terminate)."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.exists():
+            return str(exe)
+    except ImportError:
+        pass
     exe = Path(sys.executable).parent / "rerun"
     if exe.exists():
         return str(exe)
     return shutil.which("rerun")
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """Stop the viewer and everything it started (its own process group): SIGTERM, then SIGKILL after 10 s."""
+    for sig, wait in ((signal.SIGTERM, 10), (signal.SIGKILL, 10)):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            proc.wait(wait)
+            break
+        except subprocess.TimeoutExpired:
+            continue
 
 
 def _free_port() -> int:
@@ -77,7 +101,8 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
     log = tempfile.NamedTemporaryFile("w", prefix="rerun-headless-", suffix=".log", delete=False)
     proc = subprocess.Popen([exe, "--headless", "--bind", "127.0.0.1", "--port", str(port), "--hide-welcome-screen",
                              "--window-size", size, "--memory-limit", "2GiB"],
-                            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "RERUN_APP_ONLY": "true"})
+                            stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "RERUN_APP_ONLY": "true"},
+                            start_new_session=True)  # its own process group: stopped whole by _stop
     paths = []
     try:
         _wait_for_port(port, proc, timeout)
@@ -118,12 +143,7 @@ def render(recording: str | Path, times: Sequence[float], out: str | Path, size:
             raise RenderUnavailable(f"the headless viewer stopped ({exc}); its log: {log.name}") from exc
         raise
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
+        _stop(proc)
         log.close()
     Path(log.name).unlink(missing_ok=True)  # kept only when something went wrong
     return paths

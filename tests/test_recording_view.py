@@ -146,6 +146,19 @@ def test_newton_scheme_logs_iterations_and_residual(tmp_path):
     assert not any(e.startswith("/plots/newton") for e in read(rec2.path)[0])
 
 
+def viewers() -> set[int]:
+    """Pids of headless rerun viewers bound to 127.0.0.1 (as integration.render starts them)."""
+    out = set()
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            cmd = (proc / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if b"--headless" in cmd and b"127.0.0.1" in cmd and any(c.endswith(b"rerun") for c in cmd[:1]):
+            out.add(int(proc.name))
+    return out
+
+
 def test_headless_render_shows_the_sheet(tmp_path):
     """A picture of the scene view from rerun's own viewer (headless, software Vulkan): the sheet's stress colours
     cover a sensible share of it, and nothing of them touches its edges (not cropped)."""
@@ -157,10 +170,13 @@ def test_headless_render_shows_the_sheet(tmp_path):
     scene = sheet_on_sphere("tet4", (4, 4, 2))
     with Recorder.attach(scene, path=tmp_path / "pic.rrd") as rec:
         scene.run(0.5, rec)
+    before = viewers()
     try:
         (png,) = render(rec.path, [0.5], tmp_path / "pic", view="scene", settle=1.0)
     except RenderUnavailable as exc:
         pytest.skip(f"the headless viewer cannot run here: {exc}")
+    finally:
+        assert viewers() <= before, "the headless viewer was left running"
     img = np.asarray(PIL.open(png).convert("RGB")).astype(float) / 255
     assert img.shape[0] > 300 and img.shape[1] > 400
     mx, mn = img.max(axis=2), img.min(axis=2)
