@@ -57,6 +57,10 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
                              "ending in /) as <scene>_<element>_<cells>_<time>.rrd (default: into logs/)")
     parser.add_argument("--force", action="store_true", help="overwrite an existing --record file")
     parser.add_argument("--record-every", type=_positive_int, default=1, metavar="K", help="record every K-th step")
+    parser.add_argument("--stress-range", type=float, nargs=2, metavar=("LO", "HI"), default=None,
+                        help="the recording's colour range of von Mises stress [kPa] (default: 0 .. the run's largest)")
+    parser.add_argument("--color-mode", choices=("element", "nodal"), default="element",
+                        help="stress colours per element face (default) or averaged to the surface nodes")
     parser.add_argument("--print-every", type=_positive_float, default=0.1, metavar="S",
                         help="print the monitored node every S simulated seconds")
     parser.add_argument("--progress", action="store_true", help="show a progress bar instead of the trajectory")
@@ -69,6 +73,9 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         from .recording import record_target
 
         record_file, record_dir = record_target(args.record, overwrite=args.force)
+    stress_range = getattr(args, "stress_range", None)
+    if stress_range is not None and not (np.all(np.isfinite(stress_range)) and stress_range[1] > stress_range[0]):
+        raise InvalidInputError(f"--stress-range needs LO < HI [kPa], got {stress_range[0]:g} {stress_range[1]:g}")
     grid = scene_grid(scene_name, args.element, args.cells, args.dt)
     if grid is not None:  # memory and time estimated from the mesh size, before anything is built
         element, cells, dt, layout = grid
@@ -86,7 +93,9 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         from .recording import Recorder
 
         recorder = Recorder.attach(scene, path=record_file, directory=record_dir, every=args.record_every,
-                                   overwrite=args.force)
+                                   overwrite=args.force, color_mode=getattr(args, "color_mode", "element"),
+                                   color_range=None if stress_range is None else (1e3 * stress_range[0],
+                                                                                  1e3 * stress_range[1]))
     every = max(1, int(round(args.print_every / scene.world.dt)))
     step_times: list[float] = []
     max_contacts = 0

@@ -50,7 +50,9 @@ def verify(path: Path) -> None:
 
 
 def read(path: Path) -> tuple[dict[str, dict[str, list]], set[str]]:
-    """Temporal rows per entity (sorted by sim_time, columns as python lists) and the static entity paths."""
+    """Temporal rows per entity and component column (sorted by sim_time, as python lists; where a column was
+    sent again for the same time, as the colours are at close, the later value, as the viewer shows it), with
+    the entity's times under "sim_time" [s]; and the static entity paths."""
     rows: dict[str, dict[str, list]] = defaultdict(lambda: defaultdict(list))
     static = set()
     for chunk in RrdReader(path).stream():
@@ -60,14 +62,23 @@ def read(path: Path) -> tuple[dict[str, dict[str, list]], set[str]]:
         batch = chunk.to_record_batch()
         if "sim_time" not in batch.schema.names:
             continue
-        d = {name: batch.column(name).to_pylist() for name in batch.schema.names if name != "sim_time"}
-        d["sim_time"] = (np.array(batch.column("sim_time").cast("int64").to_pylist()) * 1e-9).tolist()  # [s]
-        for name, values in d.items():
-            rows[chunk.entity_path][name].extend(values)
+        times = (np.array(batch.column("sim_time").cast("int64").to_pylist())).tolist()  # [ns]
+        for name in batch.schema.names:
+            if name == "sim_time" or not name.split(":")[0][:1].isupper():
+                continue
+            for t, v in zip(times, batch.column(name).to_pylist()):
+                if v is not None:
+                    rows[chunk.entity_path][name].append((t, v))
     out = {}
     for entity, cols in rows.items():
-        order = np.argsort(cols["sim_time"], kind="stable")
-        out[entity] = {name: [v[i] for i in order] for name, v in cols.items()}
+        out[entity] = {}
+        all_times = set()
+        for name, tv in cols.items():
+            latest = dict(tv)  # the later row at the same time wins
+            ts = sorted(latest)
+            all_times.update(ts)
+            out[entity][name] = [latest[t] for t in ts]
+        out[entity]["sim_time"] = (np.array(sorted(all_times)) * 1e-9).tolist()
     return out, static
 
 
@@ -110,30 +121,43 @@ def test_recording_round_trip(tmp_path):
     assert len(mesh["sim_time"]) == steps + 1 == rec.frames
     t_true = np.array([t for t, _ in truth])
     np.testing.assert_allclose(seconds(mesh["sim_time"]), t_true, atol=1e-9)
-    # the stored trajectory is exactly what the simulation produced
+    # the stored trajectory is exactly what the simulation produced, in mm; the monitored coordinate has a plot
+    # of its own
     traj = data["/" + node]
     np.testing.assert_allclose(seconds(traj["sim_time"]), t_true, atol=1e-9)
-    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), np.array([x for _, x in truth]))
+    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), 1e3 * np.array([x for _, x in truth]))
+    own = np.array(data["/plots/monitored"]["Scalars:scalars"])[:, 0]
+    np.testing.assert_array_equal(own, 1e3 * np.array([x[scene.axis] for _, x in truth]))
     # the sheet really falls: the monitored z goes down
     assert truth[-1][1][2] < truth[0][1][2] - 0.01
-    # mesh vertices: the surface of the final state, colours one per vertex
+    # mesh vertices: every boundary face of an element has vertices of its own (tet4: 3), coloured by that
+    # element's von Mises stress in one range for the whole recording: 0 .. the run's largest (at least 1e-3 E)
     body = scene.body
-    surface = np.unique(body.mesh.surface_triangles())
+    e_of, f_of = body.mesh.boundary_faces()
+    faces = body.mesh.element_type.faces[f_of]
+    vertex_nodes = body.mesh.elements[e_of[:, None], faces].ravel()
     last = np.array(mesh["Mesh3D:vertex_positions"][-1])
-    np.testing.assert_allclose(last, body.positions[surface], atol=1e-6)
-    assert len(mesh["Mesh3D:vertex_colors"][-1]) == len(surface)
-    # colour legend: the frame's min and max over the surface of von Mises averaged from the elements to the
-    # nodes, and the colour map's range: from 0 to the largest value so far, never below 1e-3 E, only growing
+    np.testing.assert_allclose(last, body.positions[vertex_nodes], atol=1e-6)
+    normals = np.array(mesh["Mesh3D:vertex_normals"][-1])
+    assert normals.shape == last.shape and len(mesh["Mesh3D:vertex_normals"]) == steps + 1
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    outward = np.einsum("ij,ij->i", normals, last - body.positions.mean(axis=0))
+    assert np.mean(outward > 0) > 0.9  # normals point out of the body
     vm = body.von_mises()
-    nodal = np.array([vm[(body.mesh.elements == n).any(axis=1)].mean() for n in surface])
     ranges = np.array(data["/plots/color_range"]["Scalars:scalars"])
-    np.testing.assert_allclose(ranges[-1, 2:], [nodal.min(), nodal.max()], rtol=1e-9)
-    assert np.all(ranges[:, 0] == 0.0)
-    np.testing.assert_allclose(ranges[:, 1], np.maximum(1e-3 * body.material.E, np.maximum.accumulate(ranges[:, 3])),
-                               rtol=1e-12)
-    assert ranges[-1, 1] > 1e-3 * body.material.E  # the impact loaded the sheet above the floor
+    np.testing.assert_allclose(ranges[-1], 1e-3 * np.array([vm[e_of].min(), vm[e_of].max()]), rtol=1e-6)
+    hi = max(1e-3 * body.material.E, 1e3 * ranges[:, 1].max())  # [Pa]
+    assert hi > 1e-3 * body.material.E  # the impact loaded the sheet above the floor
+    lut = (np.asarray(__import__("matplotlib").colormaps["viridis"](np.linspace(0, 1, 256))) * 255 + 0.5
+           ).astype(np.uint32)
+    packed = (lut[:, 0] << 24) | (lut[:, 1] << 16) | (lut[:, 2] << 8) | lut[:, 3]  # rerun's 0xRRGGBBAA
+    expect = packed[np.clip(vm[np.repeat(e_of, faces.shape[1])].astype(np.float32) * (255.0 / hi), 0, 255
+                            ).astype(int)]
     colors = np.array(mesh["Mesh3D:vertex_colors"][-1], dtype=np.uint32)
-    assert len(np.unique(colors)) > 1  # a real colour field, not one flat colour
+    assert np.mean(colors == expect) > 0.99 and len(np.unique(colors)) > 1
+    for k in (1, len(mesh["Mesh3D:vertex_colors"]) // 2):  # early frames too: in the final range, re-sent at close
+        index = np.array([np.flatnonzero(packed == c)[0] for c in mesh["Mesh3D:vertex_colors"][k]])
+        assert index.max() <= 255 * 1e3 * ranges[k, 1] / hi + 1
     # diagnostics agree with the World's own energies at the end; the total is there to check
     energy = np.array(data["/plots/energy"]["Scalars:scalars"])
     e = scene.world.energy()
@@ -163,7 +187,7 @@ def test_every_kth_step(tmp_path, every):
     traj = data[f"/plots/monitor/node{scene.monitor}"]
     assert len(traj["sim_time"]) == len(data["/world/soft/body0"]["sim_time"]) == 1 + steps // every
     np.testing.assert_allclose(seconds(traj["sim_time"]), [t for t, _ in expected], atol=1e-9)
-    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), np.array([x for _, x in expected]))
+    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), 1e3 * np.array([x for _, x in expected]))
     # content that is off is neither computed nor logged
     assert not any(e.startswith(("/plots/energy", "/world/contacts", "/world/rigid")) for e in data)
 
@@ -248,8 +272,9 @@ def test_a_body_at_rest_shows_no_colours(color_by, tmp_path):
     low = (lut[0] << 24) | (lut[1] << 16) | (lut[2] << 8) | lut[3]  # rerun packs colours as 0xRRGGBBAA
     assert np.all(colors == low), np.unique(colors)
     floor = 1e-3 * (scene.body.material.E if color_by == "von_mises" else 1.0)  # the sheet is 1 m wide
-    lo, hi, fmin, fmax = data["/plots/color_range"]["Scalars:scalars"][0]
-    assert (lo, hi) == (0.0, pytest.approx(floor)) and fmax < 1e-6 * floor
+    fmin, fmax = data["/plots/color_range"]["Scalars:scalars"][0]  # in kPa or mm
+    assert fmax < 1e-6 * floor * (1e-3 if color_by == "von_mises" else 1e3)  # [Pa] -> kPa, [m] -> mm
+    assert rec._color_scale(0.0, grow=False) == (0.0, pytest.approx(floor))
 
 
 def test_default_path_is_descriptive(tmp_path):
