@@ -1,4 +1,4 @@
-"""The benchmark suite of softbody: the same as ``softbody bench`` (logic in integration/bench.py).
+"""The benchmark suite of softbody: the same as ``softbody bench`` (logic in experiments/bench.py).
 
     python benchmarks/bench.py                 # default configurations (docs/benchmarks.md)
     python benchmarks/bench.py --scaling       # ms per step and memory against nodes, per element type
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from integration.bench import add_bench_arguments, bench_command
+from experiments.bench import add_bench_arguments, bench_command
 
 
 def main(argv=None) -> int:

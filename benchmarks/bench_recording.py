@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from integration.recording import Recorder
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 
 
 def one_run(element: str, cells, duration: float, warmup: int, path: Path | None, every: int = 1):

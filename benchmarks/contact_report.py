@@ -11,7 +11,7 @@ import argparse
 
 import numpy as np
 
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__)

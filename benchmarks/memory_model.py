@@ -1,12 +1,12 @@
-"""Calibrate integration.sizing: peak memory and time per step of the sheet-on-sphere scene against its size.
+"""Calibrate experiments.sizing: peak memory and time per step of the sheet-on-sphere scene against its size.
 
 Each configuration runs in a fresh interpreter (one at a time): after the imports the command line does
-(integration.scenes: numpy, scipy, pybullet), the scene is built and stepped ``--steps`` times (into the
+(experiments.scenes: numpy, scipy, pybullet), the scene is built and stepped ``--steps`` times (into the
 impact on the sphere, at 0.1 s), and the child reports the peak RSS increase over the RSS after the imports
 (Linux VmHWM) [MB] and the median wall time of the steps from the 16th on, into the impact, where steps
 cost most [ms] (of the steps after the first if there are fewer). The fit per element type,
 mem = M0 + a (N / 1000)^p and ms = b (N / 1000)^q over the configurations with at least ``--fit-from`` nodes,
-is what integration/sizing.py uses.
+is what experiments/sizing.py uses.
 
     python benchmarks/memory_model.py [--steps 25] [--max-nodes 50000] [--json out.json]
 """
@@ -30,8 +30,8 @@ CONFIGS = {
 CHILD = """
 import json, sys, time
 import numpy as np
-from integration.scenes import build_scene
-from integration.bench import _rss_mb
+from experiments.scenes import build_scene
+from experiments.bench import _rss_mb
 element, cells, steps = sys.argv[1], tuple(int(c) for c in sys.argv[2].split("x")), int(sys.argv[3])
 base = _rss_mb()
 tic = time.perf_counter()

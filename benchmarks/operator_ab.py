@@ -18,7 +18,7 @@ for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import numpy as np
 
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 from softbody import linsolve
 from softbody.integrator import IterativeSettings
 

@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import softbody as sb  # noqa: E402
-from integration.scenes import cantilever, hanging_tube, sheet_on_sphere  # noqa: E402
+from experiments.scenes import cantilever, hanging_tube, sheet_on_sphere  # noqa: E402
 
 LADDER = (0.005, 0.01, 0.02, 0.04)
 REFERENCE_DT = 0.001
@@ -35,7 +35,7 @@ REFERENCE_DT = 0.001
 
 class Spin:
     """A 0.2 m tet10 cube (E = 1e7, no damping, no gravity) spinning at 5 rev/s about an oblique axis;
-    monitored: x of a corner node. Shaped like integration.scenes.Scene for this script."""
+    monitored: x of a corner node. Shaped like experiments.scenes.Scene for this script."""
 
     def __init__(self, dt: float, scheme: str):
         mesh = sb.box_mesh((0.2, 0.2, 0.2), (2, 2, 2), "tet10")

@@ -27,7 +27,7 @@ for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 import numpy as np
 
 CONFIGS = [("tet4", (16, 16, 4)), ("tet4", (24, 24, 6)), ("hex8", (20, 20, 5)), ("tet10", (9, 9, 2))]
-PACKAGES = ("softbody", "integration")
+PACKAGES = ("softbody", "integration", "experiments")
 
 
 def load(root: Path) -> dict:
@@ -39,7 +39,8 @@ def load(root: Path) -> dict:
     sys.path.insert(0, str(root))
     try:
         mods = {"softbody": importlib.import_module("softbody"),
-                "scenes": importlib.import_module("integration.scenes")}
+                "scenes": importlib.import_module("experiments.scenes" if (root / "experiments" / "scenes.py").exists()
+                                                  else "integration.scenes")}  # before the move to experiments/
     finally:
         sys.path.remove(str(root))
         for k in [k for k in sys.modules if k.split(".")[0] in PACKAGES]:

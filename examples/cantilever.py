@@ -2,11 +2,11 @@
 
     python examples/cantilever.py [--element tet4|hex8|tet10] [--cells NX NY NZ] [--duration S] [--record [PATH]]
 
-The scene itself is built in integration/scenes.py (cantilever()); this script only parses flags.
+The scene itself is built in experiments/scenes.py (cantilever()); this script only parses flags.
 """
 import sys
 
-from integration.cli import scene_main
+from experiments.cli import scene_main
 
 if __name__ == "__main__":
     sys.exit(scene_main("cantilever", __doc__))

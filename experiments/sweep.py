@@ -1,6 +1,6 @@
 """Parameter sweeps: one scene run over the full grid of the given parameters, one row of metrics per run.
 
-A *scene* is a canonical scene name (integration.scenes: sheet-on-sphere, hanging-tube, cantilever, or one
+A *scene* is a canonical scene name (experiments.scenes: sheet-on-sphere, hanging-tube, cantilever, or one
 added with register_scene) or the path of a Python file that defines ``scene(**params)`` returning a
 ``World`` and, optionally, ``monitor(world) -> float`` (a value recorded after every step),
 ``metrics(world) -> dict`` (extra columns, evaluated once at the end) and ``DURATION`` (its default run
@@ -9,7 +9,7 @@ softbody but not the file.
 
 Every run is a pure function of its inputs (:func:`run_point`, one BLAS / MKL thread), so its row is
 bit-identical wherever it ran, apart from the timing columns (TIMING). Runs go through the executors of
-integration.study (local worker processes, in this process, or a Dask cluster). A run that fails -- a bad
+experiments.study (local worker processes, in this process, or a Dask cluster). A run that fails -- a bad
 value, a diverging simulation, an exception in the user's scene -- is a row with its status and error text,
 never a crashed sweep.
 
@@ -168,7 +168,7 @@ def _namespace(spec: SceneSpec) -> dict:
 def resolve_scene(scene: str | os.PathLike) -> SceneSpec:
     """A canonical scene name or the path of a Python scene file -> :class:`SceneSpec` (file read and
     checked here)."""
-    from integration.scenes import SCENES
+    from experiments.scenes import SCENES
 
     if isinstance(scene, str) and scene in SCENES:
         return SceneSpec(scene)
@@ -183,7 +183,7 @@ def resolve_scene(scene: str | os.PathLike) -> SceneSpec:
 
 def _builder(spec: SceneSpec) -> Callable:
     if spec.source is None:
-        from integration.scenes import SCENES
+        from experiments.scenes import SCENES
 
         return SCENES[spec.name]
     return _namespace(spec)["scene"]
@@ -273,7 +273,7 @@ def run_point(spec: SceneSpec, params: Mapping[str, Any], duration: float | None
     COLUMN_DOCS. Never raises for a failing run: its row has status "diverged" or "error" and the error text,
     with the metrics of the steps it took. ``record``: a path for a rerun recording of the run."""
     if threads is not None:
-        from integration.study import pin_threads
+        from experiments.study import pin_threads
 
         pin_threads(threads)
     wall0 = time.perf_counter()
@@ -294,7 +294,7 @@ def run_point(spec: SceneSpec, params: Mapping[str, Any], duration: float | None
         if dt is not None and "dt" not in kwargs and ("dt" in names or anything):
             kwargs["dt"] = dt
         if spec.source is None:
-            from integration.scenes import build_scene
+            from experiments.scenes import build_scene
 
             sc = build_scene(spec.name, **kwargs)
             world, monitor, default = sc.world, sc.monitored, sc.duration
@@ -448,11 +448,11 @@ def run_sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], out: str
     ``dt`` [s] (None: the scene's).
 
     out: the sweep directory (cache, results.csv, summary.md, plots); None keeps nothing on disk (no cache,
-    no plots, no recordings). workers / cluster: where the runs go (integration.study.open_executor: default
+    no plots, no recordings). workers / cluster: where the runs go (experiments.study.open_executor: default
     one local worker process; 0: this process; cluster: a Dask scheduler address or Client). record: a rerun
     recording of each run under out/recordings/. force: rerun cached runs. Returns a :class:`SweepResult`
     (``.rows`` are the CSV's rows)."""
-    from integration.study import open_executor
+    from experiments.study import open_executor
 
     spec = resolve_scene(scene)
     grid = _check_grid(spec, params, dt)
@@ -576,7 +576,7 @@ def plot_metrics(result: SweepResult) -> list[str]:
 
 def write_plots(result: SweepResult) -> list[Path]:
     """plots/<param>.png for every parameter with more than one value, and trajectories.png."""
-    from integration.study import _figure
+    from experiments.study import _figure
 
     out = result.out
     (out / "plots").mkdir(parents=True, exist_ok=True)

@@ -6,8 +6,8 @@ The FEM core (``softbody``) never imports pybullet or rerun; everything that doe
 
 ``World`` (world.py) couples soft bodies to a pybullet world, its own or the user's (``World(client=cid)``);
 ``BulletAdapter`` (bullet.py) is the pybullet side; ``RigidLink`` (rigid.py) one rigid link;
-``Recorder`` and ``record`` (recording.py) write rerun recordings; ``Scene`` and the canonical scenes
-live in scenes.py. Names are imported on first use, so that ``import integration`` stays cheap; pybullet
+``Recorder`` and ``record`` (recording.py) write rerun recordings. The experiment tooling (canonical scenes,
+studies, sweeps, bench, the command line) is the package ``experiments``. Names are imported on first use, so that ``import integration`` stays cheap; pybullet
 alone is imported here, once, with its build-time banner (written by C at import) sent to /dev/null.
 """
 from __future__ import annotations
@@ -56,7 +56,6 @@ _EXPORTS = {
     "BulletAdapter": "bullet",
     "RigidLink": "rigid", "RigidBody": "rigid",
     "Recorder": "recording", "record": "recording",
-    "Scene": "scenes", "build_scene": "scenes", "register_scene": "scenes", "SCENES": "scenes",
     "ContactSolver": "contact",
 }
 

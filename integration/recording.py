@@ -357,7 +357,7 @@ class _SoftChannel:
 class Recorder:
     """Records a run to a rerun ``.rrd`` file; attach with :meth:`attach`, then call it after each step.
 
-    target: a :class:`integration.scenes.Scene`, an :class:`integration.world.World` or a
+    target: a :class:`experiments.scenes.Scene`, an :class:`integration.world.World` or a
     :class:`softbody.Simulation`. path: the ``.rrd`` file, or a directory for a :func:`default_path` name in it
     (default: under ``directory``, logs/); checked by :func:`record_target` (``overwrite=False`` refuses an
     existing file).

@@ -1,6 +1,6 @@
-"""``python -m softbody`` hands over to the command line in integration.cli."""
+"""``python -m softbody`` hands over to the command line in experiments.cli."""
 import sys
 
-from integration.cli import main
+from experiments.cli import main
 
 sys.exit(main())

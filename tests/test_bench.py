@@ -1,4 +1,4 @@
-"""The benchmark command (integration/bench.py, ``softbody bench``) runs on a tiny configuration and
+"""The benchmark command (experiments/bench.py, ``softbody bench``) runs on a tiny configuration and
 writes its JSON, markdown and plot with the expected fields. Timings are not asserted (CI machines are
 noisy); only that each figure is there and is a number."""
 from __future__ import annotations
@@ -10,8 +10,8 @@ import meshio
 import numpy as np
 import pytest
 
-from integration import bench
-from integration.cli import main
+from experiments import bench
+from experiments.cli import main
 from softbody import box_mesh
 from softbody.errors import InvalidInputError
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 import softbody
-from integration import cli, sizing, study
+from experiments import cli, sizing, study
 
 
 def _refused(argv: list[str], capsys) -> str:

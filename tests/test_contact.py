@@ -10,7 +10,7 @@ import pybullet as p
 import pytest
 
 import softbody as sb
-from integration.scenes import hanging_tube, platform_x, sheet_on_sphere
+from experiments.scenes import hanging_tube, platform_x, sheet_on_sphere
 from integration.world import World
 from softbody.errors import InvalidInputError
 

@@ -360,7 +360,7 @@ def test_friction_on_face_contacts_gains_no_energy(cells, offset):
     nodes (face contacts, sticking and sliding). The friction iteration used to end on friction driving the
     slide it resists (43 kJ gained in one step at 6x6x2, the sheet thrown off); the scene's total energy
     (kinetic, elastic, gravitational; damped, the sphere fixed) must never rise."""
-    from integration.scenes import DAMPING, E_DEFAULT, NU_DEFAULT, RHO_DEFAULT
+    from experiments.scenes import DAMPING, E_DEFAULT, NU_DEFAULT, RHO_DEFAULT
 
     mesh = sb.box_mesh((1.0, 1.0, 0.25), cells, "tet4", center=(offset, 0.0, 0.35 + 0.125))
     body = sb.FemBody(mesh, sb.LinearElastic(E_DEFAULT, NU_DEFAULT, RHO_DEFAULT), damping=DAMPING)

@@ -9,7 +9,7 @@ import pytest
 
 import softbody as sb
 from conftest import raises_naming
-from integration import scenes
+from experiments import scenes
 from integration.world import World
 
 MAT = sb.LinearElastic(1e5, 0.3, 1000.0)
@@ -246,7 +246,7 @@ def test_unknown_scene():
     (["run", "no-such-scene"], "'no-such-scene'"),
 ])
 def test_cli_flags(argv, shown, capsys):
-    from integration.cli import main
+    from experiments.cli import main
 
     with pytest.raises(SystemExit) as info:
         main(argv)

@@ -160,7 +160,7 @@ def test_a_step_that_does_not_converge_raises_with_its_residuals_and_keeps_the_s
 def test_contact_scenes_under_newton():
     """Sheet on sphere: the corner's height agrees with the warped step within 2 mm, nothing penetrates; a
     block on an incline slides with Coulomb's acceleration."""
-    from integration.scenes import sheet_on_sphere
+    from experiments.scenes import sheet_on_sphere
 
     z = {}
     for scheme in ("warped", "newton"):

@@ -16,7 +16,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 import softbody  # noqa: E402
 from integration.recording import Recorder, default_path  # noqa: E402
-from integration.scenes import hanging_tube, sheet_on_sphere  # noqa: E402
+from experiments.scenes import hanging_tube, sheet_on_sphere  # noqa: E402
 
 DURATION = 0.3  # 30 steps of 0.01 s
 
@@ -321,7 +321,7 @@ def test_bare_simulation_and_overlapping_recorders(tmp_path):
 SCRIPT = """
 import sys
 from integration.recording import Recorder
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 scene = sheet_on_sphere("tet4", (2, 2, 1))
 rec = Recorder.attach(scene, path=sys.argv[1], batch=1000)  # nothing sent before exit
 def callback(world):

@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader  # noqa: E402
 
 from integration.recording import (  # noqa: E402
     EYE_DIRECTION, SCENE_ASPECT, VIEW_FOV, Recorder, frames, three_quarter_eye)
-from integration.scenes import hanging_tube, sheet_on_sphere  # noqa: E402
+from experiments.scenes import hanging_tube, sheet_on_sphere  # noqa: E402
 from test_recording import read  # noqa: E402
 
 
@@ -188,7 +188,7 @@ def test_headless_render_shows_the_sheet(tmp_path):
 
 
 def test_command_line_sets_the_stress_range(tmp_path, capsys):
-    from integration import cli
+    from experiments import cli
 
     path = tmp_path / "cli.rrd"
     run = ["run", "cantilever", "--element", "tet4", "--cells", "2", "1", "1", "--duration", "0.02"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from integration.scenes import sheet_on_sphere
+from experiments.scenes import sheet_on_sphere
 
 TOL = 1e-5  # [m], see the module docstring
 DURATION = 0.5  # [s]: falls 0.05 m onto the sphere at ~0.1 s, then 0.4 s in contact

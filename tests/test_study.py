@@ -1,4 +1,4 @@
-"""Convergence studies (integration/study.py, `softbody study` / `softbody recommend`).
+"""Convergence studies (experiments/study.py, `softbody study` / `softbody recommend`).
 
 One small study (the cantilever's small ladder: 3 rungs per element type, 0.3 s, about one period of
 the first bending mode) is made once per module on local worker processes and shared by the tests;
@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import softbody
-from integration import cli
-from integration import study as study_module
-from integration.study import (CSV_COLUMNS, LADDERS, NoConfigurationWithinTolerance, RunResult, Study,
+from experiments import cli
+from experiments import study as study_module
+from experiments.study import (CSV_COLUMNS, LADDERS, NoConfigurationWithinTolerance, RunResult, Study,
                                load_trajectory, open_executor, pareto_front, recommend, rms_error, run_study,
                                write_results)
 
@@ -275,7 +275,7 @@ def test_local_studies_run_one_configuration_at_a_time_by_default():
 def test_recommend_across_schemes_and_steps_picks_the_cheapest_per_simulated_second(tmp_path):
     """recommend_steps: one study per (scheme, dt), errors against one reference (Newton at half the smallest
     step); its choice is what a brute-force pass over the rows picks, with cost = ms per step / dt."""
-    from integration.study import recommend_steps
+    from experiments.study import recommend_steps
 
     rec = recommend_steps(SCENE, tmp_path, 1.0, schemes=("warped", "newton"), dts=(0.01, 0.02),
                           elements=["tet10"], ladder="small", duration=0.1, workers=0, progress=False, plots=False)

@@ -16,7 +16,7 @@ import pytest
 
 from experiments import parse_param, run_sweep, sweep
 from experiments.sweep import COLUMNS, TIMING, read_results
-from integration import cli
+from experiments import cli
 from softbody.errors import InvalidInputError
 
 GRID = {"friction": [0.0, 0.2, 0.8], "element": ["tet4", "tet10"], "cells": [(4, 4, 2)]}

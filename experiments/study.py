@@ -142,7 +142,7 @@ def register_ladder(scene: str, name: str, ladder: Ladder) -> None:
 def get_ladder(scene: str, name: str = "full") -> Ladder:
     if scene not in LADDERS:
         raise InvalidInputError(f"no resolution ladder for scene {scene!r}; scenes with ladders: {sorted(LADDERS)} "
-                                f"(add one with integration.study.register_ladder)")
+                                f"(add one with experiments.study.register_ladder)")
     if name not in LADDERS[scene]:
         raise InvalidInputError(f"no ladder {name!r} for scene {scene!r}; available: {sorted(LADDERS[scene])}")
     return LADDERS[scene][name]

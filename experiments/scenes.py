@@ -15,7 +15,7 @@ import numpy as np
 from softbody import FemBody, LinearElastic, box_mesh, tube_mesh
 from softbody.errors import InvalidInputError
 
-from .world import World
+from integration.world import World
 
 E_DEFAULT, NU_DEFAULT, RHO_DEFAULT = 5.0e5, 0.33, 1000.0
 DAMPING = (0.1, 0.001)

@@ -70,7 +70,7 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     """Build the scene from parsed flags, run it (recording on request) and print its trajectory."""
     record_file = record_dir = None
     if args.record is not None:  # checked before anything is built or run
-        from .recording import record_target
+        from integration.recording import record_target
 
         record_file, record_dir = record_target(args.record, overwrite=args.force)
     stress_range = getattr(args, "stress_range", None)
@@ -90,7 +90,7 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     print(f"# monitored node {scene.monitor} (rest {np.round(body.rest[scene.monitor], 4).tolist()}), coordinate {axis}")
     recorder = None
     if args.record is not None:
-        from .recording import Recorder
+        from integration.recording import Recorder
 
         recorder = Recorder.attach(scene, path=record_file, directory=record_dir, every=args.record_every,
                                    overwrite=args.force, color_mode=getattr(args, "color_mode", "element"),

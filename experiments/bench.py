@@ -56,7 +56,7 @@ from typing import Iterable, Sequence
 
 from softbody.linsolve import THREAD_VARS
 
-from . import quiet_c_output
+from integration import quiet_c_output
 from .study import _log_axes, environ
 
 # ----------------------------------------------------------------------------------------------- configurations
@@ -274,7 +274,7 @@ def measure_config(spec: dict) -> dict:
     _count_calls(body_solver(body, world.sim.solver_backend), "factorize", direct_factorizations)
     recorder = None
     if spec.get("record"):
-        from .recording import Recorder
+        from integration.recording import Recorder
 
         rec_dir = Path(spec["out_dir"]) / "recordings"
         rec_dir.mkdir(parents=True, exist_ok=True)
