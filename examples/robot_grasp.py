@@ -113,7 +113,7 @@ def run(hold: float = 2.0, E: float = 1e5, dt: float = 0.005, record: str | None
     if record is not None:
         from integration import Recorder
 
-        recorder = Recorder(world, path=record, overwrite=overwrite,
+        recorder = Recorder(world, path=record, overwrite=overwrite, frame="soft",  # the cube and the fingers
                             monitor=[(0, int(np.argmax(cube.positions[:, 2])))])
     size = np.ptp(cube.positions[:, 2])
     ctrl = Grasp(cid, panda, world, cube, recorder)

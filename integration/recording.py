@@ -377,6 +377,8 @@ class Recorder:
     contact_arrows: "force" (the contact force on the soft body, out of the rigid body, times ``force_scale``
     [m/N]; None: the soft bodies' weight draws half their size) or "normal" (unit normals times
     ``arrow_length`` [m]). plane_size [m]: edge of the square drawn for infinite planes.
+    frame: what the scene view frames, "all" (every soft body and rigid link over the run) or "soft" (the soft
+    bodies over the run, with a margin of their own size: a small object in a large scene, e.g. a robot's grasp).
     batch: frames buffered before they are sent; flush_seconds: also send when the oldest buffered
     frame is older than this (so a viewer following the file stays current).
     """
@@ -386,7 +388,7 @@ class Recorder:
                  color_range: tuple[float, float] | None = None, colormap: str = "viridis",
                  color_mode: str | None = None, monitor=None, scene=None, contact_arrows: str = "force",
                  arrow_length: float = 0.05, force_scale: float | None = None, plane_size: float = 4.0, batch: int = 50,
-                 flush_seconds: float = 1.0, blueprint: bool = True,
+                 flush_seconds: float = 1.0, blueprint: bool = True, frame: str = "all",
                  application_id: str = "softbody", directory: str | Path = "logs", overwrite: bool = True):
         if hasattr(target, "world") and hasattr(target, "body") and hasattr(target, "monitor"):
             scene = target if scene is None else scene
@@ -402,6 +404,9 @@ class Recorder:
             raise InvalidInputError(f"every must be a positive integer, got {every!r}")
         self.every = every
         self.content = {content} if isinstance(content, str) else set(content)
+        if frame not in ("all", "soft"):
+            raise InvalidInputError(f"frame must be 'all' or 'soft', got {frame!r}")
+        self.frame = frame
         unknown = self.content - set(CONTENT)
         if unknown:
             raise InvalidInputError(f"unknown content {sorted(unknown)}; choose from {CONTENT}")
@@ -601,6 +606,8 @@ class Recorder:
         if np.all(np.isfinite(self._soft_box[0])):
             pts.append(box_corners(*self._soft_box))
             rad.append(np.zeros(8))
+            if self.frame == "soft":  # the soft bodies' box, with room around it of its own size
+                return pts[0], np.full(8, float(np.max(self._soft_box[1] - self._soft_box[0])))
         for lo, hi, r in self._link_paths.values():
             pts.append(box_corners(lo, hi))
             rad.append(np.full(8, r))
