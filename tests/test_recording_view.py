@@ -245,3 +245,30 @@ def test_contacts_view_frames_the_rigid_links_and_the_arrows(tmp_path):
     weight = scene.body.total_mass * 9.81
     assert rec.force_scale == pytest.approx(0.5 * 1.0 / weight, rel=0.05)
     assert frames(*three_quarter_eye(pts, radii, aspect=CONTACTS_ASPECT), pts, radii, VIEW_FOV, CONTACTS_ASPECT)
+
+
+def test_frame_soft_frames_a_small_body_in_a_large_scene(tmp_path):
+    """Recorder(frame="soft"): a 5 cm soft cube on a 2 m table is framed with room of its own size around it,
+    not the table (which frame="all" takes in); a bad value is refused."""
+    import softbody as sb
+    from integration import World
+
+    def scene():
+        world = World(dt=0.01)
+        world.add_box((1.0, 0.6, 0.02), position=(0, 0, -0.02), name="table")
+        cube = sb.FemBody(sb.box_mesh((0.05, 0.05, 0.05), (1, 1, 1), "tet4", center=(0.3, 0.1, 0.0251)),
+                          sb.LinearElastic(1e5, 0.3, 500.0))
+        world.add_soft(cube)
+        return world, cube
+
+    world, cube = scene()
+    with Recorder(world, path=tmp_path / "soft.rrd", content=("mesh", "rigid"), frame="soft") as rec:
+        lo, hi = rec.bounds
+        assert frames(*rec.camera, *rec.framing(), VIEW_FOV, SCENE_ASPECT)
+    c_lo, c_hi = cube.positions.min(axis=0), cube.positions.max(axis=0)
+    assert np.all(lo <= c_lo) and np.all(hi >= c_hi) and np.all(hi - lo <= 3 * 0.05 + 1e-9)
+    world, _ = scene()
+    with Recorder(world, path=tmp_path / "all.rrd", content=("mesh", "rigid")) as rec:
+        assert np.all(rec.bounds[1] - rec.bounds[0] >= [2.0, 1.2, 0.04])  # the table whole
+    with pytest.raises(Exception, match="frame"):
+        Recorder(world, path=tmp_path / "bad.rrd", frame="table")
