@@ -248,17 +248,16 @@ def _count_calls(obj, name: str, counter: list) -> None:
     setattr(obj, name, counted)
 
 
-def _pcg_counters(body) -> tuple[int, int]:
-    """(factorisations, iterations) so far of the body's iterative-path preconditioner (0, 0 if none)."""
-    pre = body.__dict__.get("_preconditioner")
+def _pcg_counters(sim, body) -> tuple[int, int]:
+    """(factorisations, iterations) so far of the body's iterative-path preconditioner in the Simulation ``sim``
+    (0, 0 if it has none)."""
+    pre = sim.solvers.held_preconditioner(body, sim.solvers.solver(body, sim.solver_backend).backend)
     return (int(getattr(pre, "factorizations", 0)), int(getattr(pre, "iterations", 0))) if pre is not None else (0, 0)
 
 
 def measure_config(spec: dict) -> dict:
     """One configuration in this process (call it through :func:`run_in_fresh_process`)."""
     import numpy as np
-
-    from softbody.simulation import body_solver
 
     from . import scenes  # noqa: F401  (pybullet, trimesh: imported before the baseline is read)
 
@@ -271,7 +270,7 @@ def measure_config(spec: dict) -> dict:
            "threads": spec["threads"], "steps": spec["steps"], "repeats": spec["repeats"], "warmup": spec["warmup"],
            "method_setting": world.sim.method, "baseline_rss_mb": baseline}
     direct_factorizations = [0]
-    _count_calls(body_solver(body, world.sim.solver_backend), "factorize", direct_factorizations)
+    _count_calls(world.sim.solvers.solver(body, world.sim.solver_backend), "factorize", direct_factorizations)
     recorder = None
     if spec.get("record"):
         from integration.recording import Recorder
@@ -302,7 +301,7 @@ def measure_config(spec: dict) -> dict:
         peak = _rss_mb()  # build and warm-up
         floor = capture_floor(world, body) if spec.get("floor_repeats", 0) > 0 else None
         peak_resets = [_reset_peak_rss()]
-        pre_f0, pre_i0 = _pcg_counters(body)
+        pre_f0, pre_i0 = _pcg_counters(world.sim, body)
         direct0 = direct_factorizations[0]
         blocks = []
         contacts = []
@@ -332,7 +331,7 @@ def measure_config(spec: dict) -> dict:
         out["peak_rss_mb"] = peak  # import + build + warm-up + timed steps, without the floor's solver
         out["peak_rss_excludes_floor"] = all(peak_resets)  # else (no VmHWM reset) it includes it
         n_timed = spec["steps"] * spec["repeats"]
-        pre_f1, pre_i1 = _pcg_counters(body)
+        pre_f1, pre_i1 = _pcg_counters(world.sim, body)
         pcg_factorizations, pcg_iterations = pre_f1 - pre_f0, pre_i1 - pre_i0
         iterative = pcg_factorizations > 0 or pcg_iterations > 0
         out["method"] = "iterative" if iterative else "direct"

@@ -525,31 +525,26 @@ class IterativeSystem:
 LinearSystem = DirectSystem | IterativeSystem
 
 
-def body_preconditioner(body: FemBody, solver: SpdSolver) -> Preconditioner:
-    """The body's preconditioner for the iterative path: its own single-precision factorisation, apart from
-    the direct solves', kept on the body from step to step (and anew for another backend)."""
-    pre = body.__dict__.get("_preconditioner")
-    if pre is None or pre.solver.backend != solver.backend:
-        p = body.pattern
-        pre = body.__dict__["_preconditioner"] = Preconditioner(
-            SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, solver.backend, precision="single"), None, None)
-    return pre
-
-
 def assembled_system(body: FemBody, A: np.ndarray, b: np.ndarray, solver: SpdSolver, method: str,
                      settings: IterativeSettings, timings: Timings | None, x0: np.ndarray,
-                     terms: tuple[np.ndarray, ...] = (), Q: np.ndarray | None = None) -> LinearSystem:
+                     terms: tuple[np.ndarray, ...] = (), Q: np.ndarray | None = None,
+                     pre: Preconditioner | None = None) -> LinearSystem:
     """A linear system A y = b (A: block data (nnzb, 3, 3), b (N, 3)) to be solved with constraints, direct
-    (factorised) or iterative (PCG from x0 (N, 3), preconditioned by the body's preconditioner, conjugated
-    with the per-node rotations Q (N, 3, 3) if given; terms: the (N, 3) parts of b, for the tolerance)."""
+    (factorised) or iterative (PCG from x0 (N, 3), preconditioned by ``pre``, the body's preconditioner kept by
+    the stepper (softbody.solvers.BodySolvers; None: a fresh one), conjugated with the per-node rotations Q
+    (N, 3, 3) if given; terms: the (N, 3) parts of b, for the tolerance)."""
     if method == "direct":
         return DirectSystem(body, A, b, solver, timings=timings)
-    return IterativeSystem(body, A, b, x0, body_preconditioner(body, solver), settings, timings, Q, terms,
-                           None, solver)
+    if pre is None:
+        from .solvers import new_preconditioner
+
+        pre = new_preconditioner(body, solver.backend)
+    return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, None, solver)
 
 
 def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
-                settings: IterativeSettings | None = None, timings: Timings | None = None) -> LinearSystem:
+                settings: IterativeSettings | None = None, timings: Timings | None = None,
+                pre: Preconditioner | None = None) -> LinearSystem:
     """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
 
     K' (as its upper blocks, FemBody.warped_stiffness_upper) is assembled once, straight into
@@ -558,7 +553,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     not assembled: K' y comes from FemBody.warped_product, and A is assembled only if the
     preconditioner is refactorised. method "direct" factorises A; "iterative" runs PCG (see the
     module doc). timings, if given, accumulates seconds per phase (rotations, assembly, forces,
-    factorize, solve).
+    factorize, solve). pre: the body's preconditioner for the iterative path, kept by the stepper from step to
+    step (softbody.solvers.BodySolvers; None: a fresh one, factorised in this step).
     """
     alpha, beta = body.damping
     x, v = body.positions, body.velocities
@@ -566,7 +562,12 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         R = body.rotations(x) if body.warping else None
     c_m, c_k = 1.0 + h * alpha, h * beta + h * h
     settings = settings or IterativeSettings()
-    pre = None if method == "direct" else body_preconditioner(body, solver)
+    if method == "direct":
+        pre = None
+    elif pre is None:
+        from .solvers import new_preconditioner
+
+        pre = new_preconditioner(body, solver.backend)
     operator = settings.operator
     if operator == "auto":
         # matrix-free saves the assembly only if no refactorisation is due (stale: it needs A anyway)

@@ -42,6 +42,7 @@ from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, SolverError
 from .integrator import Constraints, IterativeSettings, LinearSystem, Timings, assembled_system, timed
 from .linsolve import SpdSolver
+from .preconditioner import Preconditioner
 
 
 TANGENTS = ("auto", "warped", "exact")
@@ -56,6 +57,7 @@ ROUNDOFF = 1e-12
 # within this many tolerances (the contact solve itself ends on its friction iteration; non-penetration
 # holds exactly after every solve)
 CYCLE = 1000.0
+CYCLE_MAX = 1e-2  # ... and never above this relative residual, whatever the tolerance
 
 
 @dataclass
@@ -119,7 +121,7 @@ class _BodyStep:
         return g, dpsi
 
     def potential(self, v: np.ndarray, h: float) -> float:
-        """Phi(v) [J s^0]: the incremental potential of the module doc (units of energy)."""
+        """Phi(v) [J]: the incremental potential of the module doc (units of energy)."""
         body = self.body
         dv = v - self.v0
         return float(0.5 * np.sum(dv * body.mass_product(dv)) + 0.5 * h * np.sum(v * self.damping_product(v))
@@ -185,11 +187,12 @@ class NewtonStepper:
     def solve(self, bodies: list[FemBody], h: float, loads: list[np.ndarray], solvers: list[SpdSolver],
               methods: list[str], iterative: IterativeSettings, timings: Timings | None,
               solve: Callable[[list[LinearSystem]], list[np.ndarray]], time: float, step: int,
-              contacts: bool = False) -> list[np.ndarray]:
+              contacts: bool = False, preconditioners: list[Preconditioner | None] | None = None) -> list[np.ndarray]:
         """The new velocities (N_i, 3) of ``bodies`` after the step h [s], under loads (N_i, 3) [N]; ``solve``
         solves the step systems with every constraint (supports, contacts: the Simulation's); contacts: whether
         ``solve`` adds contacts and friction (then a residual within CYCLE tolerances that cycles, or that the
-        whole step raises, is accepted: the active set and the stick/slip states switch between iterates)."""
+        whole step raises, is accepted: the active set and the stick/slip states switch between iterates);
+        preconditioners: the bodies' for the iterative path, kept by the stepper (None: fresh ones)."""
         s = self.settings
         report = self.report = NewtonReport()
         states = [self._start(b, h, f) for b, f in zip(bodies, loads)]
@@ -218,7 +221,7 @@ class NewtonStepper:
                 report.residuals.append(float(residual))
                 if alpha == 1.0 and (residual <= s.tol or absolute <= roundoff or self._stalled(report.residuals)):
                     return v
-                if alpha == 1.0 and contacts and cycling(report.residuals, CYCLE * s.tol):
+                if alpha == 1.0 and contacts and cycling(report.residuals, min(CYCLE * s.tol, CYCLE_MAX)):
                     self._accept_cycle(report, step, time)
                     return v
                 if tangent == "warped" and s.tangent == "auto" and len(report.residuals) > 1 \
@@ -227,7 +230,8 @@ class NewtonStepper:
             if it == s.max_iter:
                 break
             systems = []
-            for st, vi, (g, _), solver, method in zip(states, v, grads, solvers, methods):
+            pres = preconditioners or [None] * len(states)
+            for st, vi, (g, _), solver, method, pre in zip(states, v, grads, solvers, methods, pres):
                 body = st.body
                 x = st.x0 + h * vi
                 with timed(timings, "assembly"):
@@ -241,7 +245,7 @@ class NewtonStepper:
                         A = body.system_blocks(st.K_damp + h * h * K, 1.0 + h * body.damping[0], 1.0)
                     Av = (body.pattern.to_bsr(A) @ vi.reshape(-1)).reshape(-1, 3)
                 b = Av - g
-                systems.append(assembled_system(body, A, b, solver, method, iterative, timings, vi, (Av, g)))
+                systems.append(assembled_system(body, A, b, solver, method, iterative, timings, vi, (Av, g), pre=pre))
             try:
                 new = solve(systems)
             except (SolverError, np.linalg.LinAlgError) as exc:  # a tangent no longer positive definite
@@ -253,21 +257,22 @@ class NewtonStepper:
             d = [vn - vi for vn, vi in zip(new, v)]
             with timed(timings, "forces"):
                 full = [st.gradient(vn, h) for st, vn in zip(states, new)]
-            if it == 0 or (scale is not None and np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(full, impulses)))
-                           < (1.0 - 1e-4) * report.residuals[-1] * scale):
+            after = None if scale is None else np.sqrt(sum(np.sum((g - r) ** 2) for (g, _), r in zip(full, impulses)))
+            if it == 0 or (after is not None and after < (1.0 - 1e-4) * report.residuals[-1] * scale):
                 alpha = 1.0  # the whole step lowers the residual (with contacts, Phi alone does not tell)
             else:
-                if contacts and report.residuals[-1] <= CYCLE * s.tol:
+                if contacts and report.residuals[-1] <= min(CYCLE * s.tol, CYCLE_MAX):
                     # near the tolerance, the whole step raises the residual: the contacts' switching between
                     # iterates sets the floor; the last solve is taken whole (its contacts, friction and rigid
-                    # velocity changes belong to it), as a warped step from an iterate this close
+                    # velocity changes belong to it: the contact hook keeps them), as a warped step from an
+                    # iterate this close; the report gives its own residual
                     self._accept_cycle(report, step, time)
-                    report.iterations = it + 1
-                    report.steps.append(1.0)
-                    return new
+                    return self._take(report, new, it, after / scale)
                 alpha = self._line_search(states, v, d, [g for g, _ in grads], h)
             if alpha is None and report.residuals and (report.residuals[-1] <= FLOOR * s.tol or absolute <= 10 * roundoff):
-                return v  # at the round-off floor the potential cannot fall measurably: as good as it gets
+                # at the round-off floor the potential cannot fall measurably: as good as it gets. With contacts the
+                # last solve is taken (the hook keeps its contacts and rigid velocity changes, which must match)
+                return self._take(report, new, it, after / scale) if contacts else v
             if alpha is None and tangent == "warped" and s.tangent == "auto":
                 alpha, tangent = 0.0, "exact"  # the warped tangent points nowhere useful: solve again, exactly
                 report.tangent = tangent
@@ -287,6 +292,14 @@ class NewtonStepper:
             f"residuals {', '.join(f'{r:.2e}' for r in report.residuals)} (tolerance {s.tol:g}). State kept; try a "
             "smaller dt, a looser tolerance (newton_tol) or more iterations (newton_max_iter).",
             step=step, time=time)
+
+    @staticmethod
+    def _take(report: NewtonReport, new: list[np.ndarray], it: int, residual: float) -> list[np.ndarray]:
+        """Accept the last solve's velocities ``new`` whole, with their own relative residual in the report."""
+        report.iterations = it + 1
+        report.steps.append(1.0)
+        report.residuals.append(float(residual))
+        return new
 
     def _stalled(self, residuals: list[float]) -> bool:
         """Whether the residual has reached the round-off floor of the step just above the tolerance: within

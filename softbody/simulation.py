@@ -11,6 +11,7 @@ from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
 from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
+from .solvers import BodySolvers
 
 # A hook (bodies, their step systems, their supports, t_next) -> the bodies' new velocities (N_i, 3); the
 # integration layer uses it to solve contacts and the coupling to rigid bodies for all bodies at once.
@@ -32,12 +33,11 @@ def _gravity(gravity) -> np.ndarray:
 
 
 def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
-    """The body's cached SPD solver (one symbolic analysis per body and backend)."""
-    cache = body.__dict__.setdefault("_solvers", {})
-    if backend not in cache:
-        p = body.pattern
-        cache[backend] = SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend)
-    return cache[backend]
+    """A new SPD solver on the body's pattern (solve_static's; a Simulation keeps its own per body, see
+    softbody.solvers.BodySolvers)."""
+    from .solvers import new_solver
+
+    return new_solver(body, backend)
 
 
 class Simulation:
@@ -87,8 +87,9 @@ class Simulation:
         # seconds of the last step by phase: rotations, forces, assembly, factorize, solve
         self.timings: dict[str, float] = {}
         self.external_forces: dict[int, np.ndarray] = {}  # id(body) -> (N, 3) extra loads [N]
+        self.solvers = BodySolvers()  # per body: the SPD solvers and preconditioners kept from step to step
         for b in bodies:
-            body_solver(b, solver)  # fail early on a bad backend
+            self.solvers.solver(b, solver)  # fail early on a bad backend
 
     def load(self, body: FemBody) -> np.ndarray:
         """The external load (N, 3) [N] on ``body``: gravity and its external_forces."""
@@ -104,8 +105,10 @@ class Simulation:
 
     def system(self, body: FemBody) -> LinearSystem:
         """The warped backward Euler system of ``body`` for the next step (gravity and external_forces as loads)."""
-        return step_system(body, self.dt, self.load(body), body_solver(body, self.solver_backend),
-                           self.linear_method(body), self.settings, self.timings)
+        solver = self.solvers.solver(body, self.solver_backend)
+        method = self.linear_method(body)
+        return step_system(body, self.dt, self.load(body), solver, method, self.settings, self.timings,
+                           None if method == "direct" else self.solvers.preconditioner(body, solver))
 
     @property
     def newton_report(self) -> NewtonReport:
@@ -126,9 +129,11 @@ class Simulation:
 
         if self.scheme == "newton" and self.bodies:
             vs = self.newton.solve(self.bodies, self.dt, [self.load(b) for b in self.bodies],
-                                   [body_solver(b, self.solver_backend) for b in self.bodies],
+                                   [self.solvers.solver(b, self.solver_backend) for b in self.bodies],
                                    [self.linear_method(b) for b in self.bodies], self.settings, self.timings, solve,
-                                   t_next, self.steps + 1, contacts=self.velocity_solver is not None)
+                                   t_next, self.steps + 1, contacts=self.velocity_solver is not None,
+                                   preconditioners=[None if self.linear_method(b) == "direct" else self.solvers.preconditioner(
+                                       b, self.solvers.solver(b, self.solver_backend)) for b in self.bodies])
         else:
             vs = solve([self.system(b) for b in self.bodies])
         new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]

@@ -33,7 +33,8 @@ def _trajectory(kind, cells, method, operator="auto"):
             scene.world.step()
             xs.append(scene.body.positions.copy())
             contacts = max(contacts, sum(int(r.active.sum()) for _, r in scene.world.contact_results.values()))
-        pre = scene.body.__dict__.get("_preconditioner")
+        sim = scene.world.sim
+        pre = sim.solvers.held_preconditioner(scene.body, sim.solvers.solver(scene.body, sim.solver_backend).backend)
         return np.array(xs), contacts, pre
     finally:
         scene.world.close()
@@ -237,21 +238,25 @@ def test_auto_operator_is_matrix_free_for_tet10_until_the_products_grow():
     initial residual) and one per PCG iteration."""
     import softbody
     from softbody.integrator import Constraints, IterativeSettings, step_system
-    from softbody.linsolve import SpdSolver
+    from softbody.solvers import BodySolvers
 
     fixed = Constraints.full(np.array([0]), np.zeros((1, 3)))
+    solvers = BodySolvers()  # what a Simulation keeps per body from step to step
 
     def step(body, settings):
-        p = body.pattern
-        return step_system(body, 0.01, np.zeros((body.n_nodes, 3)), SpdSolver(p.up_indptr, p.up_indices, body.n_dofs),
-                           "iterative", settings)
+        solver = solvers.solver(body)
+        return step_system(body, 0.01, np.zeros((body.n_nodes, 3)), solver, "iterative", settings,
+                           pre=solvers.preconditioner(body, solver))
+
+    def pre_of(body):
+        return solvers.preconditioner(body, solvers.solver(body))
 
     def system(kind, settings, products=None, warping=True):
         body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (2, 2, 1), kind), softbody.LinearElastic(1e6, 0.3, 1000.0),
                                 warping=warping)
         if products is not None:  # as if a step had run: factorised, and that many products
             step(body, settings).solve(fixed)
-            body._preconditioner.products = products
+            pre_of(body).products = products
         return body, step(body, settings)
 
     auto = IterativeSettings()
@@ -264,17 +269,17 @@ def test_auto_operator_is_matrix_free_for_tet10_until_the_products_grow():
     assert not system("tet10", IterativeSettings(operator="assembled"), products=1)[1].matrix_free
     # a refactorisation due (stale) -> assembled
     body, _ = system("tet10", auto, products=1)
-    body._preconditioner.stale = True
+    pre_of(body).stale = True
     assert not step(body, auto).matrix_free
     # the count: 1 (forces) + 1 (initial residual) + the iterations of the one solve
     body, _ = system("tet10", auto, products=1)
     body.positions = body.positions + 1e-3 * np.random.default_rng(0).standard_normal(body.positions.shape)
     moved = step(body, auto)
     assert moved.matrix_free
-    before = body._preconditioner.iterations
+    before = pre_of(body).iterations
     moved.solve(fixed)
-    assert body._preconditioner.iterations > before
-    assert body._preconditioner.products == 2 + body._preconditioner.iterations - before
+    assert pre_of(body).iterations > before
+    assert pre_of(body).products == 2 + pre_of(body).iterations - before
 
 
 @pytest.mark.parametrize("warping, mass", [(True, "consistent"), (False, "lumped")])

@@ -1,0 +1,50 @@
+"""The factorisations a stepper keeps from step to step, per body: the SPD solver of each backend (its
+symbolic analysis done once for the body's fixed pattern) and the iterative path's preconditioner (a
+single-precision factorisation of its own, refreshed when stale). Owned by whoever steps (a Simulation),
+not stored on the bodies."""
+from __future__ import annotations
+
+from .body import FemBody
+from .linsolve import SpdSolver
+from .preconditioner import Preconditioner
+
+
+class BodySolvers:
+    """Per body (by identity) and backend: ``solver(body, backend)`` and ``preconditioner(body, solver)``."""
+
+    def __init__(self):
+        self._solvers: dict[tuple[int, str], tuple[FemBody, SpdSolver]] = {}
+        self._preconditioners: dict[tuple[int, str], tuple[FemBody, Preconditioner]] = {}
+
+    def solver(self, body: FemBody, backend: str = "auto") -> SpdSolver:
+        """The body's SPD solver for ``backend`` (made on first use: one symbolic analysis per body)."""
+        key = (id(body), backend)
+        held = self._solvers.get(key)
+        if held is None or held[0] is not body:
+            held = self._solvers[key] = (body, new_solver(body, backend))
+        return held[1]
+
+    def preconditioner(self, body: FemBody, solver: SpdSolver) -> Preconditioner:
+        """The body's preconditioner for the iterative path with ``solver``'s backend: its own single-precision
+        factorisation, apart from the direct solves', kept from step to step."""
+        key = (id(body), solver.backend)
+        held = self._preconditioners.get(key)
+        if held is None or held[0] is not body:
+            held = self._preconditioners[key] = (body, new_preconditioner(body, solver.backend))
+        return held[1]
+
+    def held_preconditioner(self, body: FemBody, backend: str) -> Preconditioner | None:
+        """The body's preconditioner for ``backend`` if one was made, else None (for counters)."""
+        held = self._preconditioners.get((id(body), backend))
+        return held[1] if held is not None and held[0] is body else None
+
+
+def new_solver(body: FemBody, backend: str = "auto", precision: str = "double") -> SpdSolver:
+    """An SPD solver on the body's fixed pattern (upper triangle)."""
+    p = body.pattern
+    return SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend, precision=precision)
+
+
+def new_preconditioner(body: FemBody, backend: str = "auto") -> Preconditioner:
+    """A fresh preconditioner (not yet factorised) for the body's iterative path."""
+    return Preconditioner(new_solver(body, backend, precision="single"), None, None)
