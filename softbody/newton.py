@@ -77,8 +77,12 @@ class NewtonSettings:
     tangent: str = "auto"
 
     def __post_init__(self):
-        if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
+        if not (isinstance(self.tol, (int, float, np.floating)) and 0 < self.tol < 1):
             raise InvalidInputError(f"newton tol must be a number in (0, 1), got {self.tol!r}")
+        if not (isinstance(self.armijo, (int, float, np.floating)) and 0 < self.armijo < 0.5):
+            raise InvalidInputError(f"newton armijo (sufficient decrease) must be a number in (0, 0.5), got {self.armijo!r}")
+        if not (isinstance(self.min_step, (int, float, np.floating)) and 0 < self.min_step < 1):
+            raise InvalidInputError(f"newton min_step must be a number in (0, 1), got {self.min_step!r}")
         if not (isinstance(self.max_iter, (int, np.integer)) and self.max_iter >= 1):
             raise InvalidInputError(f"newton max_iter must be an integer >= 1, got {self.max_iter!r}")
         if self.tangent not in TANGENTS:

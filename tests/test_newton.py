@@ -194,3 +194,15 @@ def test_cycling_residuals_are_told_from_converging_ones():
     assert not cycling([1e-3, 5e-4, 3e-4, 2.0e-4, 1e-4, 5e-5], 1e-3)
     assert not cycling([1e-1, 3e-2, 2.0e-2, 3e-2, 2.0e-2, 3e-2, 2.0e-2], 1e-3)
     assert not cycling([3e-4, 2e-4, 3e-4], 1e-3)  # too short to tell
+
+
+def test_newton_settings_refuse_what_cannot_work():
+    """A line search with min_step <= 0 would halve to 0 and burn every iteration; armijo outside (0, 0.5) is no
+    sufficient decrease: refused by name; a numpy float tolerance is a number."""
+    from softbody.newton import NewtonSettings
+
+    assert NewtonSettings(tol=np.float32(1e-4)).tol == np.float32(1e-4)
+    for kwargs, name in [({"min_step": 0.0}, "min_step"), ({"min_step": 1.5}, "min_step"), ({"armijo": 0.0}, "armijo"),
+                         ({"armijo": 0.7}, "armijo"), ({"tol": 2.0}, "tol"), ({"max_iter": 0}, "max_iter")]:
+        with pytest.raises(InvalidInputError, match=name):
+            NewtonSettings(**kwargs)
