@@ -210,21 +210,32 @@ class RunResult:
         return d
 
     def save(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        np.savez(tmp, times=self.times, values=self.values,
-                 meta=np.array(json.dumps({"format": FORMAT, **self.summary()})))
-        os.replace(tmp, path)
+        save_cached_run(path, self.times, self.values, self.summary(), FORMAT)
 
     @classmethod
     def load(cls, path: Path) -> "RunResult":
-        with np.load(path, allow_pickle=False) as f:
-            meta = json.loads(str(f["meta"]))
-            times, values = f["times"].copy(), f["values"].copy()
-        if meta.pop("format", None) != FORMAT:
-            raise ValueError(f"{path}: cached run of another format")
+        times, values, meta = load_cached_run(path, FORMAT)
         meta["cells"] = tuple(meta["cells"])
         return cls(times=times, values=values, **meta)
+
+
+def save_cached_run(path: Path, times: np.ndarray, values: np.ndarray, meta: dict, version: int) -> None:
+    """Write a cached run (times, values and a JSON ``meta`` tagged with the cache ``version``) to ``path``
+    (.npz) atomically: a run cut short leaves no half-written file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.npz")
+    np.savez(tmp, times=times, values=values, meta=np.array(json.dumps({"format": version, **meta})))
+    os.replace(tmp, path)
+
+
+def load_cached_run(path: Path, version: int) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(times, values, meta) of a run cached by :func:`save_cached_run`; ValueError if it has another version."""
+    with np.load(path, allow_pickle=False) as f:
+        meta = json.loads(str(f["meta"]))
+        times, values = f["times"].copy(), f["values"].copy()
+    if meta.pop("format", None) != version:
+        raise ValueError(f"{path}: cached run of another format")
+    return times, values, meta
 
 
 def pin_threads(n: int = 1) -> None:

@@ -208,19 +208,15 @@ class Point:
     values: np.ndarray
 
     def save(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.stem + ".tmp.npz")
-        meta = {"format": FORMAT, "params": _jsonable(self.params), "row": self.row}
-        np.savez(tmp, times=self.times, values=self.values, meta=np.array(json.dumps(meta)))
-        os.replace(tmp, path)
+        from experiments.study import save_cached_run
+
+        save_cached_run(path, self.times, self.values, {"params": _jsonable(self.params), "row": self.row}, FORMAT)
 
     @classmethod
     def load(cls, path: Path) -> "Point":
-        with np.load(path, allow_pickle=False) as f:
-            meta = json.loads(str(f["meta"]))
-            times, values = f["times"].copy(), f["values"].copy()
-        if meta.get("format") != FORMAT:
-            raise ValueError(f"{path}: cached run of another format")
+        from experiments.study import load_cached_run
+
+        times, values, meta = load_cached_run(path, FORMAT)
         params = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["params"].items()}
         return cls(params, meta["row"], times, values)
 
