@@ -37,6 +37,7 @@ from .body import FemBody
 from .errors import InvalidInputError, SolverError
 from .linsolve import SpdSolver
 from .preconditioner import ConstraintCorrection, Preconditioner
+from .solvers import new_preconditioner
 
 
 @dataclass
@@ -535,10 +536,7 @@ def assembled_system(body: FemBody, A: np.ndarray, b: np.ndarray, solver: SpdSol
     (N, 3, 3) if given; terms: the (N, 3) parts of b, for the tolerance)."""
     if method == "direct":
         return DirectSystem(body, A, b, solver, timings=timings)
-    if pre is None:
-        from .solvers import new_preconditioner
-
-        pre = new_preconditioner(body, solver.backend)
+    pre = pre if pre is not None else new_preconditioner(body, solver.backend)
     return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, None, solver)
 
 
@@ -565,8 +563,6 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     if method == "direct":
         pre = None
     elif pre is None:
-        from .solvers import new_preconditioner
-
         pre = new_preconditioner(body, solver.backend)
     operator = settings.operator
     if operator == "auto":
