@@ -31,7 +31,8 @@ class GridLayout:
 
 
 GRIDS: dict[str, GridLayout] = {"sheet-on-sphere": GridLayout(False, 3.0), "hanging-tube": GridLayout(True, 4.0),
-                                "cantilever": GridLayout(False, 2.0)}
+                                "cantilever": GridLayout(False, 2.0), "cubes-on-plane": GridLayout(False, 1.0),
+                                "ten-cubes-on-plane": GridLayout(False, 1.0)}
 
 
 @dataclass
@@ -141,10 +142,43 @@ def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: fl
                  {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme})
 
 
+def cubes_on_plane(element: str = "tet10", cells: Sequence[int] = (2, 2, 2), dt: float = 0.01, count: int = 1,
+                   E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
+                   friction: float = 0.5, warping: bool = True, solver: str = "auto", scheme: str = "warped",
+                   size: float = 0.1, gap: float = 0.001) -> Scene:
+    """``count`` soft cubes of side ``size`` [m] in a row along x (0.5 * size apart), their bottoms ``gap``
+    [m] above a fixed plane z = 0, settling onto it: the small-body, many-body scene of a robot's table (issue
+    18's cost of a step). Monitored: z of the first cube's bottom corner at (-size/2, -size/2, gap)."""
+    count = int(count)
+    if count < 1:
+        raise InvalidInputError(f"count must be a number of cubes >= 1, got {count!r}")
+    world = World(dt=dt, solver=solver, scheme=scheme)
+    world.add_plane(name="plane")
+    bodies = []
+    for k in range(count):
+        mesh = box_mesh((size, size, size), cells, element, center=(1.5 * size * k, 0.0, gap + 0.5 * size))
+        body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+        world.add_soft(body, friction=friction)
+        bodies.append(body)
+    return Scene("cubes-on-plane", world, bodies[0], _nearest(bodies[0].mesh.nodes, (-0.5 * size, -0.5 * size, gap)),
+                 2, GRIDS["cubes-on-plane"].duration,
+                 {"element": element, "cells": tuple(int(c) for c in cells), "dt": dt, "scheme": scheme,
+                  "count": count})
+
+
+def ten_cubes_on_plane(element: str = "tet10", cells: Sequence[int] = (2, 2, 2), dt: float = 0.01, **options) -> Scene:
+    """:func:`cubes_on_plane` with ten cubes (the many-body scene of ``softbody bench``)."""
+    scene = cubes_on_plane(element, cells, dt, count=10, **options)
+    scene.name = "ten-cubes-on-plane"
+    return scene
+
+
 SCENES: dict[str, Callable[..., Scene]] = {
     "sheet-on-sphere": sheet_on_sphere,
     "hanging-tube": hanging_tube,
     "cantilever": cantilever,
+    "cubes-on-plane": cubes_on_plane,
+    "ten-cubes-on-plane": ten_cubes_on_plane,
 }
 
 

@@ -33,6 +33,7 @@ from softbody import FemBody, Simulation
 from softbody.errors import InvalidInputError, SimulationDiverged, finite_number
 from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
+from softbody.stack import BodyStack, stack_key
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
 from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances
@@ -119,13 +120,17 @@ class World:
     body is pushed out over several steps, with a warning; placed deeper than half its size inside, it is
     refused at its first step); scheme, newton_tol, newton_max_iter: the soft bodies' step, "warped" (the
     paper's) or "newton" (the nonlinear backward Euler step, contacts and coupling solved in every
-    iteration; see softbody.Simulation and softbody.newton).
+    iteration; see softbody.Simulation and softbody.newton); stack: step soft bodies that agree in element
+    kind, material, damping, friction and what they ignore as one block-diagonal system (softbody.stack:
+    one assembly, factorisation and collision pass for all of them, so that ten small bodies cost about
+    what one of their total size does; the same answer as stepping each alone, to the solver's tolerance).
+    ``bodies`` are the soft bodies as added; ``sim.bodies`` the ones stepped (stacks and single bodies).
     """
 
     def __init__(self, dt: float | None = None, gravity=None, gui: bool = False, solver: str = "auto",
                  contact_margin: float = 0.005, client: int | None = None, max_energy: float | None = None,
                  method: str = "auto", soft_contact: bool = True, push_speed: float = 0.5, scheme: str = "warped",
-                 newton_tol: float = 1e-5, newton_max_iter: int = 25):
+                 newton_tol: float = 1e-5, newton_max_iter: int = 25, stack: bool = True):
         if client is not None and gui:
             raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
         self.adapter = BulletAdapter(client, gui)
@@ -152,6 +157,13 @@ class World:
         self.detector = CollisionDetector(self.client)
         self.contact_solver = ContactSolver(push_speed=_positive(push_speed, "push_speed"))
         self._started: set[int] = set()  # id(body) of the soft bodies that took a step
+        self._members: list[FemBody] = []  # the soft bodies as added (World.bodies)
+        self._stack = bool(stack)
+        self._restack_due = False  # members added or their grouping changed since the last step
+        # id(member) -> (index of its stepped body in sim.bodies, first node there)
+        self._place: dict[int, tuple[int, int]] = {}
+        self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
+        self._pairs_version = 0  # counts the changes of what the bodies ignore
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}  # id(body) -> node contacts
         self.face_results: dict[int, tuple[FaceContacts, ContactResult]] = {}  # id(body) -> face contacts
@@ -187,7 +199,9 @@ class World:
 
     @property
     def bodies(self) -> list[FemBody]:
-        return self.sim.bodies
+        """The soft bodies, in the order they were added (the stepped ones, stacks among them, are
+        ``sim.bodies``)."""
+        return self._members
 
     def close(self) -> None:
         """Disconnect the World's own pybullet client; a joined client stays connected."""
@@ -353,7 +367,7 @@ class World:
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
         friction = finite_number(friction, "friction", 0.0, strict=False)
-        if any(b is body for b in self.sim.bodies):
+        if any(b is body for b in self._members):
             raise InvalidInputError("this soft body is already in the world")
         if not isinstance(self_contact, (bool, np.bool_)):
             raise InvalidInputError(f"self_contact must be True or False, got {self_contact!r}")
@@ -370,9 +384,13 @@ class World:
             else:
                 raise InvalidInputError(f"ignore: expected rigid body ids, RigidLinks, (body id, link) pairs or "
                                         f"soft bodies (FemBody), got {item!r}")
-        self.sim.bodies.append(body)
+        self._members.append(body)
+        self.sim.bodies.append(body)  # stepped alone until the next step stacks it (_restack)
+        self._place[id(body)] = (len(self.sim.bodies) - 1, 0)
+        self._restack_due = True
         self.friction[id(body)] = friction
         self._ignore[id(body)] = skip
+        self._pairs_version += 1
         tris = body.mesh.surface_triangles()
         self._surface[id(body)] = (np.unique(tris), tris)
         self._soft_surface[id(body)] = SoftSurface.of(body.rest, tris)
@@ -389,7 +407,7 @@ class World:
         together, the soft body's weight and inertia load the rigid body. On a fixed or kinematic one the
         nodes follow its pose. collide: keep the contacts between this soft body and that link (off by
         default: a body attached flush against a link would otherwise push against it)."""
-        if not any(b is body for b in self.sim.bodies):
+        if not any(b is body for b in self._members):
             raise InvalidInputError("attach: add the soft body to the world first (add_soft)")
         rb = self._link_of(rigid, link)
         ids = body._node_ids(node_ids, "attach")
@@ -399,9 +417,58 @@ class World:
             body.prescribe(ids, self._follow(rb, local))
         if not collide:
             self._ignore[id(body)].add(rb.key)
+            self._restack_due = True  # what it ignores decides its stack
+            self._pairs_version += 1
         att = Attachment(body, ids, rb, local, coupled)
         self.attachments.append(att)
         return att
+
+    def _stack_key(self, body: FemBody) -> tuple | None:
+        """What a soft body must share with others to be stepped in one stack with them (softbody.stack_key,
+        friction, self-contact and the rigid links it ignores); None: stepped alone (stacking off)."""
+        if not self._stack:
+            return None
+        ignore = frozenset(k for k in self._ignore[id(body)] if k[0] != "soft")  # soft pairs are searched per body
+        return stack_key(body), self.friction[id(body)], id(body) in self._self_contact, ignore
+
+    def _restack(self) -> None:
+        """Group the soft bodies into the stepped ones (sim.bodies): a BodyStack for each two or more of one
+        key, the others alone; unchanged while no body was added and no grouping changed."""
+        if not self._restack_due:
+            return
+        self._restack_due = False
+        groups: dict = {}
+        for b in self._members:
+            key = self._stack_key(b)
+            groups.setdefault(("alone", id(b)) if key is None else key, []).append(b)
+        held = {tuple(map(id, s.members)): s for s in self.sim.bodies if isinstance(s, BodyStack)}
+        stepped = [g[0] if len(g) == 1 else held.pop(tuple(map(id, g)), None) or BodyStack(g) for g in groups.values()]
+        for gone in held.values():  # stacks dissolved: their members keep their state (views of its rows)
+            for d in (self.friction, self._ignore, self._surface):
+                d.pop(id(gone), None)
+        self._place = {}
+        for i, s in enumerate(stepped):
+            for m, o in zip(getattr(s, "members", [s]), getattr(s, "offsets", [0])):
+                self._place[id(m)] = (i, int(o))
+            if isinstance(s, BodyStack):  # a stack's settings are its members' (one key)
+                self.friction[id(s)] = self.friction[id(s.members[0])]
+                self._ignore[id(s)] = {k for k in self._ignore[id(s.members[0])] if k[0] != "soft"}
+                tris = s.mesh.surface_triangles()
+                self._surface[id(s)] = (np.unique(tris), tris)
+        self.sim.bodies[:] = stepped
+
+    def stepped(self, body: FemBody) -> FemBody:
+        """The body that steps soft body ``body``: itself, or the BodyStack it is stepped in (softbody.stack)."""
+        if not any(b is body for b in self._members):
+            raise InvalidInputError("stepped: not a soft body of this World (add it with add_soft)")
+        self._restack()
+        return self.sim.bodies[self._place[id(body)][0]]
+
+    def _member(self, stepped: int, node: int) -> int:
+        """The index in ``bodies`` of the soft body that node ``node`` of stepped body ``stepped`` belongs to."""
+        s = self.sim.bodies[stepped]
+        m = s.members[int(s.member_of(np.array([node]))[0])] if isinstance(s, BodyStack) else s
+        return next(i for i, b in enumerate(self._members) if b is m)
 
     def _follow(self, rb: RigidLink, local: np.ndarray) -> Callable[[float], np.ndarray]:
         """The positions of rigid points ``local`` (m, 3) at time t, for nodes held to a link that the
@@ -455,13 +522,24 @@ class World:
 
     def _soft_pairs(self, skipped: list | None = None) -> list[tuple[int, int]]:
         """Index pairs (a, b) of the soft bodies to search for contact (a == b: self-contact); the pairs left
-        out (soft contact off, or ignored) are appended to ``skipped`` with the reason."""
+        out (soft contact off, or ignored) are appended to ``skipped`` with the reason. Kept until a body is
+        added or told to ignore another."""
+        key = (len(self._members), self.soft_contact, self._pairs_version)
+        if self._pairs_memo is None or self._pairs_memo[0] != key:
+            found: list = []
+            self._pairs_memo = (key, self._find_soft_pairs(found), found)
+        if skipped is not None:
+            skipped.extend(self._pairs_memo[2])
+        return self._pairs_memo[1]
+
+    def _find_soft_pairs(self, skipped: list) -> list[tuple[int, int]]:
         out = []
-        for a, ba in enumerate(self.bodies):
+        bodies = self._members
+        for a, ba in enumerate(bodies):
             if id(ba) in self._self_contact:
                 out.append((a, a))
-            for b in range(a + 1, len(self.bodies)):
-                bb = self.bodies[b]
+            for b in range(a + 1, len(bodies)):
+                bb = bodies[b]
                 if not self.soft_contact:
                     why = "soft contact is off (World(soft_contact=False))"
                 elif ("soft", id(bb)) in self._ignore[id(ba)] or ("soft", id(ba)) in self._ignore[id(bb)]:
@@ -469,24 +547,30 @@ class World:
                 else:
                     out.append((a, b))
                     continue
-                if skipped is not None:
-                    skipped.append((a, b, why))
+                skipped.append((a, b, why))
         return out
 
     def _detect_soft(self) -> SoftHits:
-        """Contact candidates between the soft bodies, and of bodies with self-contact (softcontact.py); a
-        warning, once, when bodies left out of soft contact meet (their boxes overlap)."""
+        """Contact candidates between the soft bodies, and of bodies with self-contact (softcontact.py), searched
+        body by body and numbered by the stepped bodies (a, b index sim.bodies, nodes theirs); a warning, once,
+        when bodies left out of soft contact meet (their boxes overlap)."""
         skipped: list = []
         pairs = self._soft_pairs(skipped)
         for a, b, why in skipped:
-            (la, ha), (lb, hb) = (self._box(self.bodies[k]) for k in (a, b))
+            (la, ha), (lb, hb) = (self._box(self._members[k]) for k in (a, b))
             if np.all(la <= hb) and np.all(lb <= ha):
                 self._warn_once(("soft off", a, b), f"soft bodies {a} and {b} meet, but {why}: they pass through "
                                 "each other")
         if not pairs:
             return SoftHits.empty()
-        data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self.bodies]
-        return soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin)
+        data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self._members]
+        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin)
+        if len(hits) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
+            place = np.array([self._place[id(b)] for b in self._members])
+            hits.node = hits.node + place[hits.a, 1]
+            hits.nodes = hits.nodes + place[hits.b, 1][:, None]
+            hits.a, hits.b = place[hits.a, 0], place[hits.b, 0]
+        return hits
 
     def _box(self, body: FemBody) -> tuple[np.ndarray, np.ndarray]:
         """The box (lo (3,), hi (3,)) [m] of a soft body's surface nodes."""
@@ -498,12 +582,12 @@ class World:
         if not len(hits):
             return None
         m = len(hits)
-        mu_of = np.array([self.friction[id(b)] for b in self.bodies])
+        mu_of = np.array([self.friction[id(b)] for b in self.sim.bodies])
         mu = np.minimum(mu_of[hits.a], mu_of[hits.b])
         point = np.zeros((m, 3))
         for b in np.unique(hits.b).tolist():
             on = hits.b == b
-            point[on] = np.einsum("ms,msi->mi", hits.weights[on], self.bodies[b].positions[hits.nodes[on]])
+            point[on] = np.einsum("ms,msi->mi", hits.weights[on], self.sim.bodies[b].positions[hits.nodes[on]])
         parts = np.column_stack([hits.a, hits.b, hits.b, hits.b])
         return PairContacts(hits.key, hits.normal, hits.distance, np.zeros((m, 3)), mu, np.full(m, -1), point,
                             np.full(m, -1), parts=parts, nodes=np.column_stack([hits.node, hits.nodes]),
@@ -537,15 +621,18 @@ class World:
         return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
                             nodes=hits.nodes, weights=hits.weights, group=hits.group, primary=hits.primary)
 
-    def _coupled_attachments(self, body: FemBody, coupling: RigidCoupling) -> list[tuple[Attachment, np.ndarray, np.ndarray]]:
-        """(attachment, start points (m, 3), Jacobians (m, 3, n)) of this body's two-way attachments."""
+    def _coupled_attachments(self, i: int, coupling: RigidCoupling
+                             ) -> list[tuple[Attachment, np.ndarray, np.ndarray, np.ndarray]]:
+        """(attachment, its nodes in stepped body i (m,), start points (m, 3), Jacobians (m, 3, n)) of that body's
+        two-way attachments."""
         out = []
         for att in self.attachments:
-            if att.body is body and att.coupled:
+            where, first = self._place[id(att.body)]
+            if where == i and att.coupled:
                 pts = att.rigid.to_world(att.local)
                 link = np.full(len(pts), att.rigid.link)
                 J = coupling.jacobians(self.adapter, np.full(len(pts), att.rigid.id), link, pts)
-                out.append((att, pts, J))
+                out.append((att, att.nodes + first, pts, J))
         return out
 
     def _body_steps(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
@@ -564,10 +651,10 @@ class World:
             parts = self._attach_pending.get(id(body), [])
             if parts:
                 nodes, target, J, rid, lid, pts = [], [], [], [], [], []
-                for a, p0, Ja in parts:
+                for a, ids, p0, Ja in parts:
                     end = a.rigid.to_world(a.local)  # where the points went under the free motion
-                    nodes.append(a.nodes)
-                    target.append((end - body.positions[a.nodes]) / h)
+                    nodes.append(ids)
+                    target.append((end - body.positions[ids]) / h)
                     J.append(Ja)
                     rid.append(np.full(len(a.nodes), a.rigid.id))
                     lid.append(np.full(len(a.nodes), a.rigid.link))
@@ -672,7 +759,7 @@ class World:
             if f is None:
                 continue
             k = 0
-            for a, _, _ in self._attach_pending.get(id(body), []):
+            for a, _, _, _ in self._attach_pending.get(id(body), []):
                 self.attachment_forces.append((a, f[k:k + len(a.nodes)]))
                 k += len(a.nodes)
         self.timings["velocity_solve"] += (time.perf_counter() - t0 - self._rigid_inside
@@ -694,6 +781,11 @@ class World:
         h, t = self.dt, self.t
         tic = time.perf_counter()
         self._sync()
+        self._restack()
+        bodies = self.sim.bodies  # the stepped ones
+        for s in bodies:
+            if isinstance(s, BodyStack):
+                s.gather()  # members whose state or supports the user changed since the last step
         for rb in self.rigids.values():
             if rb.motion is not None:
                 p0, q0 = rb.scripted_pose(t)
@@ -705,14 +797,14 @@ class World:
         self.contact_results, self.face_results = {}, {}
         self.attachment_forces = []
         self.detector.last_candidates = 0
-        detected = [self._detect(i, body) for i, body in enumerate(self.bodies)] if self.rigids else []
+        detected = [self._detect(i, body) for i, body in enumerate(bodies)] if self.rigids else []
         found = [d[0] for d in detected]
         hits = [d[1] for d in detected]
         self.contacts = Contacts.concat(found)
         self.face_hits = FaceHits.concat(hits)
         self.soft_hits = self._detect_soft()
         self.pair_results = []
-        fresh = [i for i, b in enumerate(self.bodies) if id(b) not in self._started]
+        fresh = [i for i, b in enumerate(self._members) if id(b) not in self._started]
         if fresh:
             self._check_overlaps(fresh)
         self.timings["collision"] = time.perf_counter() - tic
@@ -725,15 +817,15 @@ class World:
         self._coupling = coupling = RigidCoupling.of(dynamics)
         self._check_constraints(dynamics)
         self._pending = {id(body): self._node_contacts(body, f, coupling)
-                         for body, f in zip(self.bodies, found) if len(f)}
+                         for body, f in zip(bodies, found) if len(f)}
         self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
-                               for body, f in zip(self.bodies, hits) if len(f)}
-        self._attach_pending = {id(body): self._coupled_attachments(body, coupling) for body in self.bodies}
+                               for body, f in zip(bodies, hits) if len(f)}
+        self._attach_pending = {id(body): self._coupled_attachments(i, coupling) for i, body in enumerate(bodies)}
         self._pending_pairs = self._pair_contacts(self.soft_hits)
         self._rigid_inside = 0.0
         # the moving links' poses at the start, for contacts found at the end of the step (_end_contacts)
         self._poses0 = ({rb.key: rb.pose() for rb in self.rigids.values() if rb.movable or rb.motion is not None}
-                        if self.bodies else {})
+                        if bodies else {})
         snapshot = self.adapter.snapshot({k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way})
         for b, lk, f, x in self._lagged:
             self.adapter.apply_force(b, lk, f, x)
@@ -742,7 +834,7 @@ class World:
         tic = time.perf_counter()
         try:
             new = self.sim.solve_step()
-            du = self._solution.du if self.bodies else np.zeros(0)
+            du = self._solution.du if bodies else np.zeros(0)
             fem = time.perf_counter() - tic
             tr = time.perf_counter()
             for b, dyn in coupling.dynamics.items():
@@ -754,7 +846,7 @@ class World:
             self.adapter.restore_snapshot(snapshot)
             raise
         self.sim.commit(new)
-        self._started.update(id(b) for b in self.bodies)
+        self._started.update(id(b) for b in self._members)
         for rb in self.rigids.values():
             if rb.motion is not None:
                 pos, orn = rb.scripted_pose(self.t)
@@ -777,9 +869,11 @@ class World:
         shallower overlap with a rigid link is pushed out at ``push_speed``."""
         margin = self.contact_margin
         for i in fresh:
-            body = self.bodies[i]
+            body = self._members[i]
             extent = float(np.ptp(body.positions, axis=0).min())
-            sel = (self.contacts.body == i) & (self.contacts.distance < -margin)
+            where, first = self._place[id(body)]
+            mine = (self.contacts.body == where) & (self.contacts.node >= first) & (self.contacts.node < first + body.n_nodes)
+            sel = mine & (self.contacts.distance < -margin)
             overlaps = []
             if sel.any():
                 k = np.flatnonzero(sel)[np.argmin(self.contacts.distance[sel])]
@@ -789,7 +883,7 @@ class World:
                 if i not in (a, b) or a == b or (a != i and a in fresh):  # each pair once
                     continue
                 j = b if a == i else a
-                other = self.bodies[j]
+                other = self._members[j]
                 reach = max(extent, float(np.ptp(other.positions, axis=0).min()))
                 data = [(x.positions, np.zeros_like(x.positions), self._soft_surface[id(x)], x.rest) for x in (body, other)]
                 d = soft_contacts(data, [(0, 1)], margin, self.dt, reach).distance
@@ -806,7 +900,7 @@ class World:
     def _check_missed(self) -> None:
         """After a step: a fast rigid link that ended inside a soft body was not caught within the step (its
         contacts are linearised at the start of the step); say so once, with its speed."""
-        for i, body in enumerate(self.bodies):
+        for i, body in enumerate(self.sim.bodies):
             surface, _ = self._surface[id(body)]
             surface = surface[~body.supported()[surface]]  # supports win over contact
             for rb in self.rigids.values():
@@ -818,10 +912,11 @@ class World:
                 found = self.detector.node_contacts(i, body.positions, surface, rb, self.contact_margin)
                 depth = -float(found.distance.min(initial=0.0))
                 if depth > MISSED:
+                    k = self._member(i, int(found.node[np.argmin(found.distance)]))
                     speed = float(np.linalg.norm(sweep.v))
-                    self._warn_once(("missed", id(body), rb.key), (
+                    self._warn_once(("missed", k, rb.key), (
                         f"rigid body {rb.name!r} moving at {speed:.3g} m/s (spinning at {np.linalg.norm(sweep.w):.3g} "
-                        f"rad/s) ended {1e3 * depth:.1f} mm inside soft body {i} at t = {self.t:.4g} s: its contact "
+                        f"rad/s) ended {1e3 * depth:.1f} mm inside soft body {k} at t = {self.t:.4g} s: its contact "
                         f"was not caught within the step of {self.dt} s (it travels {1e3 * speed * self.dt:.0f} mm "
                         "per step); it is pushed out over the next steps. A smaller dt catches it."))
 
@@ -856,7 +951,8 @@ class World:
         self._sync()
         g = self.gravity
         soft_k = soft_e = soft_p = 0.0
-        for body, (x, v) in zip(self.bodies, states or [(b.positions, b.velocities) for b in self.bodies]):
+        stepped = self.sim.bodies  # the states of solve_step are the stepped bodies'; their sums are the members'
+        for body, (x, v) in zip(stepped, states or [(b.positions, b.velocities) for b in stepped]):
             soft_k += body.kinetic_energy(v)
             soft_e += body.elastic_energy(x)
             soft_p += body.gravitational_energy(g, x)
@@ -890,14 +986,20 @@ class World:
         force of that soft body (one added with :meth:`add_soft`)."""
         if isinstance(body_id, RigidLink):
             body_id, link = body_id.id, body_id.link if link is None else link
-        if soft is not None and all(b is not soft for b in self.bodies):
+        if soft is not None and all(b is not soft for b in self._members):
             raise InvalidInputError("soft must be a soft body of this World (added with add_soft)")
         total = np.zeros(3)
         results = [*self.contact_results.items(), *self.face_results.items()]
+        if soft is not None:
+            where, first = self._place[id(soft)]
+            key_of = id(self.sim.bodies[where])
         for key, (c, res) in results:
-            if soft is not None and key != id(soft):
+            if soft is not None and key != key_of:
                 continue
             sel = res.active & (c.rigid == body_id)
+            if soft is not None and key_of != id(soft):  # a stack: the contacts on the soft body's nodes
+                node = c.nodes[:, 0] if isinstance(c, FaceContacts) else c.node
+                sel &= (node >= first) & (node < first + soft.n_nodes)
             if link is not None:
                 sel &= c.link == link
             total -= res.force[sel].sum(axis=0)
@@ -915,7 +1017,7 @@ class World:
     def max_penetration(self) -> float:
         """Deepest penetration [m] of any soft surface node into any rigid link at the current positions."""
         worst = 0.0
-        for i, body in enumerate(self.bodies):
+        for i, body in enumerate(self.sim.bodies):
             surface, _ = self._surface[id(body)]
             surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():

@@ -93,6 +93,7 @@ class FemBody:
         self.warping = bool(warping)
         self.damping = (alpha, beta)
         self.mass_kind = mass
+        self.hex_rotation = hex_rotation
         et = mesh.element_type
         self.element_type = et
         X = mesh.nodes[mesh.elements]  # (E, k, 3)

@@ -12,6 +12,7 @@ from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSyst
 from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
 from .solvers import BodySolvers
+from .stack import BodyStack
 
 # A hook (bodies, their step systems, their supports, t_next) -> the bodies' new velocities (N_i, 3); the
 # integration layer uses it to solve contacts and the coupling to rigid bodies for all bodies at once.
@@ -92,9 +93,16 @@ class Simulation:
             self.solvers.solver(b, solver)  # fail early on a bad backend
 
     def load(self, body: FemBody) -> np.ndarray:
-        """The external load (N, 3) [N] on ``body``: gravity and its external_forces."""
+        """The external load (N, 3) [N] on ``body``: gravity and its external_forces (a BodyStack: also its
+        members')."""
         f_ext = body.node_mass[:, None] * self.gravity
         extra = self.external_forces.get(id(body))
+        members = getattr(body, "members", ())  # a BodyStack: its members' loads, in their rows
+        if any(id(m) in self.external_forces for m in members):
+            f_ext = f_ext.copy()
+            for i, m in enumerate(members):
+                if id(m) in self.external_forces:
+                    f_ext[body.rows(i)] += self.external_forces[id(m)]
         return f_ext if extra is None else f_ext + extra
 
     def linear_method(self, body: FemBody) -> str:
@@ -120,6 +128,9 @@ class Simulation:
         yet applied: :meth:`commit` applies them. :meth:`step` is both."""
         t_next = self.t + self.dt
         self.timings = {}
+        for b in self.bodies:
+            if isinstance(b, BodyStack):
+                b.gather()  # members whose state the user assigned anew since the last step
         supports = [support_constraints(b, t_next, self.dt) for b in self.bodies]
 
         def solve(systems: list[LinearSystem]) -> list[np.ndarray]:

@@ -1,0 +1,115 @@
+"""Several soft bodies stepped as one: a block-diagonal system.
+
+Bodies of one element kind, material, damping, mass kind and warping (the same ``stack_key``) have nothing
+in their step that tells them apart but their nodes. :class:`BodyStack` is a FemBody whose mesh is the
+disjoint union of theirs: its matrices are block-diagonal (no element joins two members), so one rotation
+pass, one assembly, one factorisation (or one PCG) and one collision pass step all of them, with a cost that
+grows with their total nodes rather than with their number, and the same answer as stepping each alone.
+
+The members stay the user's bodies: between steps their ``positions`` and ``velocities`` are views of rows
+of the stack's (:meth:`BodyStack.scatter`), and a member whose state was assigned anew, or whose supports
+changed, is read back before the next step (:meth:`BodyStack.gather`).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from .body import FemBody
+from .errors import InvalidInputError
+from .mesh import Mesh
+
+
+def stack_key(body: FemBody) -> tuple:
+    """What must agree for bodies to share a stack: element kind, material, warping, damping, mass kind and
+    hex rotation (everything a step reads apart from the mesh and the state)."""
+    m = body.material
+    return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.warping, body.damping,
+            body.mass_kind, body.hex_rotation)
+
+
+class BodyStack(FemBody):
+    """The FemBody of ``members`` (two or more, one stack_key) side by side: nodes of member i are rows
+    ``offsets[i]:offsets[i + 1]`` of the stack's arrays. Its state starts as the members' state."""
+
+    def __init__(self, members: Sequence[FemBody]):
+        members = list(members)
+        if len(members) < 2:
+            raise InvalidInputError(f"a BodyStack needs two or more bodies, got {len(members)}")
+        keys = {stack_key(b) for b in members}
+        if len(keys) != 1:
+            raise InvalidInputError(f"bodies of a stack must agree in element kind, material, warping, damping "
+                                    f"and mass; got {sorted(map(str, keys))}")
+        first = members[0]
+        sizes = np.array([b.n_nodes for b in members])
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)])
+        nodes = np.concatenate([b.mesh.nodes for b in members])
+        elements = np.concatenate([b.mesh.elements + o for b, o in zip(members, self.offsets[:-1])])
+        super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
+                         first.mass_kind, first.hex_rotation)
+        self.members = members
+        self._views: list[tuple[np.ndarray, np.ndarray]] = []
+        self._supports_seen: list = []
+        self.gather(force=True)
+
+    def member_of(self, nodes: np.ndarray) -> np.ndarray:
+        """The member index (m,) of each stack node (m,)."""
+        return np.searchsorted(self.offsets, nodes, side="right") - 1
+
+    def rows(self, i: int) -> slice:
+        """The stack's rows of member i."""
+        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+
+    def gather(self, force: bool = False) -> None:
+        """Read the members' state and supports where they changed since :meth:`scatter` (a member whose
+        ``positions`` or ``velocities`` were assigned anew; in-place writes reach the stack through the views)."""
+        x, v = self._positions, self._velocities
+        changed = force or len(self._views) != len(self.members)
+        for i, b in enumerate(self.members):
+            if force or changed or b._positions is not self._views[i][0] or b._velocities is not self._views[i][1]:
+                x[self.rows(i)] = b._positions
+                v[self.rows(i)] = b._velocities
+                changed = True
+        if changed:
+            self.scatter()
+        self._gather_supports()
+
+    def scatter(self) -> None:
+        """Make the members' state views of the stack's rows (done whenever the stack's state is assigned)."""
+        if "members" not in self.__dict__ or "_velocities" not in self.__dict__:
+            return  # FemBody.__init__ sets the state before the members are known
+        self._views = []
+        for i, b in enumerate(self.members):
+            rows = self.rows(i)
+            b._positions, b._velocities = self._positions[rows], self._velocities[rows]
+            self._views.append((b._positions, b._velocities))
+
+    def _set_positions(self, value) -> None:
+        FemBody.positions.fset(self, value)
+        self.scatter()
+
+    def _set_velocities(self, value) -> None:
+        FemBody.velocities.fset(self, value)
+        self.scatter()
+
+    positions = property(FemBody.positions.fget, _set_positions, doc=FemBody.positions.__doc__)
+    velocities = property(FemBody.velocities.fget, _set_velocities, doc=FemBody.velocities.__doc__)
+
+    def supported(self) -> np.ndarray:
+        self._gather_supports()
+        return super().supported()
+
+    def constrained_targets(self, t_next: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+        self._gather_supports()
+        return super().constrained_targets(t_next, h)
+
+    def _gather_supports(self) -> None:
+        """The stack's fixed and prescribed nodes: the members', renumbered (re-read when a member's changed)."""
+        seen = [(b.fixed.tobytes(), len(b.prescribed), [id(m) for _, m in b.prescribed]) for b in self.members]
+        if seen == self._supports_seen:
+            return
+        self._supports_seen = seen
+        self.fixed = np.concatenate([b.fixed for b in self.members])
+        self.prescribed = [(ids + o, motion) for b, o in zip(self.members, self.offsets[:-1])
+                           for ids, motion in b.prescribed]
