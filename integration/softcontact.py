@@ -160,19 +160,27 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
     positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
     distinct bodies. Pairs whose boxes (grown by their reach) do not meet cost nothing further."""
-    boxes = []
-    for x, v, surf, _ in bodies:
-        xs = x[surf.nodes]
-        grow = margin + depth + SOFT_SLACK * h * float(np.sqrt((v[surf.nodes] ** 2).sum(axis=1).max(initial=0.0)))
-        boxes.append((xs.min(axis=0) - grow, xs.max(axis=0) + grow))
+    if not pairs:
+        return SoftHits.empty()
+    # every body's box, grown by its reach, in a few calls whatever the number of bodies
+    used = sorted({k for ab in pairs for k in ab})
+    xs = [bodies[k][0][bodies[k][2].nodes] for k in used]
+    vs = [bodies[k][1][bodies[k][2].nodes] for k in used]
+    starts = np.cumsum([0] + [len(x) for x in xs[:-1]])
+    x_all, v_all = np.concatenate(xs), np.concatenate(vs)
+    speed = np.maximum.reduceat(np.einsum("ij,ij->i", v_all, v_all), starts)
+    grow = (margin + depth + SOFT_SLACK * h * np.sqrt(speed))[:, None]
+    row = np.full(len(bodies), -1)
+    row[used] = np.arange(len(used))
+    lo_all, hi_all = np.minimum.reduceat(x_all, starts) - grow, np.maximum.reduceat(x_all, starts) + grow
+    ab = row[np.array(pairs)]
+    meet = (ab[:, 0] == ab[:, 1]) | ~((lo_all[ab[:, 0]] > hi_all[ab[:, 1]]) | (lo_all[ab[:, 1]] > hi_all[ab[:, 0]])).any(axis=1)
     out = []
-    for a, b in pairs:
-        if a != b and (np.any(boxes[a][0] > boxes[b][1]) or np.any(boxes[b][0] > boxes[a][1])):
-            continue
+    for a, b in np.array(pairs)[meet].tolist():
         for p, q in ((a, b), (b, a)) if a != b else ((a, a),):
             xp, vp, sp, rp = bodies[p]
             xq, vq, sq, rq = bodies[q]
-            lo, hi = boxes[q]
+            lo, hi = lo_all[row[q]], hi_all[row[q]]
             cand = sp.nodes[np.all((xp[sp.nodes] >= lo) & (xp[sp.nodes] <= hi), axis=1)]
             node, tri, w, nrm, d = node_triangle_contacts(xp, vp, cand, sp, xq, vq, sq, margin, h, depth,
                                                           (rp, rq) if p == q else None)
