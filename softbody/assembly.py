@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -96,8 +98,19 @@ class BlockPattern:
         return np.bincount(self.scatter.ravel(), weights=element_values.ravel(), minlength=self.nnzb)
 
     def to_bsr(self, block_data: np.ndarray) -> sp.bsr_matrix:
-        n = 3 * self.n_nodes
-        return sp.bsr_matrix((block_data, self.indices, self.indptr), shape=(n, n))
+        """The BSR matrix of block data (nnzb, 3, 3) on this pattern (sharing the data, no copy): a shallow copy
+        of one checked matrix with its data swapped, 6 us against scipy's 85 us of format checks."""
+        template = self.__dict__.get("_bsr_template")
+        data = np.asarray(block_data)
+        if template is None or data.shape != template.data.shape or data.dtype != template.data.dtype:
+            n = 3 * self.n_nodes
+            template = sp.bsr_matrix((np.zeros_like(data), self.indices.copy(), self.indptr.copy()), shape=(n, n))
+            if data.shape != (self.nnzb, 3, 3):
+                return sp.bsr_matrix((data, self.indices, self.indptr), shape=(n, n))  # scipy's error for bad data
+            self._bsr_template = template
+        matrix = copy.copy(template)
+        matrix.data = data
+        return matrix
 
     def to_csr(self, block_data: np.ndarray) -> sp.csr_matrix:
         return self.to_bsr(block_data).tocsr()
