@@ -158,22 +158,27 @@ class CollisionDetector:
         xs = positions[surface]
         lo0, hi0 = xs.min(axis=0), xs.max(axis=0)
         parts, faces = [], []
-        boxes = triangle_boxes(positions, triangles)
-        normals = vertex_normals(positions, triangles)
-        touching = np.zeros(len(positions), dtype=bool)
-        touch_normal = np.zeros((len(positions), 3))
+        boxes = normals = touching = touch_normal = None  # made when first needed
         for rb, sweep in zip(links, sweeps):
             margin = sweep.bound(surface)
             rlo, rhi = rb.aabb()
             if np.any(rlo > hi0 + margin) or np.any(rhi < lo0 - margin):
                 continue  # broad phase: far apart, no query at all
             found = self.node_contacts(body_index, positions, surface, rb, margin, sweep)
-            # a rigid face must face the soft surface at the node: a node lying in the plane of a box's bottom,
-            # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
-            # plough into it); a node inside the link always is
-            facing = np.einsum("ij,ij->i", found.normal, normals[found.node]) < FACING
-            found = found.select(facing | (found.distance <= 0))
-            parts.append(found)
+            if len(found):
+                # a rigid face must face the soft surface at the node: a node lying in the plane of a box's bottom,
+                # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
+                # plough into it); a node inside the link always is
+                if normals is None:
+                    normals = vertex_normals(positions, triangles)
+                facing = np.einsum("ij,ij->i", found.normal, normals[found.node]) < FACING
+                found = found.select(facing | (found.distance <= 0))
+                parts.append(found)
+            if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
+                continue  # a plane: no face contacts (CollisionDetector.face_contacts)
+            if boxes is None:
+                boxes = triangle_boxes(positions, triangles)
+                touching, touch_normal = np.zeros(len(positions), dtype=bool), np.zeros((len(positions), 3))
             touching[:] = False
             touch_normal[:] = 0.0
             resting = found.distance <= touch
@@ -261,6 +266,8 @@ class CollisionDetector:
         ``boxes``: the triangles' bounds (triangle_boxes), if already at hand. ``sweep``: a point outside a
         triangle's plane counts only within its reach (what it closes along the normal within the step).
         """
+        if not len(rigid.round_parts()) and not len(rigid.corner_points()[0]):
+            return FaceHits.empty()  # a plane: no point of it lies between the nodes of a triangle outside it
         if boxes is None:
             boxes = triangle_boxes(positions, triangles)
         tlo, thi = boxes[0] - margin, boxes[1] + margin
