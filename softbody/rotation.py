@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import kernels
+
 
 def _svd_rotation(F: np.ndarray) -> np.ndarray:
     """Rotation by SVD (n, 3, 3); the reflection of an inverted F goes to its smallest singular direction."""
@@ -92,6 +94,13 @@ def polar_rotation_components(F9: np.ndarray, tol: float = 1e-12, max_iter: int 
     """
     F9 = np.asarray(F9, dtype=float)
     n = F9.shape[1]
+    if kernels.ENABLED:  # the same iteration, compiled, element by element (softbody.kernels)
+        R, ok = np.empty_like(F9), np.empty(n, dtype=bool)
+        kernels.polar_newton(F9, tol, max_iter, R, ok)
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            R[:, bad] = _svd_rotation(F9[:, bad].T.reshape(-1, 3, 3)).reshape(-1, 9).T
+        return R
     C, t = np.empty_like(F9), np.empty(n)
     _cofactors(F9, C, t)
     det = _det(F9, C, np.empty(n), t)
