@@ -11,6 +11,9 @@ the machine's speed hits both alike: the median of the per-block ratios is the f
   bench configurations of ``softbody bench``), after ``--warmup`` steps into the impact;
 - ``--mode free``: the bare Simulation of the same sheets in free fall (no World, no contact).
 
+A configuration ``cubes:N`` is N soft cubes (tet10, 2x2x2 cells, 0.1 m, 0.15 m apart) settling on a plane in one
+World (issue 18's many-body scene, built here with each version's World, as older versions lack its scene).
+
 Also printed: the largest difference of the monitored trajectories [m] (0 when the change keeps the
 numbers).
 """
@@ -38,7 +41,7 @@ def load(root: Path) -> dict:
         del sys.modules[k]
     sys.path.insert(0, str(root))
     try:
-        mods = {"softbody": importlib.import_module("softbody"),
+        mods = {"softbody": importlib.import_module("softbody"), "world": importlib.import_module("integration.world"),
                 "scenes": importlib.import_module("experiments.scenes" if (root / "experiments" / "scenes.py").exists()
                                                   else "integration.scenes")}  # before the move to experiments/
     finally:
@@ -49,8 +52,23 @@ def load(root: Path) -> dict:
     return mods
 
 
+def cubes(mods: dict, count: int):
+    """(step, monitored) of ``count`` tet10 cubes settling on a plane, 1 mm above it at the start."""
+    sb = mods["softbody"]
+    world = mods["world"].World(dt=0.01)
+    world.add_plane()
+    bodies = []
+    for k in range(count):
+        mesh = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=(0.15 * k, 0.0, 0.051))
+        bodies.append(world.add_soft(sb.FemBody(mesh, sb.LinearElastic(5e5, 0.33, 1000.0), damping=(0.1, 0.001)),
+                                     friction=0.5))
+    return world.step, lambda: float(bodies[0].positions[:, 2].min())
+
+
 def build(mods: dict, mode: str, kind: str, cells):
     """(step function, monitored value function) of one configuration."""
+    if kind == "cubes":
+        return cubes(mods, cells[0])
     if mode == "free":
         sb = mods["softbody"]
         mesh = sb.box_mesh((1.0, 1.0, 0.25), cells, kind, center=(0, 0, 0.475))
@@ -68,12 +86,12 @@ if __name__ == "__main__":
     ap.add_argument("--block", type=int, default=10, help="steps per block (the versions alternate by block)")
     ap.add_argument("--warmup", type=int, default=20, help="untimed steps first (20: into the sheet's impact)")
     ap.add_argument("--configs", nargs="*", default=None, metavar="KIND:NXxNYxNZ",
-                    help="configurations, e.g. tet10:9x9x2 (default: the bench's four)")
+                    help="configurations, e.g. tet10:9x9x2 or cubes:10 (default: the bench's four)")
     args = ap.parse_args()
     if not (args.base / "softbody" / "__init__.py").exists():
         sys.exit(f"{args.base} holds no softbody/ package")
     configs = CONFIGS if not args.configs else [
-        (c.split(":")[0], tuple(int(n) for n in c.split(":")[1].split("x"))) for c in args.configs]
+        (c.split(":")[0], tuple(int(n) for n in c.split(":")[1].split("x"))) for c in args.configs]  # cubes:10
     versions = {"this": load(Path(__file__).resolve().parents[1]), "base": load(args.base)}
     versions["this"]["softbody"].linsolve.set_threads(1)
     print(f"mode: {args.mode}; {args.steps} steps in blocks of {args.block} after {args.warmup} warm-up steps")

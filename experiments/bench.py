@@ -66,6 +66,9 @@ SHEET = "sheet-on-sphere"
 #: the issue's three sizes (paper-converged sheet meshes) plus the 1445-node tet4 mesh for pybullet
 DEFAULT_CONFIGS = [(SHEET, "tet4", (16, 16, 4)), (SHEET, "tet4", (24, 24, 6)),
                    (SHEET, "hex8", (20, 20, 5)), (SHEET, "tet10", (9, 9, 2))]
+#: the fixed cost of a step (issue 18): small sheets, one small cube on a plane, ten of them in one World
+SMALL_CONFIGS = [(SHEET, "tet4", (4, 4, 2)), (SHEET, "tet10", (2, 2, 1)), (SHEET, "tet4", (8, 8, 3)),
+                 ("cubes-on-plane", "tet10", (2, 2, 2)), ("ten-cubes-on-plane", "tet10", (2, 2, 2))]
 #: a quick check that everything runs (CI)
 TINY_CONFIGS = [(SHEET, "tet4", (4, 4, 2))]
 #: ms per step against nodes, up to >= 4x the paper's largest sheet mesh (tet4 (26,26,7): 5832 nodes)
@@ -264,7 +267,8 @@ def measure_config(spec: dict) -> dict:
     t_start = time.perf_counter()
     baseline = _rss_mb()  # interpreter + numpy/scipy/MKL + pybullet, before the scene exists
     scene = _build(spec)
-    world, body = scene.world, scene.body
+    world = scene.world
+    body = world.stepped(scene.body)  # a scene of several bodies: the stack that steps them (softbody.stack)
     out = {"scene": spec["scene"], "element": spec["element"], "cells": list(spec["cells"]),
            "elements": int(body.mesh.n_elements), "nodes": int(body.n_nodes), "dofs": int(body.n_dofs),
            "threads": spec["threads"], "steps": spec["steps"], "repeats": spec["repeats"], "warmup": spec["warmup"],
@@ -1006,7 +1010,7 @@ def bench_command(args) -> list[dict]:
     elif args.scaling:
         configs, preset, name, pb_cells = SCALING_CONFIGS, dict(SCALING), "scaling", []
     else:
-        configs, preset, name, pb_cells = DEFAULT_CONFIGS, {}, "bench", PYBULLET_CELLS
+        configs, preset, name, pb_cells = DEFAULT_CONFIGS + SMALL_CONFIGS, {}, "bench", PYBULLET_CELLS
     if args.configs:
         configs, pb_cells = args.configs, None
     kw = dict(steps=DEFAULTS["steps"], repeats=DEFAULTS["repeats"], warmup=DEFAULTS["warmup"])
