@@ -29,6 +29,10 @@ for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import numpy as np
 
+# this checkout importable by name throughout: numba's on-disk cache (softbody.kernels) imports the module
+# by name when it loads a compiled kernel, after load() has put sys.modules back
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 CONFIGS = [("tet4", (16, 16, 4)), ("tet4", (24, 24, 6)), ("hex8", (20, 20, 5)), ("tet10", (9, 9, 2))]
 PACKAGES = ("softbody", "integration", "experiments")
 
