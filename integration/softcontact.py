@@ -173,11 +173,22 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     row = np.full(len(bodies), -1)
     row[used] = np.arange(len(used))
     lo_all, hi_all = np.minimum.reduceat(x_all, starts) - grow, np.maximum.reduceat(x_all, starts) + grow
-    ab = row[np.array(pairs)]
-    meet = (ab[:, 0] == ab[:, 1]) | ~((lo_all[ab[:, 0]] > hi_all[ab[:, 1]]) | (lo_all[ab[:, 1]] > hi_all[ab[:, 0]])).any(axis=1)
+    # which bodies have surface nodes in which grown boxes (one test over all nodes and boxes): a direction
+    # (p, q) of a pair is searched only if some node of p lies in q's box
+    owner = np.repeat(np.arange(len(used)), [len(x) for x in xs])
+    inside = np.ones((len(x_all), len(used)), dtype=bool)  # (S, B), axis by axis (cheaper than .all over 3)
+    for k in range(3):
+        inside &= (x_all[:, k, None] >= lo_all[:, k]) & (x_all[:, k, None] <= hi_all[:, k])
+    at, box = np.nonzero(inside)
+    reaches = np.zeros((len(used), len(used)), dtype=bool)
+    reaches[owner[at], box] = True
+    P = np.array(pairs)
+    ra, rb = row[P[:, 0]], row[P[:, 1]]
     out = []
-    for a, b in np.array(pairs)[meet].tolist():
+    for a, b in P[(ra == rb) | reaches[ra, rb] | reaches[rb, ra]].tolist():
         for p, q in ((a, b), (b, a)) if a != b else ((a, a),):
+            if p != q and not reaches[row[p], row[q]]:
+                continue
             xp, vp, sp, rp = bodies[p]
             xq, vq, sq, rq = bodies[q]
             lo, hi = lo_all[row[q]], hi_all[row[q]]

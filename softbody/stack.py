@@ -8,7 +8,8 @@ grows with their total nodes rather than with their number, and the same answer 
 
 The members stay the user's bodies: between steps their ``positions`` and ``velocities`` are views of rows
 of the stack's (:meth:`BodyStack.scatter`), and a member whose state was assigned anew, or whose supports
-changed, is read back before the next step (:meth:`BodyStack.gather`).
+changed, is read back before the next step (:meth:`BodyStack.gather`, which softbody.Simulation and the World
+call at the start of every step).
 """
 from __future__ import annotations
 
@@ -95,14 +96,6 @@ class BodyStack(FemBody):
 
     positions = property(FemBody.positions.fget, _set_positions, doc=FemBody.positions.__doc__)
     velocities = property(FemBody.velocities.fget, _set_velocities, doc=FemBody.velocities.__doc__)
-
-    def supported(self) -> np.ndarray:
-        self._gather_supports()
-        return super().supported()
-
-    def constrained_targets(self, t_next: float, h: float) -> tuple[np.ndarray, np.ndarray]:
-        self._gather_supports()
-        return super().constrained_targets(t_next, h)
 
     def _gather_supports(self) -> None:
         """The stack's fixed and prescribed nodes: the members', renumbered (re-read when a member's changed)."""
