@@ -446,6 +446,10 @@ class World:
         for gone in held.values():  # stacks dissolved: their members keep their state (views of its rows)
             for d in (self.friction, self._ignore, self._surface):
                 d.pop(id(gone), None)
+        stepping = {id(s) for s in stepped}  # what was kept for bodies no longer stepped goes (the warm starts of
+        for key in [k for k in self.contact_solver.previous if k[1] not in stepping and k[0] != "soft"]:  # contacts
+            del self.contact_solver.previous[key]  # restart from the contact state found in the next step)
+        self.sim.solvers.retain(stepped)
         self._place = {}
         for i, s in enumerate(stepped):
             for m, o in zip(getattr(s, "members", [s]), getattr(s, "offsets", [0])):

@@ -179,6 +179,10 @@ class Simulation:
             msg = f"energy {energy:.3e} J exceeds the bound {self.max_energy:.3e} J"
         else:
             return
+        if isinstance(body, BodyStack) and worst is not None:  # name the member the user knows
+            node = int(body.mesh.elements[worst, 0])
+            k = int(body.member_of(np.array([node]))[0])
+            msg += f"; in the stack's member {k} (its element {worst - int(body.element_offsets[k])})"
         raise SimulationDiverged(
             f"body {i} diverged at step {self.steps + 1} (t = {self.t + self.dt:.6g} s): {msg}; "
             f"worst element {worst}. State kept at t = {self.t:.6g} s; try a smaller dt or more damping.",

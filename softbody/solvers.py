@@ -33,6 +33,13 @@ class BodySolvers:
             held = self._preconditioners[key] = (body, new_preconditioner(body, solver.backend))
         return held[1]
 
+    def retain(self, bodies) -> None:
+        """Drop the solvers and preconditioners of every body not in ``bodies`` (released with them)."""
+        keep = {id(b) for b in bodies}
+        for held in (self._solvers, self._preconditioners):
+            for key in [k for k, (b, _) in held.items() if id(b) not in keep]:
+                del held[key]
+
     def held_preconditioner(self, body: FemBody, backend: str) -> Preconditioner | None:
         """The body's preconditioner for ``backend`` if one was made, else None (for counters)."""
         held = self._preconditioners.get((id(body), backend))

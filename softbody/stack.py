@@ -47,6 +47,7 @@ class BodyStack(FemBody):
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
         nodes = np.concatenate([b.mesh.nodes for b in members])
         elements = np.concatenate([b.mesh.elements + o for b, o in zip(members, self.offsets[:-1])])
+        self.element_offsets = np.concatenate([[0], np.cumsum([b.mesh.n_elements for b in members])])
         super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
                          first.mass_kind, first.hex_rotation)
         self.members = members

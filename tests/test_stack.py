@@ -129,3 +129,15 @@ def test_world_stacks_only_bodies_that_agree():
     sizes = sorted(len(getattr(s, "members", [s])) for s in world.sim.bodies)
     assert sizes == [1, 1, 2]  # the stiffer cube and the one of other friction alone
     assert world.bodies == soft
+
+
+def test_divergence_in_a_stack_names_the_member():
+    from softbody.errors import SimulationDiverged
+
+    bodies = [_cube((0.3 * k, 0.0, 0.0)) for k in range(2)]
+    sim = Simulation([BodyStack(bodies)], 0.01, max_energy=1.0)
+    c = bodies[1].rest.mean(axis=0)
+    bodies[1].positions = c + 1.5 * (bodies[1].rest - c)  # stretched by half: far above 1 J of elastic energy
+    with pytest.raises(SimulationDiverged, match="member 1"):
+        sim.step()
+    assert np.array_equal(bodies[0].positions, bodies[0].rest)  # the state kept
