@@ -59,3 +59,14 @@ def test_plane_distance_is_the_height_above_it():
     np.testing.assert_allclose(dist, (x - [0, 0, -0.1]) @ n, atol=1e-12)
     np.testing.assert_allclose(point, x - dist[:, None] * n, atol=1e-12)
     world.close()
+
+
+def test_row_groups_equal_numpys_unique_rows():
+    from integration.collision import row_groups
+
+    rng = np.random.default_rng(3)
+    for m in (1, 7, 300):
+        rows = np.c_[rng.integers(0, 3, m), rng.integers(-2, 2, (m, 3)).astype(float)]
+        _, inverse = np.unique(rows, axis=0, return_inverse=True)
+        assert np.array_equal(row_groups(rows), inverse.reshape(-1))
+    assert len(row_groups(np.zeros((0, 4)))) == 0
