@@ -461,6 +461,15 @@ class World:
                 self._surface[id(s)] = (np.unique(tris), tris)
         self.sim.bodies[:] = stepped
 
+    def _stepped_now(self) -> list[FemBody]:
+        """The stepped bodies (sim.bodies), restacked if due, the stacks holding their members' current state and
+        supports (what the user changed since the last step)."""
+        self._restack()
+        for s in self.sim.bodies:
+            if isinstance(s, BodyStack):
+                s.gather()
+        return self.sim.bodies
+
     def stepped(self, body: FemBody) -> FemBody:
         """The body that steps soft body ``body``: itself, or the BodyStack it is stepped in (softbody.stack)."""
         if not any(b is body for b in self._members):
@@ -785,11 +794,7 @@ class World:
         h, t = self.dt, self.t
         tic = time.perf_counter()
         self._sync()
-        self._restack()
-        bodies = self.sim.bodies  # the stepped ones
-        for s in bodies:
-            if isinstance(s, BodyStack):
-                s.gather()  # members whose state or supports the user changed since the last step
+        bodies = self._stepped_now()
         for rb in self.rigids.values():
             if rb.motion is not None:
                 p0, q0 = rb.scripted_pose(t)
@@ -955,7 +960,7 @@ class World:
         self._sync()
         g = self.gravity
         soft_k = soft_e = soft_p = 0.0
-        stepped = self.sim.bodies  # the states of solve_step are the stepped bodies'; their sums are the members'
+        stepped = self.sim.bodies if states else self._stepped_now()  # their sums are the members'
         for body, (x, v) in zip(stepped, states or [(b.positions, b.velocities) for b in stepped]):
             soft_k += body.kinetic_energy(v)
             soft_e += body.elastic_energy(x)
@@ -1021,7 +1026,7 @@ class World:
     def max_penetration(self) -> float:
         """Deepest penetration [m] of any soft surface node into any rigid link at the current positions."""
         worst = 0.0
-        for i, body in enumerate(self.sim.bodies):
+        for i, body in enumerate(self._stepped_now()):
             surface, _ = self._surface[id(body)]
             surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():
