@@ -15,8 +15,10 @@ edge, is no contact with the side face beyond). Self-contact (a == b) also leave
 surroundings (triangles within one rest edge length of it), and never pulls a node through the body: only
 nodes on the outer side of a triangle count.
 
-Broad phase: the bodies' boxes, then a k-d tree (scipy's cKDTree) over the triangles' centres, queried with
-the nodes in reach of the other body; narrow phase vectorised over the candidate pairs.
+Broad phase: every surface node against every body's box grown by its reach (one vectorised test), then per
+body a k-d tree (scipy's cKDTree) over its triangles' centres, queried with the nodes of the other bodies in
+its box; narrow phase vectorised over the candidate pairs of all bodies at once (a pile of small bodies costs
+one query per body in reach of another, not one per pair and direction).
 """
 from __future__ import annotations
 
@@ -146,7 +148,7 @@ def node_triangle_contacts(xa: np.ndarray, va: np.ndarray, nodes: np.ndarray, su
     i, t, w, nrm, d, facing = i[ok], t[ok], w[ok], nrm[ok], d[ok], facing[ok]
     if not len(i):
         return none
-    order = np.lexsort((np.abs(d), i))  # per node the nearest triangle: it says whether the node is inside
+    order = np.lexsort((t, np.abs(d), i))  # per node the nearest triangle (the first of equals): inside or not
     first = order[np.r_[True, i[order][1:] != i[order][:-1]]]
     i, t, w, nrm, d, facing = i[first], t[first], w[first], nrm[first], d[first], facing[first]
     v_rel = va[nodes[i]] - np.einsum("ms,msi->mi", w, vb[tris[t]])
@@ -159,49 +161,133 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
                   margin: float, h: float, depth: float) -> SoftHits:
     """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
     positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
-    distinct bodies. Pairs whose boxes (grown by their reach) do not meet cost nothing further."""
+    distinct bodies, in one pass over all of them (one query per body that other nodes reach, one narrow phase
+    for all). The same contacts, in the same order, as
+    :func:`pair_contacts_reference` (a search per pair and direction, kept for the tests)."""
     if not pairs:
         return SoftHits.empty()
-    # every body's box, grown by its reach, in a few calls whatever the number of bodies
-    used = sorted({k for ab in pairs for k in ab})
-    xs = [bodies[k][0][bodies[k][2].nodes] for k in used]
-    vs = [bodies[k][1][bodies[k][2].nodes] for k in used]
-    starts = np.cumsum([0] + [len(x) for x in xs[:-1]])
-    x_all, v_all = np.concatenate(xs), np.concatenate(vs)
-    speed = np.maximum.reduceat(np.einsum("ij,ij->i", v_all, v_all), starts)
-    grow = (margin + depth + SOFT_SLACK * h * np.sqrt(speed))[:, None]
+    P_ = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    used = np.unique(P_)
     row = np.full(len(bodies), -1)
     row[used] = np.arange(len(used))
-    lo_all, hi_all = np.minimum.reduceat(x_all, starts) - grow, np.maximum.reduceat(x_all, starts) + grow
-    # which bodies have surface nodes in which grown boxes (one test over all nodes and boxes): a direction
-    # (p, q) of a pair is searched only if some node of p lies in q's box
-    owner = np.repeat(np.arange(len(used)), [len(x) for x in xs])
-    inside = np.ones((len(x_all), len(used)), dtype=bool)  # (S, B), axis by axis (cheaper than .all over 3)
+    B = len(used)
+    # direction (p, q): p's nodes against q's triangles; its rank orders the output as the pairs are given
+    rank = np.full((B, B), -1)
+    k2 = 2 * np.arange(len(P_))
+    rank[row[P_[:, 1]], row[P_[:, 0]]] = k2 + 1
+    rank[row[P_[:, 0]], row[P_[:, 1]]] = k2
+    data = [bodies[k] for k in used.tolist()]
+    s_of = np.array([len(sf.nodes) for _, _, sf, _ in data])
+    if not s_of.all():
+        return SoftHits.empty()
+    node_b = np.repeat(np.arange(B), s_of)
+    # every body's box, grown by its reach: a node counts against a body only inside its box
+    xs = np.concatenate([x[sf.nodes] for x, _, sf, _ in data])
+    vs = np.concatenate([v[sf.nodes] for _, v, sf, _ in data])
+    starts = np.concatenate([[0], np.cumsum(s_of)[:-1]])
+    speed2 = np.einsum("ij,ij->i", vs, vs)
+    grow = (margin + depth + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, starts)))[:, None]
+    lo, hi = np.minimum.reduceat(xs, starts) - grow, np.maximum.reduceat(xs, starts) + grow
+    inbox = rank[node_b] >= 0  # (S, B): node's body searched against body q, and inside q's grown box
     for k in range(3):
-        inside &= (x_all[:, k, None] >= lo_all[:, k]) & (x_all[:, k, None] <= hi_all[:, k])
-    at, box = np.nonzero(inside)
-    reaches = np.zeros((len(used), len(used)), dtype=bool)
-    reaches[owner[at], box] = True
-    P = np.array(pairs)
-    ra, rb = row[P[:, 0]], row[P[:, 1]]
+        inbox &= (xs[:, k, None] >= lo[:, k]) & (xs[:, k, None] <= hi[:, k])
+    reached = np.flatnonzero(inbox.any(axis=0))
+    if not len(reached):
+        return SoftHits.empty()
+    # all bodies' arrays, one numbering (node ids offset by the bodies before)
+    n_of = np.array([len(x) for x, _, _, _ in data])
+    off = np.concatenate([[0], np.cumsum(n_of)[:-1]])
+    X = np.concatenate([x for x, _, _, _ in data])
+    V = np.concatenate([v for _, v, _, _ in data])
+    nodes = np.concatenate([sf.nodes + o for (_, _, sf, _), o in zip(data, off)])
+    tris = np.concatenate([sf.triangles + o for (_, _, sf, _), o in zip(data, off)])
+    t_of = np.array([len(sf.triangles) for _, _, sf, _ in data])
+    t_off = np.concatenate([[0], np.cumsum(t_of)[:-1]])
+    tri_b = np.repeat(np.arange(B), t_of)
+    # broad phase: per body q, the nodes of the bodies searched against it that lie in its grown box, against a
+    # k-d tree of its triangles' bounding spheres (bodies with no such nodes cost nothing more)
+    travel_a = SOFT_SLACK * h * np.sqrt(speed2)
+    parts_i, parts_t = [], []
+    for q in reached.tolist():
+        sel = np.flatnonzero(inbox[:, q])
+        tq = tris[t_off[q]:t_off[q] + t_of[q]]
+        Pq = X[tq]  # (T_q, 3, 3)
+        centre = Pq.mean(axis=1)
+        radius = np.sqrt(((Pq - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
+        travel_b = SOFT_SLACK * h * np.sqrt((V[tq] ** 2).sum(axis=2).max(axis=1))
+        reach = margin + depth + radius.max() + travel_a[sel].max() + travel_b.max()
+        found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre), reach, output_type="ndarray")
+        i, t = sel[found["i"]], found["j"].astype(np.int64)
+        ok = found["v"] <= margin + depth + radius[t] + travel_a[i] + travel_b[t]
+        parts_i.append(i[ok])
+        parts_t.append(t[ok] + t_off[q])
+    if not parts_i:
+        return SoftHits.empty()
+    i, t = np.concatenate(parts_i), np.concatenate(parts_t)
+    pb, qb = node_b[i], tri_b[t]
+    same = pb == qb
+    if same.any():  # self-contact: not against the node's own surroundings
+        R = np.concatenate([r for _, _, _, r in data])
+        rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
+        rn, rt = R[nodes[i[same]]], R[tris[t[same]]]
+        gap = rn - np.clip(rn, rt.min(axis=1), rt.max(axis=1))
+        far = np.ones(len(i), dtype=bool)
+        far[same] = np.einsum("ij,ij->i", gap, gap) > (1.01 * rest_edge[t[same]]) ** 2
+        i, t, pb, qb, same = i[far], t[far], pb[far], qb[far], same[far]
+    if not len(i):
+        return SoftHits.empty()
+    # narrow phase, as in pair_contacts_reference
+    P = X[tris[t]]
+    A, Bv, C = P[:, 0], P[:, 1], P[:, 2]
+    nrm = cross(Bv - A, C - A)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    xi = xs[i]
+    d = np.einsum("ij,ij->i", xi - A, nrm)
+    w = barycentric(xi - d[:, None] * nrm, A, Bv, C)
+    inside = (w >= -PRISM_TOL).all(axis=1)
+    w = np.clip(w, 0.0, None)
+    w /= w.sum(axis=1, keepdims=True)
+    facing = np.einsum("ij,ij->i", vertex_normals(X, tris)[nodes[i]], nrm) < FACING
+    ok = inside & (facing | ~same)
+    i, t, pb, qb, same, w, nrm, d, facing = (a[ok] for a in (i, t, pb, qb, same, w, nrm, d, facing))
+    if not len(i):
+        return SoftHits.empty()
+    order = np.lexsort((t, np.abs(d), qb, i))  # per node and other body, the nearest triangle (the first of equals)
+    first = order[np.r_[True, (i[order][1:] != i[order][:-1]) | (qb[order][1:] != qb[order][:-1])]]
+    i, t, pb, qb, same, w, nrm, d, facing = (a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
+    v_rel = V[nodes[i]] - np.einsum("ms,msi->mi", w, V[tris[t]])
+    closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)
+    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > np.where(same, -margin, -depth))
+    i, t, pb, qb, w, nrm, d = (a[ok] for a in (i, t, pb, qb, w, nrm, d))
+    node = nodes[i] - off[pb]
+    order = np.lexsort((node, rank[pb, qb]))  # pair by pair as given, each direction by node
+    i, t, pb, qb, w, nrm, d, node = (a[order] for a in (i, t, pb, qb, w, nrm, d, node))
+    a, b = used[pb], used[qb]
+    # a contact is a node against the other body (its nearest triangle may change from step to step as it
+    # slides; its friction state goes on)
+    key = node | ((a * 1024 + b) << NODE_BITS)
+    return without_mirrors(SoftHits(a, node, b, t - t_off[qb], tris[t] - off[qb][:, None], w, nrm, d, key))
+
+
+def pair_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]],
+                            pairs: list[tuple[int, int]], margin: float, h: float, depth: float) -> SoftHits:
+    """:func:`soft_contacts` pair by pair and direction by direction (node_triangle_contacts for each): the
+    reference the one-pass search is tested against."""
     out = []
-    for a, b in P[(ra == rb) | reaches[ra, rb] | reaches[rb, ra]].tolist():
+    for a, b in pairs:
         for p, q in ((a, b), (b, a)) if a != b else ((a, a),):
-            if p != q and not reaches[row[p], row[q]]:
-                continue
             xp, vp, sp, rp = bodies[p]
             xq, vq, sq, rq = bodies[q]
-            lo, hi = lo_all[row[q]], hi_all[row[q]]
+            xs_q, vs_q = xq[sq.nodes], vq[sq.nodes]
+            grow = margin + depth + SOFT_SLACK * h * float(np.sqrt(np.einsum("ij,ij->i", vs_q, vs_q).max(initial=0.0)))
+            lo, hi = xs_q.min(axis=0) - grow, xs_q.max(axis=0) + grow
             cand = sp.nodes[np.all((xp[sp.nodes] >= lo) & (xp[sp.nodes] <= hi), axis=1)]
             node, tri, w, nrm, d = node_triangle_contacts(xp, vp, cand, sp, xq, vq, sq, margin, h, depth,
                                                           (rp, rq) if p == q else None)
-            if not len(node):
-                continue
             m = len(node)
-            # a contact is a node against the other body (its nearest triangle may change from step to step
-            # as it slides; its friction state goes on)
-            key = node | (np.int64(p * 1024 + q) << NODE_BITS)
-            out.append(SoftHits(np.full(m, p), node, np.full(m, q), tri, sq.triangles[tri], w, nrm, d, key))
+            if m:
+                key = node | (np.int64(p * 1024 + q) << NODE_BITS)
+                out.append(SoftHits(np.full(m, p), node, np.full(m, q), tri, sq.triangles[tri], w, nrm, d, key))
     return without_mirrors(SoftHits.concat(out))
 
 
