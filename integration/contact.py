@@ -24,6 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from softbody.integrator import Constraints, LinearSystem
 
@@ -709,6 +711,35 @@ class ContactSolver:
             self._keep_pair_state(state)
         return None, it, pair_result
 
+    def _solve_components(self, D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, state: ContactState,
+                          eligible) -> tuple[np.ndarray, ContactState, int]:
+        """frictional.solve_contacts on each set of contacts that D couples (its connected components: contacts
+        on bodies that touch neither each other nor a common movable rigid body, such as the members of a
+        BodyStack, are independent problems), the same solution at a fraction of the cost of one dense problem
+        of them all. Returns gamma (m, 3), the state and the Newton steps (summed)."""
+        m = len(bias)
+        coupled = (D.reshape(m, 3, m, 3) != 0).any(axis=(1, 3))
+        count, label = connected_components(sp.csr_matrix(coupled), directed=False)
+        if count == 1:
+            return solve_contacts(D, w0, bias, mu, state, eligible, self.velocity_tol, self.cone_tol)
+        gamma, solves = np.zeros((m, 3)), 0
+        for c in range(count):
+            idx = np.flatnonzero(label == c)
+            rows = (3 * idx[:, None] + np.arange(3)).ravel()
+            sub = ContactState(state.active[idx].copy(), state.stick[idx].copy(), state.direction[idx].copy())
+
+            def sub_eligible(g, idx=idx):  # the others' impulses are zero: they do not move these contacts
+                full = np.zeros((m, 3))
+                full[idx] = g
+                return eligible(full)[idx]
+
+            g, sub, k = solve_contacts(D[np.ix_(rows, rows)], w0[rows], bias[idx], mu[idx], sub,
+                                       None if eligible is None else sub_eligible, self.velocity_tol, self.cone_tol)
+            gamma[idx] = g
+            state.active[idx], state.stick[idx], state.direction[idx] = sub.active, sub.stick, sub.direction
+            solves += k
+        return gamma, state, solves
+
     def _solve_dense(self, steps, prepared, h, index, results, pairs=None, M=None
                      ) -> tuple[np.ndarray, int, ContactResult | None]:
         """Bodies touching movable rigid bodies, together: every contact (node, face or soft, ``pairs`` with
@@ -786,7 +817,7 @@ class ContactSolver:
                     ok[o:o + len(rs.c)] = rs.eligible(vs, z[:n], g[o:o + len(rs.c), 0] > 0)
                 return ok
 
-            gamma, state, solves = solve_contacts(D, w0, bias, mu, state, eligible, self.velocity_tol, self.cone_tol)
+            gamma, state, solves = self._solve_components(D, w0, bias, mu, state, eligible)
         z = np.zeros(n + 3 * m)
         if m:
             z = gamma_to_z(gamma)

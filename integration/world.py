@@ -162,7 +162,13 @@ class World:
         self._restack_due = False  # members added or their grouping changed since the last step
         # id(member) -> (index of its stepped body in sim.bodies, first node there)
         self._place: dict[int, tuple[int, int]] = {}
+        self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
+        self._results_of: dict[int, tuple[int, int]] = {}  # id(member) -> (id of its stepped body, first node), last step
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
+        # id(member) -> id of the first member of its contact group: the members whose contacts need the dense
+        # contact solve (soft contact among them, a movable rigid body they share, friction at face contacts)
+        # are stacked apart from the others, which would otherwise be solved densely with them; groups only merge
+        self._dense_group: dict[int, int] = {}
         self._pairs_version = 0  # counts the changes of what the bodies ignore
         self.contacts: Contacts = Contacts.empty()  # candidates of the last step
         self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}  # id(body) -> node contacts
@@ -425,11 +431,13 @@ class World:
 
     def _stack_key(self, body: FemBody) -> tuple | None:
         """What a soft body must share with others to be stepped in one stack with them (softbody.stack_key,
-        friction, self-contact and the rigid links it ignores); None: stepped alone (stacking off)."""
+        friction, self-contact, the rigid links it ignores and its contact group, see :meth:`_group_dense`); None:
+        stepped alone (stacking off)."""
         if not self._stack:
             return None
         ignore = frozenset(k for k in self._ignore[id(body)] if k[0] != "soft")  # soft pairs are searched per body
-        return stack_key(body), self.friction[id(body)], id(body) in self._self_contact, ignore
+        return (stack_key(body), self.friction[id(body)], id(body) in self._self_contact, ignore,
+                self._dense_group.get(id(body)))
 
     def _restack(self) -> None:
         """Group the soft bodies into the stepped ones (sim.bodies): a BodyStack for each two or more of one
@@ -469,6 +477,65 @@ class World:
             if isinstance(s, BodyStack):
                 s.gather()
         return self.sim.bodies
+
+    def _group_dense(self, member_pairs: np.ndarray, coupling: RigidCoupling) -> None:
+        """Merge the contact groups of this step's members that need the dense contact solve (ContactSolver.solve:
+        soft contact, a movable rigid body in contact or attached, friction at face contacts): those in soft
+        contact with each other or touching one movable body join one group, the others a group of their own;
+        a change regroups the stacks from the next step on (the dense solve of a stack covers all its members'
+        contacts, whose responses cost a solve each)."""
+        if not self._stack or len(self._members) < 2:
+            return
+        index = {id(m): k for k, m in enumerate(self._members)}
+        links: list[tuple[int, int]] = [tuple(p) for p in member_pairs.tolist()]
+        by_rigid: dict[int, int] = {}
+
+        def member_of(stepped: np.ndarray, node: np.ndarray) -> np.ndarray:
+            out = np.empty(len(node), dtype=np.int64)
+            for i, s in enumerate(self.sim.bodies):
+                on = stepped == i
+                if not on.any():
+                    continue
+                members = getattr(s, "members", [s])
+                local = s.member_of(node[on]) if isinstance(s, BodyStack) else np.zeros(int(on.sum()), np.int64)
+                out[on] = np.array([index[id(m)] for m in members])[local]
+            return out
+
+        c, f = self.contacts, self.face_hits
+        coupled = np.isin(c.rigid, list(coupling.dynamics)) if coupling.n else np.zeros(len(c), bool)
+        f_coupled = np.isin(f.rigid, list(coupling.dynamics)) if coupling.n else np.zeros(len(f), bool)
+        for who, rid in ((member_of(c.body[coupled], c.node[coupled]), c.rigid[coupled]),
+                         (member_of(f.body[f_coupled], f.nodes[f_coupled, 0]), f.rigid[f_coupled])):
+            for k, r in zip(who.tolist(), rid.tolist()):
+                links.append((by_rigid.setdefault(r, k), k))
+        for att in self.attachments:
+            if att.coupled:
+                k = index[id(att.body)]
+                links.append((by_rigid.setdefault(att.rigid.id, k), k))
+        if len(f):
+            mu = np.array([self.friction[id(self._members[k])] for k in range(len(self._members))])
+            who = member_of(f.body, f.nodes[:, 0])
+            rigid_mu = np.array([self.rigids[(int(r), int(lk))].friction for r, lk in zip(f.rigid, f.link)], dtype=object)
+            frictional = np.where(rigid_mu == None, mu[who], rigid_mu).astype(float) > 0  # noqa: E711
+            links += [(k, k) for k in np.unique(who[frictional]).tolist()]
+        changed = False
+        group = self._dense_group
+        for a, b in links:
+            ia, ib = id(self._members[a]), id(self._members[b])
+            ga, gb = group.get(ia), group.get(ib)
+            if ga is None and gb is None:
+                group[ia] = group[ib] = ia
+            elif ga is None or gb is None:
+                group[ia if ga is None else ib] = gb if ga is None else ga
+            elif ga != gb:
+                for k, g in list(group.items()):
+                    if g == gb:
+                        group[k] = ga
+            else:
+                continue
+            changed = True
+        if changed:
+            self._restack_due = True
 
     def stepped(self, body: FemBody) -> FemBody:
         """The body that steps soft body ``body``: itself, or the BodyStack it is stepped in (softbody.stack)."""
@@ -574,10 +641,12 @@ class World:
             if np.all(la <= hb) and np.all(lb <= ha):
                 self._warn_once(("soft off", a, b), f"soft bodies {a} and {b} meet, but {why}: they pass through "
                                 "each other")
+        self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
         if not pairs:
             return SoftHits.empty()
         data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self._members]
         hits = soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin)
+        self._soft_member_pairs = np.column_stack([hits.a, hits.b])  # in the members' numbering
         if len(hits) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
             place = np.array([self._place[id(b)] for b in self._members])
             hits.node = hits.node + place[hits.a, 1]
@@ -825,6 +894,7 @@ class World:
                     if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
         self._coupling = coupling = RigidCoupling.of(dynamics)
         self._check_constraints(dynamics)
+        self._group_dense(self._soft_member_pairs, coupling)
         self._pending = {id(body): self._node_contacts(body, f, coupling)
                          for body, f in zip(bodies, found) if len(f)}
         self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
@@ -856,6 +926,8 @@ class World:
             raise
         self.sim.commit(new)
         self._started.update(id(b) for b in self._members)
+        self._results_of = {id(m): (id(bodies[w]), first) for m in self._members  # whose results are whose
+                            for w, first in [self._place[id(m)]]}
         for rb in self.rigids.values():
             if rb.motion is not None:
                 pos, orn = rb.scripted_pose(self.t)
@@ -1000,8 +1072,9 @@ class World:
         total = np.zeros(3)
         results = [*self.contact_results.items(), *self.face_results.items()]
         if soft is not None:
-            where, first = self._place[id(soft)]
-            key_of = id(self.sim.bodies[where])
+            if id(soft) not in self._results_of:  # added after the last step
+                return total
+            key_of, first = self._results_of[id(soft)]  # the stepped body it was in at the last step
         for key, (c, res) in results:
             if soft is not None and key != key_of:
                 continue

@@ -107,6 +107,10 @@ class BlockPattern:
             template = sp.bsr_matrix((np.zeros_like(data), self.indices.copy(), self.indptr.copy()), shape=(n, n))
             if data.shape != (self.nnzb, 3, 3):
                 return sp.bsr_matrix((data, self.indices, self.indptr), shape=(n, n))  # scipy's error for bad data
+            # every matrix made here shares these: read-only, so that an in-place change of the structure
+            # (eliminate_zeros, sort_indices) fails loudly instead of corrupting the next ones
+            template.indices.flags.writeable = False
+            template.indptr.flags.writeable = False
             self._bsr_template = template
         matrix = copy.copy(template)
         matrix.data = data

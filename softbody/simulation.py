@@ -169,7 +169,7 @@ class Simulation:
         if bad.any():
             node = int(np.flatnonzero(bad)[0])
             worst = int(np.flatnonzero((body.mesh.elements == node).any(axis=1))[0])
-            msg = f"non-finite positions or velocities (first at node {node})"
+            msg = f"non-finite positions or velocities (first at node {node - self._first_node(body, node)})"
         elif self.max_energy is not None:
             energy = body.kinetic_energy(v) + body.elastic_energy(x)
             if energy <= self.max_energy:
@@ -179,14 +179,22 @@ class Simulation:
             msg = f"energy {energy:.3e} J exceeds the bound {self.max_energy:.3e} J"
         else:
             return
-        if isinstance(body, BodyStack) and worst is not None:  # name the member the user knows
-            node = int(body.mesh.elements[worst, 0])
-            k = int(body.member_of(np.array([node]))[0])
-            msg += f"; in the stack's member {k} (its element {worst - int(body.element_offsets[k])})"
+        what = f"body {i}"
+        if isinstance(body, BodyStack):  # name the member the user knows, and number within it
+            k = int(body.member_of(np.array([int(body.mesh.elements[worst, 0])]))[0])
+            what = f"body {i} (a BodyStack): its member {k} (sim.bodies[{i}].members[{k}])"
+            worst -= int(body.element_offsets[k])
         raise SimulationDiverged(
-            f"body {i} diverged at step {self.steps + 1} (t = {self.t + self.dt:.6g} s): {msg}; "
+            f"{what} diverged at step {self.steps + 1} (t = {self.t + self.dt:.6g} s): {msg}; "
             f"worst element {worst}. State kept at t = {self.t:.6g} s; try a smaller dt or more damping.",
             step=self.steps + 1, time=self.t + self.dt, element=worst)
+
+    @staticmethod
+    def _first_node(body: FemBody, node: int) -> int:
+        """The first node of the member of a BodyStack that holds ``node`` (0 for a plain body)."""
+        if not isinstance(body, BodyStack):
+            return 0
+        return int(body.offsets[int(body.member_of(np.array([node]))[0])])
 
     def run(self, duration: float, callback: Callable[["Simulation"], object] | None = None,
             progress: bool = False) -> None:

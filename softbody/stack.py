@@ -38,6 +38,10 @@ class BodyStack(FemBody):
         members = list(members)
         if len(members) < 2:
             raise InvalidInputError(f"a BodyStack needs two or more bodies, got {len(members)}")
+        if any(isinstance(b, BodyStack) for b in members):
+            raise InvalidInputError("a BodyStack's members must be bodies, not stacks (stack their members instead)")
+        if len({id(b) for b in members}) != len(members):
+            raise InvalidInputError("a body appears twice among the members of a BodyStack")
         keys = {stack_key(b) for b in members}
         if len(keys) != 1:
             raise InvalidInputError(f"bodies of a stack must agree in element kind, material, warping, damping "
@@ -100,7 +104,7 @@ class BodyStack(FemBody):
 
     def _gather_supports(self) -> None:
         """The stack's fixed and prescribed nodes: the members', renumbered (re-read when a member's changed)."""
-        seen = [(b.fixed.tobytes(), len(b.prescribed), [id(m) for _, m in b.prescribed]) for b in self.members]
+        seen = [(b.fixed.tobytes(), [(ids.tobytes(), id(m)) for ids, m in b.prescribed]) for b in self.members]
         if seen == self._supports_seen:
             return
         self._supports_seen = seen

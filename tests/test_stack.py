@@ -112,7 +112,8 @@ def test_world_stack_keeps_soft_contact_and_attachments(mu):
         world.attach(held, top, post)
         return world, [low, high, held]
     (ws, bs), (wa, ba) = _run(True, 25, build), _run(False, 25, build)
-    assert len(ws.sim.bodies) == 1
+    stacked = [s for s in ws.sim.bodies if isinstance(s, BodyStack)]  # the two in soft contact, apart
+    assert len(stacked) == 1 and stacked[0].members == bs[:2] and bs[2] in ws.sim.bodies
     assert any(r.active.any() for _, r in ws.pair_results)  # the falling cube rests on the lower one
     for a, b, tol in zip(ba, bs, (1e-4, 1e-4, 1e-12)):
         assert np.abs(a.positions - b.positions).max() < tol
@@ -141,3 +142,51 @@ def test_divergence_in_a_stack_names_the_member():
     with pytest.raises(SimulationDiverged, match="member 1"):
         sim.step()
     assert np.array_equal(bodies[0].positions, bodies[0].rest)  # the state kept
+
+
+def test_bodies_in_soft_contact_are_stacked_apart_from_the_others():
+    """Four cubes on a plane, a fifth dropped on the first: once they touch, the two step in a stack of their own
+    (their soft contact needs the dense contact solve, which would otherwise cover every cube's contacts) and the
+    three others in another; the motion is that of the cubes stepped alone."""
+    def build(stack):
+        world = World(dt=0.01, stack=stack)
+        world.add_plane()
+        cubes = [_cube((0.3 * k, 0.0, 0.051)) for k in range(4)] + [_cube((0.0, 0.0, 0.16))]
+        for b in cubes:
+            world.add_soft(b, friction=0.5)
+        return world, cubes
+    (ws, bs), (wa, ba) = _run(True, 30, build), _run(False, 30, build)
+    groups = sorted(sorted(next(k for k, b in enumerate(bs) if b is m) for m in getattr(s, "members", [s]))
+                    for s in ws.sim.bodies)
+    assert groups == [[0, 4], [1, 2, 3]]
+    assert any(r.active.any() for _, r in ws.pair_results)
+    for a, b in zip(ba, bs):
+        assert np.abs(a.positions - b.positions).max() < 1e-4
+
+
+def test_contact_force_per_body_survives_a_restack_between_steps():
+    world = World(dt=0.01)
+    plane = world.add_plane()
+    first = world.add_soft(_cube((0.0, 0.0, 0.0505)), friction=0.5)
+    for _ in range(10):
+        world.step()
+    world.add_soft(_cube((0.3, 0.0, 0.0505)), friction=0.5)
+    world.energy()  # restacks now (the recorder calls it after every step)
+    assert world.contact_force(plane, soft=first)[2] == pytest.approx(-first.total_mass * 9.81, rel=1e-3)
+    assert np.all(world.contact_force(plane, soft=world.bodies[1]) == 0.0)  # no step taken yet
+
+
+def test_a_prescription_moved_to_other_nodes_is_seen_by_the_stack():
+    bodies = [_cube((0.3 * k, 0.0, 0.0)) for k in range(2)]
+    sim = Simulation([BodyStack(bodies)], 0.01, gravity=(0, 0, 0))
+    ids = np.flatnonzero(bodies[1].rest[:, 0] < bodies[1].rest[:, 0].min() + 1e-9)
+    held = {"at": bodies[1].rest[ids] + [0.0, 0.0, 0.01]}
+    motion = lambda t: held["at"]  # noqa: E731
+    bodies[1].prescribe(ids, motion)
+    sim.step()
+    other = np.flatnonzero(bodies[1].rest[:, 0] > bodies[1].rest[:, 0].max() - 1e-9)
+    assert len(other) == len(ids)
+    held["at"] = bodies[1].rest[other] + [0.0, 0.0, 0.01]
+    bodies[1].prescribed[0] = (other, motion)  # the same motion object and count, other nodes
+    sim.step()
+    np.testing.assert_allclose(bodies[1].positions[other], bodies[1].rest[other] + [0.0, 0.0, 0.01], atol=1e-12)
