@@ -190,3 +190,28 @@ def test_a_prescription_moved_to_other_nodes_is_seen_by_the_stack():
     bodies[1].prescribed[0] = (other, motion)  # the same motion object and count, other nodes
     sim.step()
     np.testing.assert_allclose(bodies[1].positions[other], bodies[1].rest[other] + [0.0, 0.0, 0.01], atol=1e-12)
+
+
+def test_soft_objects_in_the_users_tray(capsys):
+    """examples/soft_objects_in_tray.py in a short form: cubes dropped into pybullet_data's tray, in the user's own
+    client, end up stepped as one stack, resting on the tray floor with the tray carrying their weight."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "soft_objects_in_tray.py"
+    spec = importlib.util.spec_from_file_location("soft_objects_in_tray", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    p, cid, world, tray, cubes = example.build(6, True)
+    try:
+        for _ in range(60):
+            world.step()
+        assert len(world.sim.bodies) == 1 and len(world.sim.bodies[0].members) == 6
+        weight = sum(c.total_mass for c in cubes) * 9.81
+        assert -world.contact_force(tray)[2] == pytest.approx(weight, rel=0.02)
+        assert world.max_penetration() < 1e-4
+        floor = 0.015  # the tray's floor box: 2 cm thick at z = 0.005
+        assert min(c.positions[:, 2].min() for c in cubes) > floor - 1e-4
+    finally:
+        world.close()
+        p.disconnect(cid)
