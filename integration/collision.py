@@ -366,8 +366,9 @@ class CollisionDetector:
         # points it puts beyond the margin need no closest point (most of them, over a curved surface)
         edge = np.sqrt(np.stack([np.einsum("ij,ij->i", C - B, C - B), np.einsum("ij,ij->i", A - C, A - C),
                                  np.einsum("ij,ij->i", B - A, B - A)], axis=1))
-        beside = (np.maximum(-bary, 0.0) * (area2[ti, None] / edge)).max(axis=1)
-        maybe = ~(d * d + beside * beside >= margin * margin)  # NaN (a degenerate triangle) stays in
+        with np.errstate(divide="ignore", invalid="ignore"):
+            beside = (np.maximum(-bary, 0.0) * (area2[ti, None] / edge)).max(axis=1)
+            maybe = ~(d * d + beside * beside >= margin * margin)  # NaN (a degenerate triangle) stays in
         if not maybe.any():
             return FaceHits.empty()
         if not maybe.all():
