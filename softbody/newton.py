@@ -136,8 +136,17 @@ def rigid_prediction(body: FemBody, h: float) -> np.ndarray:
     """A first Newton iterate (N, 3) [m/s]: the velocity that carries the body over the step h [s] with the
     rigid motion of its current velocities (centre of mass, and the angular velocity of its angular momentum,
     turned through the exact rotation) plus the rest of the velocity field as it is. A spinning body's
-    prediction is turned, not stretched along its tangents, so the iteration starts near the solution."""
-    x, v, m = body.positions, body.velocities, body.node_mass
+    prediction is turned, not stretched along its tangents, so the iteration starts near the solution. A
+    BodyStack: each member's rigid motion apart."""
+    offsets = getattr(body, "offsets", None)
+    if offsets is not None:
+        return np.concatenate([_rigid_prediction(body.positions[a:b], body.velocities[a:b], body.node_mass[a:b], h)
+                               for a, b in zip(offsets[:-1].tolist(), offsets[1:].tolist())])
+    return _rigid_prediction(body.positions, body.velocities, body.node_mass, h)
+
+
+def _rigid_prediction(x: np.ndarray, v: np.ndarray, m: np.ndarray, h: float) -> np.ndarray:
+    """rigid_prediction of nodes at x (N, 3) with velocities v (N, 3) and masses m (N,) [kg]."""
     mass = m.sum()
     c, vc = m @ x / mass, m @ v / mass
     r, vr = x - c, v - vc
