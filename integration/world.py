@@ -512,12 +512,15 @@ class World:
             if att.coupled:
                 k = index[id(att.body)]
                 links.append((by_rigid.setdefault(att.rigid.id, k), k))
-        if len(f):
-            mu = np.array([self.friction[id(self._members[k])] for k in range(len(self._members))])
+        if len(f):  # friction at face contacts: the rigid link's coefficient, else the soft body's
             who = member_of(f.body, f.nodes[:, 0])
-            rigid_mu = np.array([self.rigids[(int(r), int(lk))].friction for r, lk in zip(f.rigid, f.link)], dtype=object)
-            frictional = np.where(rigid_mu == None, mu[who], rigid_mu).astype(float) > 0  # noqa: E711
-            links += [(k, k) for k in np.unique(who[frictional]).tolist()]
+            mu = np.array([self.friction[id(self._members[k])] for k in range(len(self._members))])[who]
+            links_of, at = np.unique(np.column_stack([f.rigid, f.link]), axis=0, return_inverse=True)
+            for j, (r, lk) in enumerate(links_of.tolist()):
+                own = self.rigids[(r, lk)].friction
+                if own is not None:
+                    mu[at.reshape(-1) == j] = own
+            links += [(k, k) for k in np.unique(who[mu > 0]).tolist()]
         changed = False
         group = self._dense_group
         for a, b in links:
