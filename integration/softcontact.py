@@ -188,10 +188,10 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     speed2 = np.einsum("ij,ij->i", vs, vs)
     grow = (margin + depth + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, starts)))[:, None]
     lo, hi = np.minimum.reduceat(xs, starts) - grow, np.maximum.reduceat(xs, starts) + grow
-    inbox = rank[node_b] >= 0  # (S, B): node's body searched against body q, and inside q's grown box
-    for k in range(3):
-        inbox &= (xs[:, k, None] >= lo[:, k]) & (xs[:, k, None] <= hi[:, k])
-    reached = np.flatnonzero(inbox.any(axis=0))
+    # directions (p, q) that can meet: searched, and p's nodes' box within q's grown box ((B, B), p by q)
+    plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
+    meet = (rank >= 0) & ~((plo[:, None] > hi[None]) | (phi[:, None] < lo[None])).any(axis=2)
+    reached = np.flatnonzero(meet.any(axis=0))
     if not len(reached):
         return SoftHits.empty()
     # all bodies' arrays, one numbering (node ids offset by the bodies before)
@@ -209,7 +209,11 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     travel_a = SOFT_SLACK * h * np.sqrt(speed2)
     parts_i, parts_t = [], []
     for q in reached.tolist():
-        sel = np.flatnonzero(inbox[:, q])
+        near = np.flatnonzero(meet[:, q])  # the bodies whose nodes may lie in q's grown box, and those nodes
+        sel = np.concatenate([np.arange(starts[p], starts[p] + s_of[p]) for p in near.tolist()])
+        sel = sel[((xs[sel] >= lo[q]) & (xs[sel] <= hi[q])).all(axis=1)]
+        if not len(sel):
+            continue
         tq = tris[t_off[q]:t_off[q] + t_of[q]]
         Pq = X[tq]  # (T_q, 3, 3)
         centre = Pq.mean(axis=1)

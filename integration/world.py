@@ -635,7 +635,8 @@ class World:
 
     def _detect_soft(self) -> SoftHits:
         """Contact candidates between the soft bodies, and of bodies with self-contact (softcontact.py), searched
-        body by body and numbered by the stepped bodies (a, b index sim.bodies, nodes theirs); a warning, once,
+        body by body and numbered by the stepped bodies (a, b index sim.bodies, node and nodes theirs; triangle
+        stays the soft body's own surface triangle); a warning, once,
         when bodies left out of soft contact meet (their boxes overlap)."""
         skipped: list = []
         pairs = self._soft_pairs(skipped)
