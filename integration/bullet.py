@@ -34,7 +34,7 @@ GEOMETRY = {p.GEOM_SPHERE: "sphere", p.GEOM_BOX: "box", p.GEOM_CAPSULE: "capsule
 
 def quat_matrix(q) -> np.ndarray:
     """Rotation matrix (3, 3) of a unit quaternion (x, y, z, w)."""
-    x, y, z, w = (float(c) for c in q)
+    x, y, z, w = q.tolist() if isinstance(q, np.ndarray) else (float(c) for c in q)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])

@@ -19,7 +19,7 @@ import numpy as np
 import pybullet as p
 
 from .bullet import quat_matrix
-from .distance import shape_distance
+from .distance import cross, shape_distance
 from .rigid import RigidLink
 
 
@@ -107,8 +107,8 @@ class Sweep:
 
     def rigid_travel(self) -> float:
         """The farthest [m] any point of the link may travel within the step, with slack (0 if unbounded)."""
-        spin = float(np.linalg.norm(self.w)) * self.radius if math.isfinite(self.radius) else 0.0
-        return RIGID_SLACK * self.h * (float(np.linalg.norm(self.v)) + spin)
+        spin = _length(self.w) * self.radius if math.isfinite(self.radius) else 0.0
+        return RIGID_SLACK * self.h * (_length(self.v) + spin)
 
     def bound(self, nodes: np.ndarray | None = None) -> float:
         """The largest reach [m] for the soft ``nodes`` (for the broad phase on boxes)."""
@@ -117,9 +117,11 @@ class Sweep:
     def reach(self, points: np.ndarray, towards: np.ndarray, v_soft: np.ndarray) -> np.ndarray:
         """(m,) the reach [m] at rigid material points (m, 3) whose soft partners lie along unit ``towards``
         (m, 3) from them and move with ``v_soft`` (m, 3): the margin plus what the two close within the step."""
-        vp = self.v + np.cross(self.w, points - self.centre)
-        rigid = np.maximum(np.einsum("ij,ij->i", vp, towards), 0.0)
         soft = np.maximum(-np.einsum("ij,ij->i", v_soft, towards), 0.0)
+        if not (self.v.any() or self.w.any()):  # a link at rest (most obstacles): the soft side alone
+            return self.margin + self.h * (SOFT_SLACK * soft)
+        vp = self.v + cross(self.w, points - self.centre)
+        rigid = np.maximum(np.einsum("ij,ij->i", vp, towards), 0.0)
         return self.margin + self.h * (RIGID_SLACK * rigid + SOFT_SLACK * soft)
 
     def swept(self, x: np.ndarray, size: np.ndarray | float = 0.0, travel: float = 0.0) -> np.ndarray:
@@ -130,11 +132,15 @@ class Sweep:
         path = RIGID_SLACK * self.h * self.v
         length2 = float(path @ path)
         rel = x - self.centre
-        s = np.clip(rel @ path / length2, 0.0, 1.0) if length2 > 0 else np.zeros(len(x))
-        gap = rel - s[:, None] * path
-        spin = RIGID_SLACK * self.h * float(np.linalg.norm(self.w)) * self.radius
+        gap = rel if length2 == 0 else rel - np.clip(rel @ path / length2, 0.0, 1.0)[:, None] * path
+        spin = RIGID_SLACK * self.h * _length(self.w) * self.radius
         reach = self.radius + spin + self.margin + size + travel
         return np.einsum("ij,ij->i", gap, gap) <= reach * reach
+
+
+def _length(v: np.ndarray) -> float:
+    """|v| of one vector (3,) (np.linalg.norm's checks cost more than the sum)."""
+    return math.sqrt(float(v @ v))
 
 
 class CollisionDetector:
@@ -191,7 +197,7 @@ class CollisionDetector:
         if len(found):
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
             found = found.select(order)
-            found = found.select(np.r_[True, found.node[1:] != found.node[:-1]])
+            found = found.select(run_starts(found.node))
         return found, FaceHits.concat(faces)
 
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
@@ -333,18 +339,16 @@ class CollisionDetector:
                 keep &= ~rigid.round_parts()[None] | ~tri_touch[round_tris].any(axis=1)[:, None]
             tk, sk = np.nonzero(keep)
             ti, q = round_tris[tk], pts[tk, sk]
-            # the rigid point's identity: triangles in one plane share their support point (a sphere over a flat
-            # sheet), which must be one rigid point, so that it takes one of them (two contacts on one spot make
-            # the contact forces ill-determined: the friction problem is singular, and its solution gained energy)
-            group = row_groups(np.c_[sk, np.round(q / (1e-9 + 1e-6 * margin))])
             feature = sk  # which part or corner, the same from step to step
             centre = rigid.support_centres()[sk]
         else:
-            ti, q, group, feature = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+            ti, q, feature = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
             centre = np.zeros((0, 3))
         centre = np.concatenate([centre, corner_centres[vi]])
         ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
-        group = np.concatenate([group, len(round_tris) * S + vi])
+        # which rigid point: a corner is one (numbered after the round parts' points, below), a round part's point
+        # is named by its position once the candidates are few (round entries -1 until then)
+        group = np.concatenate([np.full(len(feature), -1), len(round_tris) * S + vi])
         feature = np.concatenate([feature, S + (corner_ids[vi] if len(vi) else vi)])
         # the part must lie on the outer side of the triangle's plane: a box on a soft block's top face
         # never presses on its side faces through the edge they share (a concave mesh's vertices: no test)
@@ -355,8 +359,10 @@ class CollisionDetector:
             return FaceHits.empty()
         d = np.einsum("ij,ij->i", q - a[ti], nrm[ti])  # > 0 outside the soft body (outward triangles)
         near_plane = np.abs(d) < margin
-        if sweep is not None:  # the triangle's velocity: its nodes' mean
-            near_plane &= d < sweep.reach(q, -nrm[ti], sweep.velocities[triangles[around[ti]]].mean(axis=1))
+        if sweep is not None and near_plane.any():  # the triangle's velocity: its nodes' mean
+            at = np.flatnonzero(near_plane)
+            near_plane[at] = d[at] < sweep.reach(q[at], -nrm[ti[at]],
+                                                 sweep.velocities[triangles[around[ti[at]]]].mean(axis=1))
         ti, q, d, group, feature = ti[near_plane], q[near_plane], d[near_plane], group[near_plane], feature[near_plane]
         A, B, C, n = a[ti], b[ti], c[ti], nrm[ti]
         proj = q - d[:, None] * n
@@ -374,6 +380,13 @@ class CollisionDetector:
         if not maybe.all():
             ti, q, d, group, feature, A, B, C, n, bary = (ti[maybe], q[maybe], d[maybe], group[maybe], feature[maybe],
                                                           A[maybe], B[maybe], C[maybe], n[maybe], bary[maybe])
+        round_pt = group < 0
+        if round_pt.any():
+            # the rigid point's identity: triangles in one plane share their support point (a sphere over a flat
+            # sheet), which must be one rigid point, so that it takes one of them (two contacts on one spot make
+            # the contact forces ill-determined: the friction problem is singular, and its solution gained energy)
+            group[round_pt] = row_groups(np.column_stack([feature[round_pt],
+                                                          np.round(q[round_pt] / (1e-9 + 1e-6 * margin))]))
         closest = closest_on_triangles(q, A, B, C)
         reach = np.linalg.norm(q - closest, axis=1)
         inside = (bary >= -1e-9).all(axis=1)
@@ -386,7 +399,7 @@ class CollisionDetector:
         # triangle (many mesh vertices at one depth) is one contact, not one per vertex
         order = np.lexsort((d, ~inside, ti))
         keep = np.zeros(len(ti), dtype=bool)
-        keep[order] = np.r_[True, (ti[order][1:] != ti[order][:-1]) | (inside[order][1:] != inside[order][:-1])]
+        keep[order] = run_starts(ti[order], inside[order])
         ti, q, d, bary, group, inside, closest, feature = (ti[keep], q[keep], d[keep], bary[keep], group[keep],
                                                            inside[keep], closest[keep], feature[keep])
         # a point inside a triangle counts there (primary) only if that triangle is the soft surface nearest to
@@ -398,7 +411,7 @@ class CollisionDetector:
             dist = np.sqrt(((nearest - qi[:, None]) ** 2).sum(axis=2)).min(axis=1)
             primary[primary] = np.abs(d[primary]) <= dist + 1e-9
         order = np.lexsort((~primary, group))
-        first = np.r_[True, group[order][1:] != group[order][:-1]]
+        first = run_starts(group[order])
         primary[order[~first]] = False
         # neighbours: triangles the point is not on now but may cross into (or come nearest to) within the
         # step; their weights are those of the triangle's point nearest to the rigid point
@@ -446,11 +459,24 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     (T, 3) (zero at nodes on no triangle)."""
     P = positions[triangles]
     n = cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    nodes = triangles.ravel()
-    out = np.column_stack([np.bincount(nodes, weights=np.repeat(n[:, c], 3), minlength=len(positions))
-                           for c in range(3)])
-    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    # one sum over (triangle, corner, component) into node * 3 + component
+    slots = (3 * triangles[:, :, None] + np.arange(3)).ravel()
+    out = np.bincount(slots, weights=np.broadcast_to(n[:, None, :], (len(n), 3, 3)).ravel(),
+                      minlength=3 * len(positions)).reshape(-1, 3)
+    norm = np.sqrt(np.einsum("ij,ij->i", out, out))[:, None]
     return np.divide(out, norm, out=np.zeros_like(out), where=norm > 0)
+
+
+def run_starts(*keys: np.ndarray) -> np.ndarray:
+    """(m,) bool: where a run of equal entries starts in sorted keys (m,) each (several: a run of equal tuples),
+    True at the first entry and wherever any key differs from the entry before."""
+    out = np.empty(len(keys[0]), dtype=bool)
+    out[:1] = True
+    diff = out[1:]
+    np.not_equal(keys[0][1:], keys[0][:-1], out=diff)
+    for k in keys[1:]:
+        diff |= k[1:] != k[:-1]
+    return out
 
 
 def row_groups(rows: np.ndarray) -> np.ndarray:
@@ -460,7 +486,7 @@ def row_groups(rows: np.ndarray) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     order = np.lexsort(rows.T[::-1])
     s = rows[order]
-    new = np.r_[True, (s[1:] != s[:-1]).any(axis=1)]
+    new = run_starts(*s.T)
     group = np.empty(len(rows), dtype=np.int64)
     group[order] = np.cumsum(new) - 1
     return group
@@ -470,15 +496,6 @@ def triangle_boxes(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.nda
     """Axis-aligned bounds (lo (T, 3), hi (T, 3)) of triangles (T, 3) over node positions (N, 3)."""
     a, b, c = positions[triangles[:, 0]], positions[triangles[:, 1]], positions[triangles[:, 2]]
     return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
-
-
-def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of (m, 3) arrays (np.cross's general machinery costs more at these sizes)."""
-    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
-    out[:, 0] = u[:, 1] * v[:, 2] - u[:, 2] * v[:, 1]
-    out[:, 1] = u[:, 2] * v[:, 0] - u[:, 0] * v[:, 2]
-    out[:, 2] = u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-    return out
 
 
 def barycentric(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,

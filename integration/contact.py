@@ -31,6 +31,7 @@ from softbody.integrator import Constraints, LinearSystem
 
 from .collision import barycentric, closest_on_triangles
 from .coupling import CoupledPart, CoupledSolver, Rows
+from .distance import cross
 from .frictional import ContactState, solve_contacts
 
 
@@ -49,15 +50,19 @@ def _in_set(keys: np.ndarray, members: set) -> np.ndarray:
 
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """Orthonormal frames (m, 3, 3) with the unit normals (m, 3) as first column."""
-    n = normals / np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None]
-    x, y, z = n.T
+    F = np.empty((len(normals), 3, 3))
+    n = F[:, :, 0]
+    np.divide(normals, np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None], out=n)
+    x, y, z = n[:, 0], n[:, 1], n[:, 2]
     # t1 = n x e_x (or n x e_y where n is nearly along x), normalised; t2 = n x t1
     along_x = np.abs(x) >= 0.9
-    t1 = np.where(along_x[:, None], np.stack([-z, np.zeros_like(x), x], axis=1), np.stack([np.zeros_like(x), z, -y], axis=1))
+    t1 = F[:, :, 1]
+    t1[:, 0] = np.where(along_x, -z, 0.0)
+    t1[:, 1] = np.where(along_x, 0.0, z)
+    t1[:, 2] = np.where(along_x, x, -y)
     t1 /= np.sqrt(np.einsum("mi,mi->m", t1, t1))[:, None]
-    a, b, c = t1.T
-    t2 = np.stack([y * c - z * b, z * a - x * c, x * b - y * a], axis=1)
-    return np.stack([n, t1, t2], axis=2)
+    F[:, :, 2] = cross(n, t1)
+    return F
 
 
 @dataclass
@@ -313,20 +318,19 @@ class _ContactSet:
         changed = release.any() or add.any()
         # friction: stick -> slip when the needed force leaves the cone; slip -> stick when sliding stops
         ft = rl[:, 1:]
-        ftn = np.linalg.norm(ft, axis=1)
+        ftn = np.sqrt(np.einsum("mi,mi->m", ft, ft))
         switching = it <= self.switches
         want_slip = active & stick & (ftn > c.mu * np.maximum(lam, 0) * (1 + s.cone_tol))
         to_slip = switching & want_slip
         vt = vrel[:, 1:]
-        vtn = np.linalg.norm(vt, axis=1)
+        vtn = np.sqrt(np.einsum("mi,mi->m", vt, vt))
         old = self.slip_force[:, 1:]
         reversed_ = np.einsum("mi,mi->m", vt, old) > 0  # sliding along the friction force: it stopped
         want_stick = active & ~stick & self.friction & (reversed_ | (vtn < s.velocity_tol))
         to_stick = switching & want_stick
         new_slip = np.zeros((len(c), 2))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d_stick = np.where(ftn[:, None] > 0, ft / ftn[:, None], 0.0)  # direction of the needed force
-            d_slip = np.where(vtn[:, None] > 0, -vt / vtn[:, None], 0.0)
+        d_stick = np.divide(ft, ftn[:, None], out=np.zeros_like(ft), where=ftn[:, None] > 0)  # the needed force's
+        d_slip = np.divide(-vt, vtn[:, None], out=np.zeros_like(vt), where=vtn[:, None] > 0)  # direction; sliding's
         mag = (c.mu * np.maximum(lam, 0))[:, None]
         new_slip = np.where(to_slip[:, None], mag * d_stick, new_slip)
         cont = active & ~stick & self.friction & ~to_stick
@@ -354,12 +358,12 @@ class _ContactSet:
         # friction state for the next step, including the switches this step did not make
         next_stick = active & self.friction & ((stick & ~self.want_slip) | self.want_stick)
         next_slip = active & self.friction & ~next_stick
-        slip_world = np.einsum("mij,mj->mi", self.frames,
-                               np.where(self.want_slip[:, None], np.c_[np.zeros(m), self.mag * self.d_stick],
-                                        np.c_[np.zeros(m), self.new_slip]))
+        slip_local = np.zeros((m, 3))
+        slip_local[:, 1:] = np.where(self.want_slip[:, None], self.mag * self.d_stick, self.new_slip)
+        slip_world = np.einsum("mij,mj->mi", self.frames, slip_local)
         previous = (set(keys[active].tolist()), set(keys[next_stick].tolist()),
                     {int(k): f for k, f in zip(keys[next_slip], slip_world[next_slip])})
-        viol = float(np.max(-(self.gap_rate * self.h), initial=0.0))
+        viol = max(-float(self.gap_rate.min(initial=0.0)) * self.h, 0.0)
         return ContactResult(force, active.copy(), stick & active, iterations, self.factorizations, viol), previous
 
 
@@ -569,12 +573,14 @@ class ContactSolver:
                 cons.append(Constraints.full(a.node[keep], a.target[keep]))
                 G.append(a.jacobian[keep] if n else np.zeros((int(keep.sum()), 3, 0)))
                 held = np.concatenate([held, a.node[keep]])
-            c = st.contacts
-            if c is not None and len(c):
-                c = c.select(~np.isin(c.node, held))
-            f = st.faces
-            if f is not None and len(f):  # a point on a triangle of held nodes only is held already
-                f = f.select(~np.isin(f.nodes, held).all(axis=1))
+            c, f = st.contacts, st.faces
+            if len(held) and ((c is not None and len(c)) or (f is not None and len(f))):
+                is_held = np.zeros(st.system.body.n_nodes, dtype=bool)
+                is_held[held] = True
+                if c is not None and len(c):
+                    c = c.select(~is_held[c.node])
+                if f is not None and len(f):  # a point on a triangle of held nodes only is held already
+                    f = f.select(~is_held[f.nodes].all(axis=1))
             prepared.append((_stack(cons), np.concatenate(G) if n else None, c, f))
             dense.append((n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
                          or (f is not None and len(f) > 0 and bool(np.any(f.mu > 0))))
@@ -584,7 +590,7 @@ class ContactSolver:
             free = np.zeros(pairs.parts.shape, dtype=bool)
             for i, held in enumerate(held_by):
                 on = pairs.parts == i
-                free |= on & ~np.isin(pairs.nodes, held)
+                free |= on & (~np.isin(pairs.nodes, held) if len(held) else True)
             pairs = pairs.select(free.any(axis=1))
         group = _groups(len(steps), pairs)
         for g in np.unique(group):

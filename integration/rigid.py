@@ -16,6 +16,7 @@ import numpy as np
 from softbody.errors import InvalidInputError
 
 from .bullet import BASE, BulletAdapter, Shape, quat_matrix
+from .distance import cross
 
 # A kinematic pose script: t [s] -> (position (3,), quaternion xyzw (4,)) or just a position.
 PoseScript = Callable[[float], object]
@@ -77,7 +78,10 @@ class RigidLink:
     def point_velocity(self, points: np.ndarray) -> np.ndarray:
         """Velocity (m, 3) of material points of the link at world positions (m, 3)."""
         c, _, v, w = self.adapter.state(self.id, self.link)
-        return v + np.cross(w, np.asarray(points) - c)
+        points = np.asarray(points, dtype=float)
+        if not w.any():  # not spinning (most obstacles): the same velocity everywhere
+            return np.broadcast_to(v, points.shape).copy()
+        return v + cross(w, points - c)
 
     def to_world(self, local: np.ndarray) -> np.ndarray:
         c, q = self.pose()

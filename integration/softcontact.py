@@ -27,7 +27,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .collision import FACING, SOFT_SLACK, barycentric, cross, vertex_normals
+from .collision import FACING, SOFT_SLACK, barycentric, run_starts, vertex_normals
+from .distance import cross
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
 # that a node above the shared edge of two triangles is held by one of them
@@ -149,7 +150,7 @@ def node_triangle_contacts(xa: np.ndarray, va: np.ndarray, nodes: np.ndarray, su
     if not len(i):
         return none
     order = np.lexsort((t, np.abs(d), i))  # per node the nearest triangle (the first of equals): inside or not
-    first = order[np.r_[True, i[order][1:] != i[order][:-1]]]
+    first = order[run_starts(i[order])]
     i, t, w, nrm, d, facing = i[first], t[first], w[first], nrm[first], d[first], facing[first]
     v_rel = va[nodes[i]] - np.einsum("ms,msi->mi", w, vb[tris[t]])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)
@@ -257,7 +258,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not len(i):
         return SoftHits.empty()
     order = np.lexsort((t, np.abs(d), qb, i))  # per node and other body, the nearest triangle (the first of equals)
-    first = order[np.r_[True, (i[order][1:] != i[order][:-1]) | (qb[order][1:] != qb[order][:-1])]]
+    first = order[run_starts(i[order], qb[order])]
     i, t, pb, qb, same, w, nrm, d, facing = (a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
     v_rel = V[nodes[i]] - np.einsum("ms,msi->mi", w, V[tris[t]])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)

@@ -36,10 +36,11 @@ from softbody.simulation import run_steps
 from softbody.stack import BodyStack, stack_key
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
-from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances
+from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances, run_starts
 from .coupling import RigidCoupling
 from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts,
                       PairContacts)
+from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
 from .softcontact import SoftHits, SoftSurface, soft_contacts
 
@@ -571,7 +572,7 @@ class World:
         if rb.id in self._kin_velocity:
             v, w = self._kin_velocity[rb.id]
             c, _ = rb.pose()
-            return v + np.cross(w, points - c)
+            return v + cross(w, points - c)
         return rb.point_velocity(points)
 
     def _ignored(self, body: FemBody, rb: RigidLink) -> bool:
@@ -805,7 +806,7 @@ class World:
             if not len(found):
                 continue
             order = np.lexsort((found.distance, found.node))  # one per node: the deepest
-            found = found.select(order[np.r_[True, found.node[order][1:] != found.node[order][:-1]]])
+            found = found.select(order[run_starts(found.node[order])])
             new = self._node_contacts(body, found, self._coupling, carried=True)
             old = self._pending.get(id(body))
             if old is not None:

@@ -205,8 +205,8 @@ class FemBody:
             raise InvalidInputError(f"{name} must be a {shape} array of numbers {unit}, got {type(value).__name__}") from None
         if a.shape != shape:
             raise InvalidInputError(f"{name} must have shape {shape} (one row per node) {unit}, got {a.shape}")
-        bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
-        if bad.size:
+        if not np.isfinite(a).all():
+            bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
             raise InvalidInputError(f"{name} must be finite {unit}: nodes {bad[:5].tolist()}{' ...' if bad.size > 5 else ''} "
                                     f"({bad.size} of {shape[0]}) are not, e.g. node {bad[0]} = {a[bad[0]].tolist()}")
         return a
@@ -263,6 +263,8 @@ class FemBody:
     def constrained_targets(self, t_next: float, h: float) -> tuple[np.ndarray, np.ndarray]:
         """Nodes held by supports and the velocities (m, 3) that bring them exactly to their
         positions at time t_next after a step h. Later prescriptions override earlier ones and fixes."""
+        if not self.prescribed and not self.fixed.any():
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
         target = np.full((self.n_nodes, 3), np.nan)
         target[self.fixed] = 0.0
         for ids, motion in self.prescribed:

@@ -92,10 +92,10 @@ class SpdSolver:
         pt, ia, ja, perm, iparm = self._fixed_args
         one = ctypes.byref(ctypes.c_int32(1))
         ps._mkl_pardiso(pt, one, one, ctypes.byref(ctypes.c_int32(2)), ctypes.byref(ctypes.c_int32(phase)),
-                        ctypes.byref(ctypes.c_int32(self.n)), data.ctypes.data_as(f64), ia, ja, perm,
+                        ctypes.byref(ctypes.c_int32(self.n)), f64(data.ctypes.data), ia, ja, perm,
                         ctypes.byref(ctypes.c_int32(1 if b.ndim == 1 else b.shape[1])),
                         iparm, ctypes.byref(ctypes.c_int32(0)),
-                        b.ctypes.data_as(f64), x.ctypes.data_as(f64), ctypes.byref(err))
+                        f64(b.ctypes.data), f64(x.ctypes.data), ctypes.byref(err))
         if err.value != 0:
             raise SolverError(f"PARDISO phase {phase} failed with error {err.value}"
                               + (" (matrix not positive definite)" if err.value == -4 else ""))
