@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 import pybullet as p
+import scipy.sparse as sp
 
 from .bullet import quat_matrix
 from .distance import cross, shape_distance
@@ -152,17 +153,17 @@ class CollisionDetector:
         self.last_candidates = 0
 
     def detect(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
-               supported: np.ndarray, links: list[RigidLink], sweeps: list[Sweep], touch: float
-               ) -> tuple["Contacts", "FaceHits"]:
+               supported: np.ndarray, links: list[RigidLink], sweeps: list[Sweep], touch: float,
+               incidence: sp.spmatrix | None = None) -> tuple["Contacts", "FaceHits"]:
         """Contact candidates of one soft body (positions (N, 3), surface nodes (s,) not held by supports,
         surface triangles (T, 3), supported (N,) bool) against ``links``: node contacts within each link's
         reach (``sweeps``, one per link: what the two sides may close within the step), one per node (the
         deepest), and rigid points on its triangles between nodes (face contacts; a node within ``touch`` of
-        a link rests on it). Far links cost no query (broad phase on boxes)."""
+        a link rests on it). Far links cost no query (broad phase on boxes). ``incidence``: the triangles'
+        node_incidence, if at hand (for the surface normals)."""
         if not len(surface):
             return Contacts.empty(), FaceHits.empty()
-        xs = positions[surface]
-        lo0, hi0 = xs.min(axis=0), xs.max(axis=0)
+        lo0, hi0 = box_of(positions.take(surface, axis=0))
         parts, faces = [], []
         boxes = normals = touching = touch_normal = None  # made when first needed
         for rb, sweep in zip(links, sweeps):
@@ -176,7 +177,7 @@ class CollisionDetector:
                 # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
                 # plough into it); a node inside the link always is
                 if normals is None:
-                    normals = vertex_normals(positions, triangles)
+                    normals = vertex_normals(positions, triangles, incidence)
                 facing = np.einsum("ij,ij->i", found.normal, normals[found.node]) < FACING
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
@@ -204,7 +205,7 @@ class CollisionDetector:
                       rigid: RigidLink, margin: float, sweep: Sweep | None = None) -> Contacts:
         """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body within
         ``margin`` [m] (and, given a ``sweep``, within its reach of the rigid point facing them)."""
-        x = positions[surface_nodes]
+        x = positions.take(surface_nodes, axis=0)
         lo, hi = rigid.aabb()
         inside = np.all((x >= lo - margin) & (x <= hi + margin), axis=1)
         reach = rigid.bounding_radius() + margin
@@ -219,7 +220,7 @@ class CollisionDetector:
             return Contacts.empty()
         parts = rigid.primitive_parts()
         if parts is not None:  # primitives: closed-form distances, all candidates at once
-            point, normal, dist = primitive_distances(rigid, parts, positions[cand])
+            point, normal, dist = primitive_distances(rigid, parts, positions.take(cand, axis=0))
             near = dist < (margin if sweep is None else sweep.reach(point, normal, sweep.velocities[cand]))
             n = int(near.sum())
             return Contacts(np.full(n, body_index), cand[near], np.full(n, rigid.id), point[near], normal[near],
@@ -294,7 +295,7 @@ class CollisionDetector:
             around = around[gap <= reach]
         if not len(around):
             return FaceHits.empty()
-        xt = positions[triangles[around]]  # (T, 3, 3), the triangles around the link
+        xt = positions.take(triangles[around], axis=0)  # (T, 3, 3), the triangles around the link
         tlo, thi = tlo[around], thi[around]
         tri_touch = None if touching is None else touching[triangles[around]]  # (T, 3)
         # round parts: on triangles none of whose nodes touches the link, one support point each
@@ -454,15 +455,26 @@ def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tupl
     return best[0], best[1], best[2]
 
 
-def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def node_incidence(triangles: np.ndarray, n_nodes: int) -> sp.csr_matrix:
+    """(N, T) sparse: 1 where node i is a corner of triangle t (triangles (T, 3) over N nodes)."""
+    T = len(triangles)
+    return sp.csr_matrix((np.ones(3 * T), (np.asarray(triangles).ravel(), np.repeat(np.arange(T), 3))),
+                         shape=(n_nodes, T))
+
+
+def vertex_normals(positions: np.ndarray, triangles: np.ndarray, incidence: sp.spmatrix | None = None
+                   ) -> np.ndarray:
     """Area-weighted unit normals (N, 3) of a surface's nodes for positions (N, 3) and outward triangles
-    (T, 3) (zero at nodes on no triangle)."""
-    P = positions[triangles]
+    (T, 3) (zero at nodes on no triangle); ``incidence``: their node_incidence, if at hand (a surface's
+    fixed topology: the sum over triangles is then one sparse product)."""
+    P = positions.take(triangles, axis=0)
     n = cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    # one sum over (triangle, corner, component) into node * 3 + component
-    slots = (3 * triangles[:, :, None] + np.arange(3)).ravel()
-    out = np.bincount(slots, weights=np.broadcast_to(n[:, None, :], (len(n), 3, 3)).ravel(),
-                      minlength=3 * len(positions)).reshape(-1, 3)
+    if incidence is None:  # one sum over (triangle, corner, component) into node * 3 + component
+        slots = (3 * triangles[:, :, None] + np.arange(3)).ravel()
+        out = np.bincount(slots, weights=np.broadcast_to(n[:, None, :], (len(n), 3, 3)).ravel(),
+                          minlength=3 * len(positions)).reshape(-1, 3)
+    else:
+        out = incidence @ n
     norm = np.sqrt(np.einsum("ij,ij->i", out, out))[:, None]
     return np.divide(out, norm, out=np.zeros_like(out), where=norm > 0)
 
@@ -492,9 +504,16 @@ def row_groups(rows: np.ndarray) -> np.ndarray:
     return group
 
 
+def box_of(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The axis-aligned box (lo (3,), hi (3,)) of points (m, 3), m > 0 (reduced along a contiguous axis: numpy's
+    reductions over the first axis of an (m, 3) array cost several times more)."""
+    xt = np.ascontiguousarray(points.T)
+    return xt.min(axis=1), xt.max(axis=1)
+
+
 def triangle_boxes(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned bounds (lo (T, 3), hi (T, 3)) of triangles (T, 3) over node positions (N, 3)."""
-    a, b, c = positions[triangles[:, 0]], positions[triangles[:, 1]], positions[triangles[:, 2]]
+    a, b, c = (positions.take(t, axis=0) for t in triangles.T)  # take: a quarter of indexing's cost on (N, 3)
     return np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
 
 

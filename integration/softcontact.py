@@ -25,9 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .collision import FACING, SOFT_SLACK, barycentric, run_starts, vertex_normals
+from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, run_starts, vertex_normals
 from .distance import cross
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
@@ -39,22 +40,25 @@ NODE_BITS = 21
 
 @dataclass
 class SoftSurface:
-    """A soft body's surface for soft contact, fixed at construction: triangles (T, 3) outward, nodes (s,),
-    the triangles' longest rest edge (T,) [m] and, per surface node, its incident triangles (for normals)."""
+    """A soft body's surface, fixed at construction: triangles (T, 3) outward, nodes (s,) (sorted), the
+    triangles' longest rest edge (T,) [m] and the node-triangle incidence (N, T) (for normals)."""
 
     triangles: np.ndarray
     nodes: np.ndarray
     rest_edge: np.ndarray
+    incidence: sp.csr_matrix
 
     @classmethod
     def of(cls, rest: np.ndarray, triangles: np.ndarray) -> "SoftSurface":
+        """The surface of a body with rest positions (N, 3) [m] and outward surface triangles (T, 3)."""
+        triangles = np.asarray(triangles, np.int64)
         P = rest[triangles]
         edges = np.linalg.norm(P - np.roll(P, 1, axis=1), axis=2).max(axis=1)
-        return cls(np.asarray(triangles, np.int64), np.unique(triangles), edges)
+        return cls(triangles, np.unique(triangles), edges, node_incidence(triangles, len(rest)))
 
     def node_normals(self, x: np.ndarray) -> np.ndarray:
         """Area-weighted unit normals (N, 3) at the surface nodes for positions x (N, 3) (zero elsewhere)."""
-        return vertex_normals(x, self.triangles)
+        return vertex_normals(x, self.triangles, self.incidence)
 
 
 @dataclass
@@ -183,14 +187,14 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         return SoftHits.empty()
     node_b = np.repeat(np.arange(B), s_of)
     # every body's box, grown by its reach: a node counts against a body only inside its box
-    xs = np.concatenate([x[sf.nodes] for x, _, sf, _ in data])
-    vs = np.concatenate([v[sf.nodes] for _, v, sf, _ in data])
+    xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
+    vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
     starts = np.concatenate([[0], np.cumsum(s_of)[:-1]])
     speed2 = np.einsum("ij,ij->i", vs, vs)
     grow = (margin + depth + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, starts)))[:, None]
-    lo, hi = np.minimum.reduceat(xs, starts) - grow, np.maximum.reduceat(xs, starts) + grow
+    plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)  # the nodes' boxes
+    lo, hi = plo - grow, phi + grow
     # directions (p, q) that can meet: searched, and p's nodes' box within q's grown box ((B, B), p by q)
-    plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
     meet = (rank >= 0) & ~((plo[:, None] > hi[None]) | (phi[:, None] < lo[None])).any(axis=2)
     reached = np.flatnonzero(meet.any(axis=0))
     if not len(reached):

@@ -180,7 +180,7 @@ class World:
         # forces, assembly, factorize, solve (linear algebra), contact (the contact loop's own work),
         # other (rest of the FEM step), rigid (pybullet and the coupling's rigid side); "total" is their sum
         self.timings: dict[str, float] = defaultdict(float)
-        self._surface: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._surface: dict[int, SoftSurface] = {}  # of the stepped bodies (and the members), for rigid contact
         self._soft_surface: dict[int, SoftSurface] = {}
         self._self_contact: set[int] = set()  # id(body) of the bodies with self-contact
         self.soft_contact = bool(soft_contact)
@@ -399,8 +399,7 @@ class World:
         self._ignore[id(body)] = skip
         self._pairs_version += 1
         tris = body.mesh.surface_triangles()
-        self._surface[id(body)] = (np.unique(tris), tris)
-        self._soft_surface[id(body)] = SoftSurface.of(body.rest, tris)
+        self._surface[id(body)] = self._soft_surface[id(body)] = SoftSurface.of(body.rest, tris)
         if self_contact:
             self._self_contact.add(id(body))
         return body
@@ -467,7 +466,7 @@ class World:
                 self.friction[id(s)] = self.friction[id(s.members[0])]
                 self._ignore[id(s)] = {k for k in self._ignore[id(s.members[0])] if k[0] != "soft"}
                 tris = s.mesh.surface_triangles()
-                self._surface[id(s)] = (np.unique(tris), tris)
+                self._surface[id(s)] = SoftSurface.of(s.rest, tris)
         self.sim.bodies[:] = stepped
 
     def _stepped_now(self) -> list[FemBody]:
@@ -581,14 +580,14 @@ class World:
 
     def _detect(self, i: int, body: FemBody) -> tuple[Contacts, FaceHits]:
         """Contact candidates of soft body i against every rigid link it does not ignore (collision.py)."""
-        surface, tris = self._surface[id(body)]
-        surface = surface[~body.supported()[surface]]  # supports win over contact: no query for them
+        surf = self._surface[id(body)]
+        surface = surf.nodes[~body.supported()[surf.nodes]]  # supports win over contact: no query for them
         links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
         v = body.velocities
         speeds = np.sqrt(np.einsum("ij,ij->i", v, v))
         sweeps = [self._sweep(rb, v, speeds) for rb in links]
-        return self.detector.detect(i, body.positions, surface, tris, body.supported(), links, sweeps,
-                                    TOUCH * self.contact_margin)
+        return self.detector.detect(i, body.positions, surface, surf.triangles, body.supported(), links, sweeps,
+                                    TOUCH * self.contact_margin, surf.incidence)
 
     def _sweep(self, rb: RigidLink, velocities: np.ndarray, speeds: np.ndarray | None = None) -> Sweep:
         """The motions of a link and a soft body's nodes (velocities (N, 3), speeds (N,)) over the step, for the
@@ -776,7 +775,7 @@ class World:
             return False
         ends = {rb.key: self._end_pose(rb, du) for rb in moving}
         for i, (body, v) in enumerate(zip(bodies, velocities)):
-            surface, _ = self._surface[id(body)]
+            surface = self._surface[id(body)].nodes
             surface = surface[~body.supported()[surface]]
             x0 = body.positions[surface]
             x1 = x0 + h * v[surface]
@@ -987,7 +986,7 @@ class World:
         """After a step: a fast rigid link that ended inside a soft body was not caught within the step (its
         contacts are linearised at the start of the step); say so once, with its speed."""
         for i, body in enumerate(self.sim.bodies):
-            surface, _ = self._surface[id(body)]
+            surface = self._surface[id(body)].nodes
             surface = surface[~body.supported()[surface]]  # supports win over contact
             for rb in self.rigids.values():
                 if not (rb.movable or rb.motion is not None) or self._ignored(body, rb):
@@ -1105,7 +1104,7 @@ class World:
         """Deepest penetration [m] of any soft surface node into any rigid link at the current positions."""
         worst = 0.0
         for i, body in enumerate(self._stepped_now()):
-            surface, _ = self._surface[id(body)]
+            surface = self._surface[id(body)].nodes
             surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():
                 if self._ignored(body, rb):

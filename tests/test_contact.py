@@ -125,7 +125,7 @@ def test_box_corner_pressed_into_slab_does_not_penetrate():
     reach = 0.05 * math.sqrt(3)
     box = world.add_box((0.05, 0.05, 0.05), motion=lambda t: ((0.013, 0.021, 0.11 + reach - 0.04 * min(t, 1.0)), q))
     world.add_soft(body)
-    tris = world._surface[id(body)][1]
+    tris = world._surface[id(body)].triangles
     worst = []
     def deepest(w):
         hits = w.detector.face_contacts(0, body.positions, tris, box, 0.05)
