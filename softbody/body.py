@@ -460,7 +460,7 @@ class FemBody:
         ua = self._upper
         if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
-            S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
+            S = ua.assemble_pairs(g)
         else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)

@@ -73,3 +73,19 @@ def polar_newton(F9: np.ndarray, tol: float, max_iter: int, R9: np.ndarray, ok: 
         ok[e] = converged
         for k in range(9):
             R9[k, e] = a[k]
+
+
+@_jit
+def pair_outer_sum(g: np.ndarray, pairs: np.ndarray, target: np.ndarray, out: np.ndarray) -> None:
+    """out[target[p, i, j, e]] += g[pairs[p, 0], i, e] * g[pairs[p, 1], j, e] for gradients g (k, 3, E), node
+    pairs (P, 2) and targets (P, 3, 3, E) into out (flat): the outer products of the pair blocks summed in
+    place, in the order of np.bincount over the flattened (P, 3, 3, E) products (so the same sums, bit for
+    bit), without the (P, 3, 3, E) temporary (softbody.assembly.UpperAssembly.assemble_pairs)."""
+    P = pairs.shape[0]
+    E = g.shape[2]
+    for p in range(P):
+        a, b = pairs[p, 0], pairs[p, 1]
+        for i in range(3):
+            for j in range(3):
+                for e in range(E):
+                    out[target[p, i, j, e]] += g[a, i, e] * g[b, j, e]
