@@ -19,6 +19,7 @@ import numpy as np
 import pybullet as p
 import scipy.sparse as sp
 
+from . import kernels
 from .bullet import quat_matrix
 from .distance import cross, shape_distance
 from .rigid import RigidLink
@@ -142,6 +143,9 @@ class Sweep:
 def _length(v: np.ndarray) -> float:
     """|v| of one vector (3,) (np.linalg.norm's checks cost more than the sum)."""
     return math.sqrt(float(v @ v))
+
+
+_NO_ROWS, _ZERO3 = np.zeros((0, 3)), np.zeros(3)  # the prefilter's sweep arguments when there is no sweep
 
 
 class CollisionDetector:
@@ -295,9 +299,10 @@ class CollisionDetector:
             around = around[gap <= reach]
         if not len(around):
             return FaceHits.empty()
-        xt = positions.take(triangles[around], axis=0)  # (T, 3, 3), the triangles around the link
+        tri_nodes = triangles[around]
+        xt = positions.take(tri_nodes, axis=0)  # (T, 3, 3), the triangles around the link
         tlo, thi = tlo[around], thi[around]
-        tri_touch = None if touching is None else touching[triangles[around]]  # (T, 3)
+        tri_touch = None if touching is None else touching[tri_nodes]  # (T, 3)
         # round parts: on triangles none of whose nodes touches the link, one support point each
         round_tris = np.arange(len(around))
         if tri_touch is not None:
@@ -333,18 +338,27 @@ class CollisionDetector:
         S = len(rigid.round_parts())
         if S and len(round_tris):
             pts = rigid.support_points(-nrm[round_tris])  # (T, S, 3)
-            # only support points within the margin of their triangle's plane go on (most do not)
-            d_all = np.einsum("tsi,ti->ts", pts - a[round_tris, None], nrm[round_tris])
-            keep = np.abs(d_all) < margin
+            keep = np.ones((len(round_tris), S), dtype=bool)
             if tri_touch is not None:  # a smooth part reaches between nodes only where none touches it
                 keep &= ~rigid.round_parts()[None] | ~tri_touch[round_tris].any(axis=1)[:, None]
+            centres = rigid.support_centres()
+            if kernels.ENABLED:  # most support points drop out of the tests below: a compiled prefilter first
+                swept = sweep is not None
+                kernels.round_face_prefilter(
+                    a, b, c, nrm, area2, round_tris, pts, centres, keep, margin, swept, sweep.h if swept else 0.0,
+                    RIGID_SLACK, SOFT_SLACK, tri_nodes, sweep.velocities if swept else _NO_ROWS,
+                    *((sweep.v, sweep.w, sweep.centre) if swept else (_ZERO3, _ZERO3, _ZERO3)))
+            else:  # only support points within the margin of their triangle's plane go on (most do not)
+                keep &= np.abs(np.einsum("tsi,ti->ts", pts - a[round_tris, None], nrm[round_tris])) < margin
             tk, sk = np.nonzero(keep)
             ti, q = round_tris[tk], pts[tk, sk]
             feature = sk  # which part or corner, the same from step to step
-            centre = rigid.support_centres()[sk]
+            centre = centres[sk]
         else:
             ti, q, feature = np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0, np.int64)
             centre = np.zeros((0, 3))
+        if not len(ti) and not len(vi):
+            return FaceHits.empty()
         centre = np.concatenate([centre, corner_centres[vi]])
         ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
         # which rigid point: a corner is one (numbered after the round parts' points, below), a round part's point

@@ -55,3 +55,50 @@ def test_pair_assembly_kernel_equals_numpy_and_the_rotated_element_matrices(monk
     reference = body.pattern.assemble(Rb @ body.Ke @ np.swapaxes(Rb, 1, 2))
     full = body._upper.full(K)
     assert np.abs(full - reference).max() < 1e-9 * np.abs(reference).max()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+@pytest.mark.parametrize("kind", ["sphere", "capsule", "cylinder"])
+def test_round_face_prefilter_changes_no_face_contact(kind, monkeypatch):
+    """Round parts at random poses in and over a bumpy soft surface, at rest and moving (sweeps): the face contacts
+    found with the compiled prefilter (integration.kernels) are those found without it, field by field."""
+    import pybullet as p
+
+    from integration import World
+    from integration import kernels as contact_kernels
+    from integration.collision import CollisionDetector, Sweep
+    from softbody import FemBody, LinearElastic, box_mesh
+
+    rng = np.random.default_rng(11)
+    world = World()
+    cid = world.client
+    body = FemBody(box_mesh((0.4, 0.4, 0.1), (6, 6, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
+    x = body.positions + 0.004 * rng.standard_normal(body.positions.shape)
+    tris = body.mesh.surface_triangles()
+    shape = {"sphere": dict(shapeType=p.GEOM_SPHERE, radius=0.05),
+             "capsule": dict(shapeType=p.GEOM_CAPSULE, radius=0.03, height=0.12),
+             "cylinder": dict(shapeType=p.GEOM_CYLINDER, radius=0.04, height=0.1)}[kind]
+    col = p.createCollisionShape(physicsClientId=cid, **shape)
+    radius = shape["radius"]
+    found = 0
+    for trial in range(60):
+        pos = [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), 0.05 + radius + rng.uniform(-0.015, 0.01)]
+        orn = p.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
+        rb = world.rigid(p.createMultiBody(0, col, basePosition=pos, baseOrientation=orn, physicsClientId=cid))
+        touching = rng.random(len(x)) < 0.2
+        touch_normal = np.where(touching[:, None], [0.0, 0.0, -1.0], 0.0)
+        sweep = None
+        if trial % 2:
+            vel = 0.5 * rng.standard_normal(x.shape)
+            sweep = Sweep(0.01, 0.01, vel, np.linalg.norm(vel, axis=1), rng.standard_normal(3), 3 * rng.standard_normal(3),
+                          rb.pose()[0], rb.bounding_radius())
+        args = (0, x, tris, rb, 0.01, touching, touch_normal, None, sweep)
+        with_kernel = CollisionDetector.face_contacts(*args)
+        with monkeypatch.context() as m:
+            m.setattr(contact_kernels, "ENABLED", False)
+            without = CollisionDetector.face_contacts(*args)
+        for f in with_kernel.__dataclass_fields__:
+            np.testing.assert_array_equal(getattr(with_kernel, f), getattr(without, f), err_msg=f)
+        found += len(with_kernel)
+    assert found > 20  # the poses made contacts to compare
+    world.close()

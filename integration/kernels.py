@@ -1,0 +1,87 @@
+"""Compiled kernels (numba, through softbody.kernels: cached on disk, ``SOFTBODY_NO_NUMBA=1`` turns them off)
+for the contact search's per-candidate tests, which numpy would spread over dozens of calls on arrays of tens of
+entries. Each is a conservative prefilter in front of the numpy code that decides (collision.py): it only drops
+candidates that code would drop (its thresholds are wider by a relative 1e-9), so the contacts found are the
+same with it and without it (tests/test_kernels.py)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from softbody.kernels import ENABLED, _jit
+
+__all__ = ["ENABLED", "round_face_prefilter"]
+
+#: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
+SLACK = 1e-9
+
+
+@_jit
+def round_face_prefilter(a: np.ndarray, b: np.ndarray, c: np.ndarray, nrm: np.ndarray, area2: np.ndarray,
+                         tris: np.ndarray, pts: np.ndarray, centres: np.ndarray, keep: np.ndarray, margin: float,
+                         swept: bool, h: float, rigid_slack: float, soft_slack: float, nodes: np.ndarray,
+                         velocities: np.ndarray, v: np.ndarray, w: np.ndarray, centre: np.ndarray) -> None:
+    """Clear keep[t, s] (T, S) where support point pts[t, s] (3,) of round part s cannot touch triangle tris[t]
+    (vertices a, b, c (.., 3), unit outward normal nrm, |2 area| area2, indices into these arrays): farther than
+    ``margin`` [m] from its plane; its part's centre ``centres[s]`` not on the outer side; beyond what the two
+    sides close within the step (``swept``: link velocity v, spin w about ``centre``, the triangle's velocity the
+    mean of its ``nodes`` (.., 3) rows of ``velocities``; slacks as collision.RIGID_SLACK and SOFT_SLACK); or
+    farther from the triangle than the margin by the lower bound of face_contacts (its plane distance and the
+    distance to the line of the edge it lies beyond)."""
+    lim = margin * (1.0 + SLACK) + 1e-300
+    moving = v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0 or w[0] != 0.0 or w[1] != 0.0 or w[2] != 0.0
+    for k in range(tris.shape[0]):
+        t = tris[k]
+        n0, n1, n2 = nrm[t, 0], nrm[t, 1], nrm[t, 2]
+        a0, a1, a2 = a[t, 0], a[t, 1], a[t, 2]
+        for s in range(keep.shape[1]):
+            if not keep[k, s]:
+                continue
+            q0, q1, q2 = pts[k, s, 0], pts[k, s, 1], pts[k, s, 2]
+            d = (q0 - a0) * n0 + (q1 - a1) * n1 + (q2 - a2) * n2
+            if not abs(d) < lim:
+                keep[k, s] = False
+                continue
+            outer = (centres[s, 0] - a0) * n0 + (centres[s, 1] - a1) * n1 + (centres[s, 2] - a2) * n2
+            if not (math.isnan(outer) or outer > -SLACK * margin):
+                keep[k, s] = False
+                continue
+            if swept:  # what the two sides close along -n within the step
+                vs = 0.0
+                for j in range(3):
+                    i = nodes[t, j]
+                    vs += (velocities[i, 0] * n0 + velocities[i, 1] * n1 + velocities[i, 2] * n2) / 3.0
+                reach = margin + h * soft_slack * max(vs, 0.0)
+                if moving:
+                    r0, r1, r2 = q0 - centre[0], q1 - centre[1], q2 - centre[2]
+                    p0 = v[0] + w[1] * r2 - w[2] * r1
+                    p1 = v[1] + w[2] * r0 - w[0] * r2
+                    p2 = v[2] + w[0] * r1 - w[1] * r0
+                    reach += h * rigid_slack * max(-(p0 * n0 + p1 * n1 + p2 * n2), 0.0)
+                if not d < reach * (1.0 + SLACK) + SLACK * margin:
+                    keep[k, s] = False
+                    continue
+            # barycentric weights of the projection, and the lower bound beside the triangle
+            p0, p1, p2 = q0 - d * n0, q1 - d * n1, q2 - d * n2
+            A2 = area2[t]
+            if not A2 > 0.0:  # degenerate: the numpy code decides
+                continue
+            beside = 0.0
+            for e in range(3):  # edge e opposite vertex e: from vertex e+1 to e+2
+                if e == 0:
+                    u0, u1, u2, o0, o1, o2 = b[t, 0], b[t, 1], b[t, 2], c[t, 0], c[t, 1], c[t, 2]
+                elif e == 1:
+                    u0, u1, u2, o0, o1, o2 = c[t, 0], c[t, 1], c[t, 2], a0, a1, a2
+                else:
+                    u0, u1, u2, o0, o1, o2 = a0, a1, a2, b[t, 0], b[t, 1], b[t, 2]
+                e0, e1, e2 = o0 - u0, o1 - u1, o2 - u2
+                f0, f1, f2 = p0 - u0, p1 - u1, p2 - u2
+                # weight of vertex e: ((edge) x (p - start)) . n / area2 (n unit)
+                wgt = ((e1 * f2 - e2 * f1) * n0 + (e2 * f0 - e0 * f2) * n1 + (e0 * f1 - e1 * f0) * n2) / A2
+                if wgt < 0.0:
+                    length = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                    if length > 0.0:
+                        beside = max(beside, -wgt * A2 / length)
+            if d * d + beside * beside >= lim * lim:
+                keep[k, s] = False
