@@ -592,12 +592,12 @@ class ContactSolver:
                 on = pairs.parts == i
                 free |= on & (~np.isin(pairs.nodes, held) if len(held) else True)
             pairs = pairs.select(free.any(axis=1))
-        group = _groups(len(steps), pairs)
-        for g in np.unique(group):
-            members = np.flatnonzero(group == g)
-            if any(dense[i] for i in members) or len(members) > 1 or (
-                    pairs is not None and len(pairs) and np.isin(pairs.parts[:, 0], members).any()):
-                dense[members] = True
+        if pairs is not None and len(pairs):  # bodies in soft contact go to the dense mode with all they touch
+            group = _groups(len(steps), pairs)
+            for g in np.unique(group):
+                members = np.flatnonzero(group == g)
+                if any(dense[i] for i in members) or len(members) > 1 or np.isin(pairs.parts[:, 0], members).any():
+                    dense[members] = True
         results: list = [None] * len(steps)
         simple = [i for i in range(len(steps)) if not dense[i]]
         coupled = [i for i in range(len(steps)) if dense[i]]
