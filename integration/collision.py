@@ -169,7 +169,7 @@ class CollisionDetector:
             return Contacts.empty(), FaceHits.empty()
         lo0, hi0 = box_of(positions.take(surface, axis=0))
         parts, faces = [], []
-        boxes = normals = touching = touch_normal = None  # made when first needed
+        boxes = touching = touch_normal = None  # made when first needed
         for rb, sweep in zip(links, sweeps):
             margin = sweep.bound(surface)
             rlo, rhi = rb.aabb()
@@ -180,9 +180,8 @@ class CollisionDetector:
                 # a rigid face must face the soft surface at the node: a node lying in the plane of a box's bottom,
                 # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
                 # plough into it); a node inside the link always is
-                if normals is None:
-                    normals = vertex_normals(positions, triangles, incidence)
-                facing = np.einsum("ij,ij->i", found.normal, normals[found.node]) < FACING
+                normals = node_normals(positions, triangles, found.node, incidence)
+                facing = np.einsum("ij,ij->i", found.normal, normals) < FACING
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
@@ -502,6 +501,17 @@ def run_starts(*keys: np.ndarray) -> np.ndarray:
     np.not_equal(keys[0][1:], keys[0][:-1], out=diff)
     for k in keys[1:]:
         diff |= k[1:] != k[:-1]
+    return out
+
+
+def node_normals(positions: np.ndarray, triangles: np.ndarray, nodes: np.ndarray,
+                 incidence: sp.csr_matrix | None = None) -> np.ndarray:
+    """vertex_normals at ``nodes`` (m,) only, (m, 3): with the surface's node_incidence at hand, a compiled loop
+    over each node's triangles (integration.kernels) instead of the normals of the whole surface."""
+    if incidence is None or not kernels.ENABLED:
+        return vertex_normals(positions, triangles, incidence)[nodes]
+    out = np.empty((len(nodes), 3))
+    kernels.node_normals_at(positions, triangles, incidence.indptr, incidence.indices, np.asarray(nodes, np.int64), out)
     return out
 
 

@@ -1,8 +1,12 @@
 """Compiled kernels (numba, through softbody.kernels: cached on disk, ``SOFTBODY_NO_NUMBA=1`` turns them off)
-for the contact search's per-candidate tests, which numpy would spread over dozens of calls on arrays of tens of
-entries. Each is a conservative prefilter in front of the numpy code that decides (collision.py): it only drops
-candidates that code would drop (its thresholds are wider by a relative 1e-9), so the contacts found are the
-same with it and without it (tests/test_kernels.py)."""
+for the contact search, where numpy would spread a little arithmetic over dozens of calls or over a whole surface:
+
+- ``round_face_prefilter``: the per-candidate tests of face contacts against round parts, as a conservative
+  prefilter in front of the numpy code that decides (collision.py): it only drops candidates that code would drop
+  (its thresholds are wider by a relative 1e-9), so the contacts found are the same with it and without it;
+- ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere).
+
+Both are compared with their numpy references in tests/test_kernels.py."""
 from __future__ import annotations
 
 import math
@@ -11,7 +15,7 @@ import numpy as np
 
 from softbody.kernels import ENABLED, _jit
 
-__all__ = ["ENABLED", "round_face_prefilter"]
+__all__ = ["ENABLED", "node_normals_at", "round_face_prefilter"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -85,3 +89,32 @@ def round_face_prefilter(a: np.ndarray, b: np.ndarray, c: np.ndarray, nrm: np.nd
                         beside = max(beside, -wgt * A2 / length)
             if d * d + beside * beside >= lim * lim:
                 keep[k, s] = False
+
+
+@_jit
+def node_normals_at(positions: np.ndarray, triangles: np.ndarray, indptr: np.ndarray, indices: np.ndarray,
+                    nodes: np.ndarray, out: np.ndarray) -> None:
+    """Area-weighted unit normals out (m, 3) at ``nodes`` (m,) of a surface: the sum of (b - a) x (c - a) over the
+    triangles (T, 3) at each node (its row of the node-triangle incidence, CSR ``indptr``/``indices``), in the
+    incidence's order, normalised (zero where it vanishes); positions (N, 3). The rows of
+    collision.vertex_normals at those nodes, without the normals of the rest of the surface."""
+    for k in range(nodes.shape[0]):
+        i = nodes[k]
+        s0 = s1 = s2 = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            t = indices[jj]
+            ia, ib, ic = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+            u0 = positions[ib, 0] - positions[ia, 0]
+            u1 = positions[ib, 1] - positions[ia, 1]
+            u2 = positions[ib, 2] - positions[ia, 2]
+            v0 = positions[ic, 0] - positions[ia, 0]
+            v1 = positions[ic, 1] - positions[ia, 1]
+            v2 = positions[ic, 2] - positions[ia, 2]
+            s0 += u1 * v2 - u2 * v1
+            s1 += u2 * v0 - u0 * v2
+            s2 += u0 * v1 - u1 * v0
+        norm = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+        if norm > 0.0:
+            out[k, 0], out[k, 1], out[k, 2] = s0 / norm, s1 / norm, s2 / norm
+        else:
+            out[k, 0] = out[k, 1] = out[k, 2] = 0.0

@@ -36,15 +36,11 @@ def polar_newton(F9: np.ndarray, tol: float, max_iter: int, R9: np.ndarray, ok: 
     iteration and stopping rule as softbody.rotation._newton_rotation, element by element."""
     n = F9.shape[1]
     step_tol = math.sqrt(tol)
-    a = np.empty(9)
-    c = np.empty(9)
-    for e in range(n):
-        scale = 0.0
-        for k in range(9):
-            a[k] = F9[k, e]
-            scale = max(scale, abs(a[k]))
-        det = (a[0] * (a[4] * a[8] - a[5] * a[7]) - a[1] * (a[3] * a[8] - a[5] * a[6])
-               + a[2] * (a[3] * a[7] - a[4] * a[6]))
+    for e in range(n):  # the nine entries in scalars (registers), row-major: a_3i+j = F_ij
+        a0, a1, a2, a3, a4, a5, a6, a7, a8 = (F9[0, e], F9[1, e], F9[2, e], F9[3, e], F9[4, e], F9[5, e], F9[6, e],
+                                              F9[7, e], F9[8, e])
+        scale = max(abs(a0), abs(a1), abs(a2), abs(a3), abs(a4), abs(a5), abs(a6), abs(a7), abs(a8))
+        det = a0 * (a4 * a8 - a5 * a7) - a1 * (a3 * a8 - a5 * a6) + a2 * (a3 * a7 - a4 * a6)
         if not det > 1e-6 * scale * scale * scale:
             ok[e] = False
             for k in range(9):
@@ -53,26 +49,25 @@ def polar_newton(F9: np.ndarray, tol: float, max_iter: int, R9: np.ndarray, ok: 
         converged = False
         for it in range(max_iter):
             # cofactors: c_ij = A_(i+1)(j+1) A_(i+2)(j+2) - A_(i+1)(j+2) A_(i+2)(j+1), indices mod 3
-            for i in range(3):
-                i1, i2 = 3 * ((i + 1) % 3), 3 * ((i + 2) % 3)
-                for j in range(3):
-                    j1, j2 = (j + 1) % 3, (j + 2) % 3
-                    c[3 * i + j] = a[i1 + j1] * a[i2 + j2] - a[i1 + j2] * a[i2 + j1]
-            d = a[0] * c[0] + a[1] * c[1] + a[2] * c[2]
+            c0, c1, c2 = a4 * a8 - a5 * a7, a5 * a6 - a3 * a8, a3 * a7 - a4 * a6
+            c3, c4, c5 = a7 * a2 - a8 * a1, a8 * a0 - a6 * a2, a6 * a1 - a7 * a0
+            c6, c7, c8 = a1 * a5 - a2 * a4, a2 * a3 - a0 * a5, a0 * a4 - a1 * a3
+            d = a0 * c0 + a1 * c1 + a2 * c2
             g = 1.0 / np.cbrt(abs(d))
             gi = 0.5 / (g * d)
             g *= 0.5
-            err = 0.0
-            for k in range(9):
-                new = g * a[k] + gi * c[k]
-                err = max(err, abs(new - a[k]))
-                a[k] = new
+            n0, n1, n2 = g * a0 + gi * c0, g * a1 + gi * c1, g * a2 + gi * c2
+            n3, n4, n5 = g * a3 + gi * c3, g * a4 + gi * c4, g * a5 + gi * c5
+            n6, n7, n8 = g * a6 + gi * c6, g * a7 + gi * c7, g * a8 + gi * c8
+            err = max(abs(n0 - a0), abs(n1 - a1), abs(n2 - a2), abs(n3 - a3), abs(n4 - a4), abs(n5 - a5),
+                      abs(n6 - a6), abs(n7 - a7), abs(n8 - a8))
+            a0, a1, a2, a3, a4, a5, a6, a7, a8 = n0, n1, n2, n3, n4, n5, n6, n7, n8
             if (it >= 2 or it == max_iter - 1) and err < step_tol:
                 converged = True
                 break
         ok[e] = converged
-        for k in range(9):
-            R9[k, e] = a[k]
+        R9[0, e], R9[1, e], R9[2, e], R9[3, e], R9[4, e] = a0, a1, a2, a3, a4
+        R9[5, e], R9[6, e], R9[7, e], R9[8, e] = a5, a6, a7, a8
 
 
 @_jit

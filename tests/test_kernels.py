@@ -102,3 +102,22 @@ def test_round_face_prefilter_changes_no_face_contact(kind, monkeypatch):
         found += len(with_kernel)
     assert found > 20  # the poses made contacts to compare
     world.close()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_normals_at_contact_nodes_equal_the_whole_surfaces():
+    """The compiled normals at a few nodes (integration.kernels.node_normals_at) are the rows of the whole surface's
+    area-weighted normals (numpy, both sums), on a randomly deformed tet10 box."""
+    from integration.collision import node_incidence, node_normals, vertex_normals
+    from softbody import box_mesh
+
+    rng = np.random.default_rng(4)
+    mesh = box_mesh((0.3, 0.2, 0.1), (3, 2, 2), "tet10")
+    x = mesh.nodes + 0.01 * rng.standard_normal(mesh.nodes.shape)
+    tris = mesh.surface_triangles()
+    inc = node_incidence(tris, len(x))
+    nodes = rng.choice(np.unique(tris), 40)
+    full = vertex_normals(x, tris)
+    np.testing.assert_allclose(vertex_normals(x, tris, inc), full, atol=1e-15)
+    np.testing.assert_allclose(node_normals(x, tris, nodes, inc), full[nodes], atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(full[nodes], axis=1), 1.0, atol=1e-12)
