@@ -162,34 +162,58 @@ def node_triangle_contacts(xa: np.ndarray, va: np.ndarray, nodes: np.ndarray, su
     return nodes[i[ok]], t[ok], w[ok], nrm[ok], d[ok]
 
 
+@dataclass(frozen=True)
+class SoftLayout:
+    """What the soft search needs of its bodies' surfaces and pairs, fixed while they are: the ``used`` bodies (B,)
+    (those in some pair, ascending), ``rank`` (B, B) the output order of each searched direction (p's nodes against
+    q's triangles; -1: not searched), their surface node counts ``s_of`` (B,), each surface node's body ``node_b``
+    and each body's first surface node ``starts`` (B,) in the concatenation of their surface nodes. No used bodies
+    (``used`` empty) when a body in a pair has no surface."""
+
+    used: np.ndarray
+    rank: np.ndarray
+    s_of: np.ndarray
+    node_b: np.ndarray
+    starts: np.ndarray
+
+    @classmethod
+    def of(cls, surfaces: list[SoftSurface], pairs: list[tuple[int, int]]) -> "SoftLayout":
+        """The layout of the bodies with ``surfaces`` for the index ``pairs`` (a, b) (see soft_contacts)."""
+        P_ = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        used = np.unique(P_)
+        row = np.full(len(surfaces), -1)
+        row[used] = np.arange(len(used))
+        B = len(used)
+        rank = np.full((B, B), -1)
+        k2 = 2 * np.arange(len(P_))
+        rank[row[P_[:, 1]], row[P_[:, 0]]] = k2 + 1
+        rank[row[P_[:, 0]], row[P_[:, 1]]] = k2
+        s_of = np.array([len(surfaces[k].nodes) for k in used.tolist()], dtype=np.int64)
+        if not s_of.all():
+            used = used[:0]
+        starts = np.concatenate([[0], np.cumsum(s_of)[:-1]]).astype(np.int64)
+        return cls(used, rank, s_of, np.repeat(np.arange(B), s_of), starts)
+
+
 def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
-                  margin: float, h: float, depth: float) -> SoftHits:
+                  margin: float, h: float, depth: float, layout: SoftLayout | None = None) -> SoftHits:
     """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
     positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
     distinct bodies, in one pass over all of them (one query per body that other nodes reach, one narrow phase
     for all). The same contacts, in the same order, as
-    :func:`pair_contacts_reference` (a search per pair and direction, kept for the tests)."""
+    :func:`pair_contacts_reference` (a search per pair and direction, kept for the tests). ``layout``:
+    SoftLayout.of their surfaces and pairs, if kept from an earlier step (the caller's to renew when they change)."""
     if not pairs:
         return SoftHits.empty()
-    P_ = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    used = np.unique(P_)
-    row = np.full(len(bodies), -1)
-    row[used] = np.arange(len(used))
-    B = len(used)
-    # direction (p, q): p's nodes against q's triangles; its rank orders the output as the pairs are given
-    rank = np.full((B, B), -1)
-    k2 = 2 * np.arange(len(P_))
-    rank[row[P_[:, 1]], row[P_[:, 0]]] = k2 + 1
-    rank[row[P_[:, 0]], row[P_[:, 1]]] = k2
-    data = [bodies[k] for k in used.tolist()]
-    s_of = np.array([len(sf.nodes) for _, _, sf, _ in data])
-    if not s_of.all():
+    layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
+    if not len(layout.used):
         return SoftHits.empty()
-    node_b = np.repeat(np.arange(B), s_of)
+    rank, s_of, node_b, starts = layout.rank, layout.s_of, layout.node_b, layout.starts
+    B = len(layout.used)
+    data = [bodies[k] for k in layout.used.tolist()]
     # every body's box, grown by its reach: a node counts against a body only inside its box
     xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
     vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
-    starts = np.concatenate([[0], np.cumsum(s_of)[:-1]])
     speed2 = np.einsum("ij,ij->i", vs, vs)
     grow = (margin + depth + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, starts)))[:, None]
     plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)  # the nodes' boxes
@@ -271,7 +295,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     node = nodes[i] - off[pb]
     order = np.lexsort((node, rank[pb, qb]))  # pair by pair as given, each direction by node
     i, t, pb, qb, w, nrm, d, node = (a[order] for a in (i, t, pb, qb, w, nrm, d, node))
-    a, b = used[pb], used[qb]
+    a, b = layout.used[pb], layout.used[qb]
     # a contact is a node against the other body (its nearest triangle may change from step to step as it
     # slides; its friction state goes on)
     key = node | ((a * 1024 + b) << NODE_BITS)

@@ -42,7 +42,7 @@ from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceC
                       PairContacts)
 from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
-from .softcontact import SoftHits, SoftSurface, soft_contacts
+from .softcontact import SoftHits, SoftLayout, SoftSurface, soft_contacts
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
@@ -166,6 +166,7 @@ class World:
         self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
         self._results_of: dict[int, tuple[int, int]] = {}  # id(member) -> (id of its stepped body, first node), last step
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
+        self._soft_layout = None  # (that key, softcontact.SoftLayout of the pairs) for the soft search
         # id(member) -> id of the first member of its contact group: the members whose contacts need the dense
         # contact solve (soft contact among them, a movable rigid body they share, friction at face contacts)
         # are stacked apart from the others, which would otherwise be solved densely with them; groups only merge
@@ -649,7 +650,11 @@ class World:
         if not pairs:
             return SoftHits.empty()
         data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self._members]
-        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin)
+        key = self._pairs_memo[0]  # the members' surfaces are fixed: the search's layout lasts as the pairs do
+        if self._soft_layout is None or self._soft_layout[0] != key:
+            self._soft_layout = (key, SoftLayout.of([sf for _, _, sf, _ in data], pairs))
+        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin,
+                             self._soft_layout[1])
         self._soft_member_pairs = np.column_stack([hits.a, hits.b])  # in the members' numbering
         if len(hits) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
             place = np.array([self._place[id(b)] for b in self._members])

@@ -10,6 +10,7 @@ from typing import Callable
 import numpy as np
 import scipy.sparse as sp
 
+from . import kernels
 from .assembly import BlockPattern, UpperAssembly
 from .elements import shape_gradients
 from .errors import InvalidInputError
@@ -327,6 +328,12 @@ class FemBody:
         PCG needed 1% more iterations than with the polar factor. Nodes whose S is nearly singular
         (adjacent elements turned far apart) get the polar factor."""
         S9 = (self._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
+        if kernels.ENABLED:  # the same arithmetic node by node (softbody.kernels)
+            Q, bad = np.empty((S9.shape[1], 3, 3)), np.empty(S9.shape[1], dtype=bool)
+            kernels.node_frames(S9, Q, bad)
+            if bad.any():
+                Q[bad] = polar_rotation_components(S9[:, bad]).T.reshape(-1, 3, 3)
+            return Q
         a, b = S9[[0, 3, 6]], S9[[1, 4, 7]]  # columns 0 and 1 of every S, (3, N)
         na = np.sqrt(np.einsum("in,in->n", a, a))
         a = a / np.where(na > 0, na, 1.0)

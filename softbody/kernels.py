@@ -84,3 +84,29 @@ def pair_outer_sum(g: np.ndarray, pairs: np.ndarray, target: np.ndarray, out: np
             for j in range(3):
                 for e in range(E):
                     out[target[p, i, j, e]] += g[a, i, e] * g[b, j, e]
+
+
+@_jit
+def node_frames(S9: np.ndarray, Q: np.ndarray, bad: np.ndarray) -> None:
+    """Per-node frames Q (N, 3, 3) from the sums S (component-major (9, N)) of the adjacent elements' rotations:
+    Gram-Schmidt of S's first two columns a, b, and a x b; bad (N,) True where a or b is shorter than 1e-3 |S|
+    (the caller uses the polar factor there). The same arithmetic as FemBody.node_frames's numpy path."""
+    for i in range(S9.shape[1]):
+        a0, a1, a2 = S9[0, i], S9[3, i], S9[6, i]
+        b0, b1, b2 = S9[1, i], S9[4, i], S9[7, i]
+        na = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+        s = na if na > 0 else 1.0
+        a0, a1, a2 = a0 / s, a1 / s, a2 / s
+        ab = a0 * b0 + a1 * b1 + a2 * b2
+        b0, b1, b2 = b0 - ab * a0, b1 - ab * a1, b2 - ab * a2
+        nb = math.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+        s = nb if nb > 0 else 1.0
+        b0, b1, b2 = b0 / s, b1 / s, b2 / s
+        Q[i, 0, 0], Q[i, 1, 0], Q[i, 2, 0] = a0, a1, a2
+        Q[i, 0, 1], Q[i, 1, 1], Q[i, 2, 1] = b0, b1, b2
+        Q[i, 0, 2], Q[i, 1, 2], Q[i, 2, 2] = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        norm2 = 0.0
+        for k in range(9):
+            norm2 += S9[k, i] * S9[k, i]
+        scale = 1e-3 * math.sqrt(norm2)
+        bad[i] = na <= scale or nb <= scale
