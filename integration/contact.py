@@ -29,6 +29,7 @@ from scipy.sparse.csgraph import connected_components
 
 from softbody.integrator import Constraints, LinearSystem
 
+from . import kernels
 from .collision import barycentric, closest_on_triangles
 from .coupling import CoupledPart, CoupledSolver, Rows
 from .distance import cross
@@ -51,6 +52,9 @@ def _in_set(keys: np.ndarray, members: set) -> np.ndarray:
 def tangent_frames(normals: np.ndarray) -> np.ndarray:
     """Orthonormal frames (m, 3, 3) with the unit normals (m, 3) as first column."""
     F = np.empty((len(normals), 3, 3))
+    if kernels.ENABLED:  # the same arithmetic, contact by contact (integration.kernels)
+        kernels.tangent_frames(np.ascontiguousarray(normals, dtype=float), F)
+        return F
     n = F[:, :, 0]
     np.divide(normals, np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None], out=n)
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
@@ -306,6 +310,8 @@ class _ContactSet:
         contacts may be added."""
         s, c = self.solver, self.c
         vr_local = self.vr_free if self.G is None or not len(du) else self.vr_free + self.G @ du
+        if kernels.ENABLED:  # the same rules and arithmetic, contact by contact (integration.kernels)
+            return self._update_compiled(rl, v_soft - vr_local, it, eligible)
         lam = rl[:, 0]
         vrel = v_soft - vr_local
         gap_rate = vrel[:, 0] + self.gap / self.h
@@ -345,6 +351,22 @@ class _ContactSet:
             self.stick = (stick & ~to_slip) | to_stick
             self.slip_force[:, 1:] = np.where((to_slip | cont)[:, None], new_slip, 0.0)
             self.slip_force[~self.active] = 0.0
+        return bool(changed)
+
+    def _update_compiled(self, rl: np.ndarray, vrel: np.ndarray, it: int, eligible: np.ndarray | None) -> bool:
+        """:meth:`update` by kernels.friction_update, from the relative velocities vrel (m, 3)."""
+        s, m = self.solver, len(self.c)
+        gap_rate, mag, d_stick, new_slip = np.empty(m), np.empty(m), np.empty((m, 2)), np.empty((m, 2))
+        want_slip, want_stick, new_active, new_stick = (np.empty(m, dtype=bool) for _ in range(4))
+        changed = kernels.friction_update(
+            rl, vrel, self.gap, self.h, self.active, self.stick, self.released, self.friction, self.c.mu,
+            self.slip_force, np.ones(m, dtype=bool) if eligible is None else eligible, it, self.lock_after,
+            self.switches, s.velocity_tol, s.cone_tol, s.slip_tol, gap_rate, mag, d_stick, new_slip, want_slip,
+            want_stick, new_active, new_stick)
+        self.rl, self.gap_rate, self.mag, self.d_stick, self.new_slip = rl, gap_rate, mag[:, None], d_stick, new_slip
+        self.want_slip, self.want_stick = want_slip, want_stick
+        if changed:
+            self.active, self.stick = new_active, new_stick
         return bool(changed)
 
     def result(self, iterations: int) -> tuple[ContactResult, tuple]:

@@ -118,3 +118,99 @@ def node_normals_at(positions: np.ndarray, triangles: np.ndarray, indptr: np.nda
             out[k, 0], out[k, 1], out[k, 2] = s0 / norm, s1 / norm, s2 / norm
         else:
             out[k, 0] = out[k, 1] = out[k, 2] = 0.0
+
+
+@_jit
+def tangent_frames(normals: np.ndarray, F: np.ndarray) -> None:
+    """Orthonormal frames F (m, 3, 3) with the unit normals (m, 3) as first column, t1 = n x e_x (n x e_y where
+    n is nearly along x) normalised, t2 = n x t1: contact.tangent_frames's arithmetic, contact by contact."""
+    for k in range(normals.shape[0]):
+        x, y, z = normals[k, 0], normals[k, 1], normals[k, 2]
+        norm = math.sqrt(x * x + y * y + z * z)
+        x, y, z = x / norm, y / norm, z / norm
+        if abs(x) >= 0.9:
+            a, b, c = -z, 0.0, x
+        else:
+            a, b, c = 0.0, z, -y
+        t = math.sqrt(a * a + b * b + c * c)
+        a, b, c = a / t, b / t, c / t
+        F[k, 0, 0], F[k, 1, 0], F[k, 2, 0] = x, y, z
+        F[k, 0, 1], F[k, 1, 1], F[k, 2, 1] = a, b, c
+        F[k, 0, 2], F[k, 1, 2], F[k, 2, 2] = y * c - z * b, z * a - x * c, x * b - y * a
+
+
+@_jit
+def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float, active: np.ndarray,
+                    stick: np.ndarray, released: np.ndarray, friction: np.ndarray, mu: np.ndarray,
+                    slip_force: np.ndarray, eligible: np.ndarray, it: int, lock_after: int, switches: int,
+                    velocity_tol: float, cone_tol: float, slip_tol: float, gap_rate: np.ndarray, mag: np.ndarray,
+                    d_stick: np.ndarray, new_slip: np.ndarray, want_slip: np.ndarray, want_stick: np.ndarray,
+                    new_active: np.ndarray, new_stick: np.ndarray) -> bool:
+    """One read of the active-set loop (contact._ContactSet.update, the same rules and arithmetic, contact by
+    contact): forces rl (m, 3) [N] and relative velocities vrel (m, 3) in the contact frames, gaps (m,) [m],
+    the state active, stick, released, friction (m,) bool, mu (m,), slip_force (m, 3) and the contacts
+    ``eligible`` to be added. Fills gap_rate, mag (m,), d_stick, new_slip (m, 2), want_slip, want_stick (m,);
+    ``released`` in place; returns whether the set changed, and then the new state in new_active, new_stick
+    and slip_force (in place)."""
+    m = rl.shape[0]
+    switching = it <= switches
+    changed = False
+    any_cont = False
+    top_mag = 0.0
+    slip_change = 0.0
+    for k in range(m):
+        lam = rl[k, 0]
+        gap_rate[k] = vrel[k, 0] + gap[k] / h
+        release = active[k] and lam < 0 and not (released[k] and it > lock_after)
+        add = (not active[k]) and gap_rate[k] < -velocity_tol and eligible[k]
+        if release:
+            released[k] = True
+        if release or add:
+            changed = True
+        f1, f2 = rl[k, 1], rl[k, 2]
+        ftn = math.sqrt(f1 * f1 + f2 * f2)
+        lam_pos = max(lam, 0.0)
+        want_slip[k] = active[k] and stick[k] and ftn > mu[k] * lam_pos * (1 + cone_tol)
+        to_slip = switching and want_slip[k]
+        v1, v2 = vrel[k, 1], vrel[k, 2]
+        vtn = math.sqrt(v1 * v1 + v2 * v2)
+        o1, o2 = slip_force[k, 1], slip_force[k, 2]
+        reversed_ = v1 * o1 + v2 * o2 > 0
+        want_stick[k] = active[k] and not stick[k] and friction[k] and (reversed_ or vtn < velocity_tol)
+        to_stick = switching and want_stick[k]
+        if ftn > 0:
+            d_stick[k, 0], d_stick[k, 1] = f1 / ftn, f2 / ftn
+        else:
+            d_stick[k, 0] = d_stick[k, 1] = 0.0
+        if vtn > 0:
+            s1, s2 = -v1 / vtn, -v2 / vtn
+        else:
+            s1 = s2 = 0.0
+        mag[k] = mu[k] * lam_pos
+        top_mag = max(top_mag, mag[k])
+        n1 = n2 = 0.0
+        if to_slip:
+            n1, n2 = mag[k] * d_stick[k, 0], mag[k] * d_stick[k, 1]
+        cont = active[k] and not stick[k] and friction[k] and not to_stick
+        if cont:
+            n1, n2 = mag[k] * s1, mag[k] * s2
+            any_cont = True
+        new_slip[k, 0], new_slip[k, 1] = n1, n2
+        slip_change = max(slip_change, abs(n1 - o1), abs(n2 - o2))
+        if to_slip or to_stick:
+            changed = True
+        new_active[k] = (active[k] and not release) or add
+        new_stick[k] = (stick[k] and not to_slip) or to_stick
+    if (it <= switches + 1) and slip_change > slip_tol * max(1e-12, top_mag) and any_cont:
+        changed = True
+    if changed:  # the sliding forces of the new state (the loop above left slip_force as it was)
+        for k in range(m):
+            cont = active[k] and not stick[k] and friction[k] and not (switching and want_stick[k])
+            to_slip = switching and want_slip[k]
+            if new_active[k] and (to_slip or cont):
+                slip_force[k, 1], slip_force[k, 2] = new_slip[k, 0], new_slip[k, 1]
+            else:
+                slip_force[k, 1] = slip_force[k, 2] = 0.0
+            if not new_active[k]:
+                slip_force[k, 0] = 0.0
+    return changed
