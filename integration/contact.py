@@ -42,8 +42,9 @@ SAME_FACE = 0.9
 SOFT_SLOP = 5e-5
 
 
-def _in_set(keys: np.ndarray, members: set) -> np.ndarray:
-    """(m,) bool: which keys (m,) are in the set (np.isin's sort costs more at the usual tens of contacts)."""
+def _in_set(keys: np.ndarray, members: set | dict) -> np.ndarray:
+    """(m,) bool: which keys (m,) are in the set (or are keys of the dict) (np.isin's sort costs more at the usual
+    tens of contacts)."""
     if not members:
         return np.zeros(len(keys), dtype=bool)
     return np.fromiter(map(members.__contains__, keys.tolist()), dtype=bool, count=len(keys))
@@ -241,9 +242,9 @@ class _ContactSet:
         self.friction = c.mu > 0
         self.stick = self.friction & (_in_set(keys, prev_stick) | ~was_active)
         self.slip_force = np.zeros((m, 3))  # local frame, tangential components only
-        carried = [i for i, k in enumerate(keys.tolist()) if k in prev_slip and not self.stick[i]]
-        if carried:  # last step's sliding friction, in this step's tangent plane
-            f_prev = np.array([prev_slip[int(keys[i])] for i in carried])
+        carried = np.flatnonzero(_in_set(keys, prev_slip) & ~self.stick)
+        if len(carried):  # last step's sliding friction, in this step's tangent plane
+            f_prev = np.array([prev_slip[k] for k in keys[carried].tolist()])
             self.slip_force[carried, 1:] = np.einsum("mji,mj->mi", self.frames[carried], f_prev)[:, 1:]
         self.released = np.zeros(m, dtype=bool)  # a contact released once this step is not released again
         self.switches = solver.friction_switches  # iterations in which stick/slip may change (see ContactSolver)

@@ -15,7 +15,8 @@ import numpy as np
 
 from softbody.kernels import ENABLED, _jit
 
-__all__ = ["ENABLED", "node_normals_at", "round_face_prefilter"]
+__all__ = ["ENABLED", "KINDS", "friction_update", "node_normals_at", "part_arrays", "primitive_distances",
+           "round_face_prefilter", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -214,3 +215,102 @@ def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float,
             if not new_active[k]:
                 slip_force[k, 0] = 0.0
     return changed
+
+
+#: primitive kinds, as numbered for primitive_distances
+KINDS = {"sphere": 0, "box": 1, "capsule": 2, "cylinder": 3, "plane": 4}
+
+
+def part_arrays(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Primitive parts (RigidLink.primitive_parts) as arrays for kernels.primitive_distances: kinds (P,)
+    (KINDS), sizes (P, 3) (a sphere's radius, a box's half extents, a capsule's or cylinder's radius and length,
+    a plane's normal; zero-padded), rotations (P, 3, 3) and positions (P, 3) in the link's frame."""
+    sizes = np.zeros((len(parts), 3))
+    for i, (_, size, _, _) in enumerate(parts):
+        sizes[i, :len(size)] = size
+    return (np.array([KINDS[k] for k, _, _, _ in parts], dtype=np.int64), sizes,
+            np.array([R for _, _, R, _ in parts], dtype=float).reshape(-1, 3, 3),
+            np.array([pos for _, _, _, pos in parts], dtype=float).reshape(-1, 3))
+
+
+@_jit
+def _unit3(x: float, y: float, z: float, fx: float, fy: float, fz: float):
+    """(unit vector, length) of (x, y, z); the fallback (fx, fy, fz) where the length is zero (distance._unit)."""
+    norm = math.sqrt(x * x + y * y + z * z)
+    if norm > 1e-300:
+        return x / norm, y / norm, z / norm, norm
+    return fx, fy, fz, norm
+
+
+@_jit
+def _shape(kind: int, s0: float, s1: float, s2: float, px: float, py: float, pz: float):
+    """Closest point, outward normal and signed distance of point p to a primitive in its own frame (distance.py:
+    sphere (s0 = r), box (half extents), capsule and cylinder (s0 = r, s1 = length, along z), plane (normal))."""
+    if kind == 0:
+        nx, ny, nz, norm = _unit3(px, py, pz, 0.0, 0.0, 1.0)
+        return s0 * nx, s0 * ny, s0 * nz, nx, ny, nz, norm - s0
+    if kind == 2:
+        az = min(max(pz, -0.5 * s1), 0.5 * s1)
+        nx, ny, nz, norm = _unit3(px, py, pz - az, 0.0, 0.0, 1.0)
+        return s0 * nx, s0 * ny, s0 * nz + az, nx, ny, nz, norm - s0
+    if kind == 1:
+        qx, qy, qz = abs(px) - s0, abs(py) - s1, abs(pz) - s2
+        if qx > 0 or qy > 0 or qz > 0:
+            cx, cy, cz = min(max(px, -s0), s0), min(max(py, -s1), s1), min(max(pz, -s2), s2)
+            nx, ny, nz, norm = _unit3(px - cx, py - cy, pz - cz, 0.0, 0.0, 1.0)
+            return cx, cy, cz, nx, ny, nz, norm
+        k = 0  # the nearest face: the first largest q
+        if qy > qx:
+            k = 1
+        if qz > (qy if k == 1 else qx):
+            k = 2
+        if k == 0:
+            sg = 1.0 if px >= 0 else -1.0
+            return sg * s0, py, pz, sg, 0.0, 0.0, qx
+        if k == 1:
+            sg = 1.0 if py >= 0 else -1.0
+            return px, sg * s1, pz, 0.0, sg, 0.0, qy
+        sg = 1.0 if pz >= 0 else -1.0
+        return px, py, sg * s2, 0.0, 0.0, sg, qz
+    if kind == 3:
+        h = 0.5 * s1
+        ux, uy, uz, rho = _unit3(px, py, 0.0, 1.0, 0.0, 0.0)
+        dr, dz = rho - s0, abs(pz) - h
+        sz = 1.0 if pz >= 0 else -1.0
+        if dr <= 0 and dz <= 0:
+            use_side, use_cap = dr > dz, dr <= dz
+        else:
+            use_side, use_cap = dr > 0 and dz <= 0, dr <= 0 and dz > 0
+        if use_side:
+            return s0 * ux, s0 * uy, pz, ux, uy, uz, dr
+        if use_cap:
+            return px, py, sz * h, 0.0, 0.0, sz, dz
+        rx, ry, rz = s0 * ux, s0 * uy, sz * h
+        nx, ny, nz, norm = _unit3(px - rx, py - ry, pz - rz, 0.0, 0.0, 1.0)
+        return rx, ry, rz, nx, ny, nz, norm
+    # plane through the origin with normal (s0, s1, s2)
+    ln = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    nx, ny, nz = s0 / ln, s1 / ln, s2 / ln
+    d = px * nx + py * ny + pz * nz
+    return px - d * nx, py - d * ny, pz - d * nz, nx, ny, nz, d
+
+
+@_jit
+def primitive_distances(kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins: np.ndarray, x: np.ndarray,
+                        point: np.ndarray, normal: np.ndarray, dist: np.ndarray) -> None:
+    """collision.primitive_distances point by point: for world points x (m, 3) the closest point, outward normal
+    and signed distance on the nearest of P parts (kinds (P,) as KINDS, sizes (P, 3), part-to-world rotations
+    Rw (P, 3, 3), origins (P, 3)), into point, normal (m, 3) and dist (m,); the first part wins a tie."""
+    for i in range(x.shape[0]):
+        for j in range(kinds.shape[0]):
+            R = Rw[j]
+            rx, ry, rz = x[i, 0] - origins[j, 0], x[i, 1] - origins[j, 1], x[i, 2] - origins[j, 2]
+            px = rx * R[0, 0] + ry * R[1, 0] + rz * R[2, 0]  # (x - origin) @ Rw
+            py = rx * R[0, 1] + ry * R[1, 1] + rz * R[2, 1]
+            pz = rx * R[0, 2] + ry * R[1, 2] + rz * R[2, 2]
+            cx, cy, cz, nx, ny, nz, d = _shape(kinds[j], sizes[j, 0], sizes[j, 1], sizes[j, 2], px, py, pz)
+            if j == 0 or d < dist[i]:
+                dist[i] = d
+                for a in range(3):  # back to the world: c @ Rw.T + origin, n @ Rw.T
+                    point[i, a] = R[a, 0] * cx + R[a, 1] * cy + R[a, 2] * cz + origins[j, a]
+                    normal[i, a] = R[a, 0] * nx + R[a, 1] * ny + R[a, 2] * nz

@@ -15,6 +15,7 @@ import numpy as np
 
 from softbody.errors import InvalidInputError
 
+from . import kernels
 from .bullet import BASE, BulletAdapter, Shape, quat_matrix
 from .distance import cross
 
@@ -175,6 +176,12 @@ class RigidLink:
             parts = None
         self._primitives = parts
         return parts
+
+    def primitive_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`primitive_parts` as arrays for the compiled distances (kernels.part_arrays), made once."""
+        if "_primitive_arrays" not in self.__dict__:
+            self._primitive_arrays = kernels.part_arrays(self.primitive_parts())
+        return self._primitive_arrays
 
     def round_parts(self) -> np.ndarray:
         """(S,) bool per point of :meth:`support_points`: True where it lies on a smooth surface (sphere,

@@ -149,9 +149,11 @@ def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
     numpy references, end to end: a soft cube sliding down a 30 degree incline (mu 0.5 < tan 30: its contacts
     slide) and the sheet-on-sphere scene (contacts added and released), stepped with and without them, give the
     same trajectories to round-off and the same count of sliding contacts."""
+    from types import SimpleNamespace
+
     from experiments.scenes import sheet_on_sphere
     from integration import World
-    from integration import kernels as contact_kernels
+    from integration import contact
     from softbody import FemBody, LinearElastic, Mesh, box_mesh
 
     def incline():
@@ -172,8 +174,9 @@ def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
     for build, steps in ((incline, 40), (sheet, 45)):
         runs = []
         for enabled in (True, False):
-            with monkeypatch.context() as m:
-                m.setattr(contact_kernels, "ENABLED", enabled)
+            with monkeypatch.context() as m:  # the contact solve's kernels only (the search keeps its own)
+                if not enabled:
+                    m.setattr(contact, "kernels", SimpleNamespace(ENABLED=False))
                 world, body = build()
                 slipping = 0
                 for _ in range(steps):
@@ -181,7 +184,45 @@ def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
                     slipping += sum(int(np.sum(res.active & ~res.stick)) for _, res in world.contact_results.values())
                 runs.append((body.positions.copy(), slipping))
                 world.close()
-        np.testing.assert_allclose(runs[0][0], runs[1][0], atol=1e-12, rtol=0)
+        np.testing.assert_array_equal(runs[0][0], runs[1][0])  # the same arithmetic: bit for bit
         assert runs[0][1] == runs[1][1]
         if build is incline:
             assert runs[0][1] > 0  # contacts slid at some step
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_primitive_distances_equal_numpys(monkeypatch):
+    """A link of four primitives (sphere, box, capsule, cylinder, each turned and offset; pybullet's compound
+    shape) and a tilted plane: the compiled closest points, normals and signed distances of random points in and
+    around them (the nearest part's) equal distance.py's, which tests/test_distance.py checks against pybullet."""
+    import pybullet as p
+
+    from integration import World
+    from integration import kernels as contact_kernels
+    from integration.collision import primitive_distances
+
+    world = World()
+    cid = world.client
+    rng = np.random.default_rng(12)
+    col = p.createCollisionShapeArray(
+        [p.GEOM_SPHERE, p.GEOM_BOX, p.GEOM_CAPSULE, p.GEOM_CYLINDER], radii=[0.1, 0.0, 0.05, 0.07],
+        halfExtents=[[0, 0, 0], [0.1, 0.05, 0.08], [0, 0, 0], [0, 0, 0]], lengths=[0.0, 0.0, 0.2, 0.15],
+        collisionFramePositions=[[0.2, 0, 0], [-0.2, 0, 0.05], [0, 0.2, 0], [0, -0.2, -0.05]],
+        collisionFrameOrientations=[p.getQuaternionFromEuler(rng.uniform(-1, 1, 3).tolist()) for _ in range(4)],
+        physicsClientId=cid)
+    body = p.createMultiBody(0, col, basePosition=[0.1, 0.2, 0.3],
+                             baseOrientation=p.getQuaternionFromEuler([0.4, -0.2, 0.7]), physicsClientId=cid)
+    links = [world.rigid(body), world.add_plane(normal=(0.3, -0.2, 1.0), point=(0, 0, -0.1))]
+    assert [k for k, *_ in links[0].primitive_parts()] == ["sphere", "box", "capsule", "cylinder"]
+    for rb in links:
+        lo, hi = rb.aabb()
+        lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
+        x = rng.uniform(lo - 0.1, hi + 0.1, size=(3000, 3))
+        got = primitive_distances(rb, rb.primitive_parts(), x)
+        with monkeypatch.context() as m:
+            m.setattr(contact_kernels, "ENABLED", False)
+            want = primitive_distances(rb, rb.primitive_parts(), x)
+        for a, b in zip(got, want):
+            np.testing.assert_allclose(a, b, atol=1e-12, rtol=0)
+        assert (got[2] < 0).sum() > 20  # points inside were compared too
+    world.close()
