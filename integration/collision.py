@@ -326,7 +326,7 @@ class CollisionDetector:
         nrm, area2 = np.zeros((len(around), 3)), np.ones(len(around))
         a[used], b[used], c[used] = xt[used, 0], xt[used, 1], xt[used, 2]
         cr = cross(b[used] - a[used], c[used] - a[used])
-        area2[used] = np.linalg.norm(cr, axis=1)
+        area2[used] = np.sqrt(np.einsum("ij,ij->i", cr, cr))
         nrm[used] = cr / area2[used, None]
         if len(vt) and tri_touch is not None:  # facets lying flat on a face of the link
             flat = tri_touch[vt].all(axis=1)

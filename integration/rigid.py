@@ -231,8 +231,8 @@ class RigidLink:
     def corner_points(self) -> tuple[np.ndarray, np.ndarray]:
         """World positions (k, 3) of the link's corners (box corners, the vertices of convex and concave
         meshes) and the centres (k, 3) of the convex parts they belong to (NaN for a concave mesh's)."""
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
         if "_corners_local" not in self.__dict__:
+            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
             local, centre = [], []
             for kind, size, R, pos, verts in self.convex_parts():
                 if kind == "box":
@@ -254,13 +254,12 @@ class RigidLink:
 
     def support_centres(self) -> np.ndarray:
         """World centres (S, 3) of the round parts, one per point of :meth:`support_points`."""
+        if "_support_local" not in self.__dict__:  # the parts' centres in the link's frame, one per point
+            local = [pos for kind, _, _, pos, _ in self.convex_parts() if kind in ("sphere", "capsule", "cylinder")
+                     for _ in range(1 if kind == "sphere" else 2)]
+            self._support_local = np.array(local, dtype=float).reshape(-1, 3)
         c, q = self.pose()
-        Rl = quat_matrix(q)
-        out = []
-        for kind, _, _, pos, _ in self.convex_parts():
-            if kind in ("sphere", "capsule", "cylinder"):
-                out += [c + Rl @ pos] * (1 if kind == "sphere" else 2)
-        return np.array(out).reshape(-1, 3)
+        return c + self._support_local @ quat_matrix(q).T
 
 RigidBody = RigidLink  # the name of a World's own single-link bodies
 
