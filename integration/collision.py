@@ -77,6 +77,8 @@ class Contacts:
         parts = [c for c in parts if len(c)]
         if not parts:
             return cls.empty()
+        if len(parts) == 1:  # nothing to join (contacts are never changed in place)
+            return parts[0]
         return cls(*(np.concatenate([getattr(c, f) for c in parts]) for f in cls.FIELDS))
 
 
@@ -200,8 +202,7 @@ class CollisionDetector:
         found = Contacts.concat(parts)
         if len(found):
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
-            found = found.select(order)
-            found = found.select(run_starts(found.node))
+            found = found.select(order[run_starts(found.node[order])])
         return found, FaceHits.concat(faces)
 
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
@@ -645,6 +646,8 @@ class FaceHits:
         parts = [h for h in parts if len(h)]
         if not parts:
             return cls.empty()
+        if len(parts) == 1:  # nothing to join (hits are never changed in place)
+            return parts[0]
         offsets = np.cumsum([0] + [int(h.group.max()) + 1 for h in parts[:-1]])
         fields = {f: np.concatenate([getattr(h, f) for h in parts]) for f in cls.__dataclass_fields__}
         fields["group"] = np.concatenate([h.group + o for h, o in zip(parts, offsets)])
