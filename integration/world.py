@@ -163,6 +163,7 @@ class World:
         self._restack_due = False  # members added or their grouping changed since the last step
         # id(member) -> (index of its stepped body in sim.bodies, first node there)
         self._place: dict[int, tuple[int, int]] = {}
+        self._place_version = self._results_of_version = 0  # counts the changes of _place; _results_of's
         self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
         self._results_of: dict[int, tuple[int, int]] = {}  # id(member) -> (id of its stepped body, first node), last step
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
@@ -395,6 +396,7 @@ class World:
         self._members.append(body)
         self.sim.bodies.append(body)  # stepped alone until the next step stacks it (_restack)
         self._place[id(body)] = (len(self.sim.bodies) - 1, 0)
+        self._place_version += 1
         self._restack_due = True
         self.friction[id(body)] = friction
         self._ignore[id(body)] = skip
@@ -460,6 +462,7 @@ class World:
             del self.contact_solver.previous[key]  # restart from the contact state found in the next step)
         self.sim.solvers.retain(stepped)
         self._place = {}
+        self._place_version += 1
         for i, s in enumerate(stepped):
             for m, o in zip(getattr(s, "members", [s]), getattr(s, "offsets", [0])):
                 self._place[id(m)] = (i, int(o))
@@ -487,6 +490,8 @@ class World:
         contacts, whose responses cost a solve each)."""
         if not self._stack or len(self._members) < 2:
             return
+        if not (len(member_pairs) or coupling.n or len(self.face_hits)):
+            return  # nothing that calls for the dense solve (no soft contact, no movable body, no face contact)
         index = {id(m): k for k, m in enumerate(self._members)}
         links: list[tuple[int, int]] = [tuple(p) for p in member_pairs.tolist()]
         by_rigid: dict[int, int] = {}
@@ -891,9 +896,8 @@ class World:
         self.face_hits = FaceHits.concat(hits)
         self.soft_hits = self._detect_soft()
         self.pair_results = []
-        fresh = [i for i, b in enumerate(self._members) if id(b) not in self._started]
-        if fresh:
-            self._check_overlaps(fresh)
+        if len(self._started) < len(self._members):  # bodies added since the last step (none are removed)
+            self._check_overlaps([i for i, b in enumerate(self._members) if id(b) not in self._started])
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         # the movable bodies in play, at the start configuration (before pybullet moves them)
@@ -934,9 +938,12 @@ class World:
             self.adapter.restore_snapshot(snapshot)
             raise
         self.sim.commit(new)
-        self._started.update(id(b) for b in self._members)
-        self._results_of = {id(m): (id(bodies[w]), first) for m in self._members  # whose results are whose
-                            for w, first in [self._place[id(m)]]}
+        if len(self._started) < len(self._members):
+            self._started.update(id(b) for b in self._members)
+        if self._results_of_version != self._place_version:  # whose results are whose (changed with a restack)
+            self._results_of = {id(m): (id(bodies[w]), first) for m in self._members
+                                for w, first in [self._place[id(m)]]}
+            self._results_of_version = self._place_version
         for rb in self.rigids.values():
             if rb.motion is not None:
                 pos, orn = rb.scripted_pose(self.t)

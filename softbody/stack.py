@@ -49,14 +49,15 @@ class BodyStack(FemBody):
         first = members[0]
         sizes = np.array([b.n_nodes for b in members])
         self.offsets = np.concatenate([[0], np.cumsum(sizes)])
+        self._rows = [slice(int(a), int(b)) for a, b in zip(self.offsets[:-1], self.offsets[1:])]
         nodes = np.concatenate([b.mesh.nodes for b in members])
         elements = np.concatenate([b.mesh.elements + o for b, o in zip(members, self.offsets[:-1])])
         self.element_offsets = np.concatenate([[0], np.cumsum([b.mesh.n_elements for b in members])])
         super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
                          first.mass_kind, first.hex_rotation)
         self.members = members
-        self._views: list[tuple[np.ndarray, np.ndarray]] = []
-        self._supports_seen: list = []
+        self._views: tuple[list, list] = ([], [])  # the members' positions and velocities as last made views
+        self._prescribed_seen: list | None = None
         self.gather(force=True)
 
     def member_of(self, nodes: np.ndarray) -> np.ndarray:
@@ -65,49 +66,52 @@ class BodyStack(FemBody):
 
     def rows(self, i: int) -> slice:
         """The stack's rows of member i."""
-        return slice(int(self.offsets[i]), int(self.offsets[i + 1]))
+        return self._rows[i]
 
     def gather(self, force: bool = False) -> None:
         """Read the members' state and supports where they changed since :meth:`scatter` (a member whose
         ``positions`` or ``velocities`` were assigned anew; in-place writes reach the stack through the views)."""
-        x, v = self._positions, self._velocities
-        changed = force or len(self._views) != len(self.members)
-        for i, b in enumerate(self.members):
-            if force or changed or b._positions is not self._views[i][0] or b._velocities is not self._views[i][1]:
-                x[self.rows(i)] = b._positions
-                v[self.rows(i)] = b._velocities
-                changed = True
-        if changed:
+        xs, vs = self._views
+        if force or len(xs) != len(self.members) or any(
+                b._positions is not x or b._velocities is not v for b, x, v in zip(self.members, xs, vs)):
+            for b, rows in zip(self.members, self._rows):
+                self._positions[rows] = b._positions
+                self._velocities[rows] = b._velocities
             self.scatter()
         self._gather_supports()
 
-    def scatter(self) -> None:
-        """Make the members' state views of the stack's rows (done whenever the stack's state is assigned)."""
+    def scatter(self, which: str | None = None) -> None:
+        """Make the members' state views of the stack's rows (done whenever the stack's state is assigned): both,
+        or only ``which`` ("positions" or "velocities", the one just assigned)."""
         if "members" not in self.__dict__ or "_velocities" not in self.__dict__:
             return  # FemBody.__init__ sets the state before the members are known
-        self._views = []
-        for i, b in enumerate(self.members):
-            rows = self.rows(i)
-            b._positions, b._velocities = self._positions[rows], self._velocities[rows]
-            self._views.append((b._positions, b._velocities))
+        xs, vs = self._views
+        if which != "velocities" or len(xs) != len(self.members):
+            xs = [self._positions[rows] for rows in self._rows]
+        if which != "positions" or len(vs) != len(self.members):
+            vs = [self._velocities[rows] for rows in self._rows]
+        for b, x, v in zip(self.members, xs, vs):
+            b._positions, b._velocities = x, v
+        self._views = (xs, vs)
 
     def _set_positions(self, value) -> None:
         FemBody.positions.fset(self, value)
-        self.scatter()
+        self.scatter("positions")
 
     def _set_velocities(self, value) -> None:
         FemBody.velocities.fset(self, value)
-        self.scatter()
+        self.scatter("velocities")
 
     positions = property(FemBody.positions.fget, _set_positions, doc=FemBody.positions.__doc__)
     velocities = property(FemBody.velocities.fget, _set_velocities, doc=FemBody.velocities.__doc__)
 
     def _gather_supports(self) -> None:
         """The stack's fixed and prescribed nodes: the members', renumbered (re-read when a member's changed)."""
-        seen = [(b.fixed.tobytes(), [(ids.tobytes(), id(m)) for ids, m in b.prescribed]) for b in self.members]
-        if seen == self._supports_seen:
+        fixed = np.concatenate([b.fixed for b in self.members])
+        prescribed = [(k, ids.tobytes(), id(m)) for k, b in enumerate(self.members) for ids, m in b.prescribed]
+        if prescribed == self._prescribed_seen and np.array_equal(fixed, self.fixed):
             return
-        self._supports_seen = seen
-        self.fixed = np.concatenate([b.fixed for b in self.members])
+        self._prescribed_seen = prescribed
+        self.fixed = fixed
         self.prescribed = [(ids + o, motion) for b, o in zip(self.members, self.offsets[:-1])
                            for ids, motion in b.prescribed]
