@@ -127,6 +127,7 @@ class FemBody:
         self._lame = (lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
+        self._rest_P = np.ascontiguousarray(P) if self._rotate_grads is not None else None  # for kernels.warped_pairs
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
         xim, wm = et.mass_rule
@@ -467,14 +468,25 @@ class FemBody:
         E, q, k, _ = self._Gw.shape
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
         ua = self._upper
-        if self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
+        load = None
+        if self._rotate_grads is not None and kernels.ENABLED:  # the lines below and rest_loads, element by element
+            U, load = np.zeros(9 * ua.n_upper), np.zeros((self.n_nodes, 3))
+            kernels.warped_pairs(R9, self._Gw[:, 0], self._rest_P, self.mesh.elements, ua.pairs, ua.element_scatter(),
+                                 U, load)
+            S = ua.with_diagonal(U.reshape(-1, 9))
+        elif self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
-            S = ua.assemble_pairs(g)
+            S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
         else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
             RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
             g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
             S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        result = isotropic_blocks(S, self._isotropic), self.rest_loads(R)
+        if kernels.ENABLED:  # the map in closed form, block by block (3.5x the matrix product's speed)
+            K = np.empty_like(S)
+            kernels.isotropic_blocks(np.ascontiguousarray(S, dtype=float), *self._lame, K)
+        else:
+            K = isotropic_blocks(S, self._isotropic)
+        result = K, self.rest_loads(R) if load is None else load
         if R is None:  # warping off: the same every step
             for a in result:
                 a.flags.writeable = False

@@ -71,19 +71,32 @@ def polar_newton(F9: np.ndarray, tol: float, max_iter: int, R9: np.ndarray, ok: 
 
 
 @_jit
-def pair_outer_sum(g: np.ndarray, pairs: np.ndarray, target: np.ndarray, out: np.ndarray) -> None:
-    """out[target[p, i, j, e]] += g[pairs[p, 0], i, e] * g[pairs[p, 1], j, e] for gradients g (k, 3, E), node
-    pairs (P, 2) and targets (P, 3, 3, E) into out (flat): the outer products of the pair blocks summed in
-    place, in the order of np.bincount over the flattened (P, 3, 3, E) products (so the same sums, bit for
-    bit), without the (P, 3, 3, E) temporary (softbody.assembly.UpperAssembly.assemble_pairs)."""
-    P = pairs.shape[0]
-    E = g.shape[2]
-    for p in range(P):
-        a, b = pairs[p, 0], pairs[p, 1]
-        for i in range(3):
-            for j in range(3):
-                for e in range(E):
-                    out[target[p, i, j, e]] += g[a, i, e] * g[b, j, e]
+def warped_pairs(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndarray, pairs: np.ndarray,
+                 target: np.ndarray, out: np.ndarray, loads: np.ndarray) -> None:
+    """One pass over the elements of a one-point mesh (tet4): the rotated gradients g_a = R_e G_ea (R component-major
+    (9, E), G (E, k, 3)), their pair blocks g_a g_b^T for the node pairs (P, 2) added into out[target[e, p, i, j]]
+    (out flat, target (E, P, 3, 3): UpperAssembly.element_scatter), and the warped rest loads R_e P_ea (P (E, k, 3))
+    added into loads (N, 3) at the element's nodes (E, k). The sums of FemBody.warped_stiffness_upper's numpy path
+    (a sparse product, a bincount and another sparse product), element by element: equal to round-off."""
+    E, k = elements.shape
+    g = np.empty((k, 3))
+    for e in range(E):
+        for a in range(k):
+            node = elements[e, a]
+            for i in range(3):
+                s = 0.0
+                t = 0.0
+                for j in range(3):
+                    r = R9[3 * i + j, e]
+                    s += r * G[e, a, j]
+                    t += r * P[e, a, j]
+                g[a, i] = s
+                loads[node, i] += t
+        for p in range(pairs.shape[0]):
+            a, b = pairs[p, 0], pairs[p, 1]
+            for i in range(3):
+                for j in range(3):
+                    out[target[e, p, i, j]] += g[a, i] * g[b, j]
 
 
 @_jit
@@ -110,3 +123,15 @@ def node_frames(S9: np.ndarray, Q: np.ndarray, bad: np.ndarray) -> None:
             norm2 += S9[k, i] * S9[k, i]
         scale = 1e-3 * math.sqrt(norm2)
         bad[i] = na <= scale or nb <= scale
+
+
+@_jit
+def isotropic_blocks(S: np.ndarray, lam: float, mu: float, K: np.ndarray) -> None:
+    """K = lam S + mu S^T + mu tr(S) I block by block, for blocks S (n, 9) flattened row-major, into K (n, 9): the
+    map softbody.warping.isotropic_matrix applies by a matrix product (warping.isotropic_blocks)."""
+    for r in range(S.shape[0]):
+        tr = S[r, 0] + S[r, 4] + S[r, 8]
+        for i in range(3):
+            for j in range(3):
+                K[r, 3 * i + j] = lam * S[r, 3 * i + j] + mu * S[r, 3 * j + i]
+            K[r, 4 * i] += mu * tr
