@@ -56,8 +56,9 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     if kernels.ENABLED:  # the same arithmetic, contact by contact (integration.kernels)
         kernels.tangent_frames(np.ascontiguousarray(normals, dtype=float), F)
         return F
-    n = F[:, :, 0]
-    np.divide(normals, np.sqrt(np.einsum("mi,mi->m", normals, normals))[:, None], out=n)
+    n = F[:, :, 0]  # lengths summed left to right, as the kernel does (einsum's order differs in the last bit)
+    np.divide(normals, np.sqrt(normals[:, 0] * normals[:, 0] + normals[:, 1] * normals[:, 1]
+                               + normals[:, 2] * normals[:, 2])[:, None], out=n)
     x, y, z = n[:, 0], n[:, 1], n[:, 2]
     # t1 = n x e_x (or n x e_y where n is nearly along x), normalised; t2 = n x t1
     along_x = np.abs(x) >= 0.9
@@ -65,7 +66,7 @@ def tangent_frames(normals: np.ndarray) -> np.ndarray:
     t1[:, 0] = np.where(along_x, -z, 0.0)
     t1[:, 1] = np.where(along_x, 0.0, z)
     t1[:, 2] = np.where(along_x, x, -y)
-    t1 /= np.sqrt(np.einsum("mi,mi->m", t1, t1))[:, None]
+    t1 /= np.sqrt(t1[:, 0] * t1[:, 0] + t1[:, 1] * t1[:, 1] + t1[:, 2] * t1[:, 2])[:, None]
     F[:, :, 2] = cross(n, t1)
     return F
 
@@ -386,7 +387,7 @@ class _ContactSet:
         slip_world = np.einsum("mij,mj->mi", self.frames, slip_local)
         previous = (set(keys[active].tolist()), set(keys[next_stick].tolist()),
                     {int(k): f for k, f in zip(keys[next_slip], slip_world[next_slip])})
-        viol = max(-float(self.gap_rate.min(initial=0.0)) * self.h, 0.0)
+        viol = max(0.0, -float(self.gap_rate.min(initial=0.0)) * self.h)
         return ContactResult(force, active.copy(), stick & active, iterations, self.factorizations, viol), previous
 
 

@@ -25,7 +25,8 @@ ENABLED = numba is not None and os.environ.get("SOFTBODY_NO_NUMBA", "") not in (
 
 
 def _jit(f):
-    return numba.njit(cache=True, nogil=True, fastmath=False)(f) if ENABLED else f
+    # error_model "numpy": a division by zero gives inf or NaN, as in the numpy code the kernels mirror, not an error
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(f) if ENABLED else f
 
 
 @_jit

@@ -57,7 +57,7 @@ class BodyStack(FemBody):
                          first.mass_kind, first.hex_rotation)
         self.members = members
         self._views: tuple[list, list] = ([], [])  # the members' positions and velocities as last made views
-        self._prescribed_seen: list | None = None
+        self._supports_seen: tuple | None = None  # (members' fixed (N,), their prescriptions) as last read
         self.gather(force=True)
 
     def member_of(self, nodes: np.ndarray) -> np.ndarray:
@@ -109,9 +109,10 @@ class BodyStack(FemBody):
         """The stack's fixed and prescribed nodes: the members', renumbered (re-read when a member's changed)."""
         fixed = np.concatenate([b.fixed for b in self.members])
         prescribed = [(k, ids.tobytes(), id(m)) for k, b in enumerate(self.members) for ids, m in b.prescribed]
-        if prescribed == self._prescribed_seen and np.array_equal(fixed, self.fixed):
+        seen = self._supports_seen  # the members' supports as last read (the stack's own may add to them)
+        if seen is not None and prescribed == seen[1] and np.array_equal(fixed, seen[0]):
             return
-        self._prescribed_seen = prescribed
-        self.fixed = fixed
+        self._supports_seen = (fixed, prescribed)
+        self.fixed = fixed.copy()
         self.prescribed = [(ids + o, motion) for b, o in zip(self.members, self.offsets[:-1])
                            for ids, motion in b.prescribed]

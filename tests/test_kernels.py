@@ -129,15 +129,25 @@ def test_normals_at_contact_nodes_equal_the_whole_surfaces():
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_node_frames_kernel_equals_numpy(monkeypatch):
-    """Per-node frames of a randomly deformed tet10 box, with some elements turned far apart (the polar fallback):
-    compiled and numpy paths agree, and every frame is a proper rotation."""
+    """Per-node frames of a tet10 box whose elements alternate between two rotations half a turn apart, so that at
+    nodes with as many elements of each the sums' first two columns cancel (the polar fallback), and a few elements
+    with the deformed mesh's own rotations: compiled and numpy paths agree, and every frame is a proper rotation."""
     from softbody import FemBody, LinearElastic, box_mesh
+    from softbody.body import _components
 
     rng = np.random.default_rng(8)
     body = FemBody(box_mesh((0.3, 0.2, 0.1), (3, 2, 2), "tet10"), LinearElastic(1e6, 0.3, 1000.0))
     body.positions = body.positions + 0.02 * rng.standard_normal(body.positions.shape)
     R = np.array(body.rotations())
-    R[:5] = -R[:5] @ np.diag([1.0, 1.0, -1.0])  # a few elements turned about (adjacent sums nearly cancel)
+    turn = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    turn *= np.linalg.det(turn)  # a proper rotation
+    R[0::2] = turn
+    R[1::2] = turn @ np.diag([-1.0, -1.0, 1.0])  # every other element half a turn from it (about its z)
+    R[:6] = np.array(body.rotations())[:6]  # and a few as the deformed mesh gives them
+    S9 = (body._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
+    a, b = S9[[0, 3, 6]], S9[[1, 4, 7]]
+    small = 1e-3 * np.linalg.norm(S9, axis=0)
+    assert ((np.linalg.norm(a, axis=0) <= small) | (np.linalg.norm(b, axis=0) <= small)).any()  # fallback reached
     Q = body.node_frames(R)
     with monkeypatch.context() as m:
         _numpy_path(m)
@@ -230,3 +240,19 @@ def test_compiled_primitive_distances_equal_numpys(monkeypatch):
             np.testing.assert_allclose(a, b, atol=1e-12, rtol=0)
         assert (got[2] < 0).sum() > 20  # points inside were compared too
     world.close()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_a_zero_normal_gives_the_numpy_paths_nan_frame_not_an_error(monkeypatch):
+    """The kernels divide as numpy does (error_model "numpy"): a zero-length contact normal (a degenerate query)
+    gives the same NaN frame as the numpy path instead of raising ZeroDivisionError."""
+    from integration import contact
+
+    normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.95, 0.1, 0.3]])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        F = contact.tangent_frames(normals)
+        with monkeypatch.context() as m:
+            m.setattr(contact, "kernels", type("Off", (), {"ENABLED": False}))
+            F0 = contact.tangent_frames(normals)
+    np.testing.assert_array_equal(F, F0)  # NaN where NaN, the same bits elsewhere
+    assert np.isnan(F[1]).all() and np.isfinite(F[[0, 2]]).all()

@@ -192,6 +192,22 @@ def test_a_prescription_moved_to_other_nodes_is_seen_by_the_stack():
     np.testing.assert_allclose(bodies[1].positions[other], bodies[1].rest[other] + [0.0, 0.0, 0.01], atol=1e-12)
 
 
+def test_supports_set_on_the_stack_itself_last_until_a_member_changes_its_own():
+    """A node fixed through the stack (World.stepped(body) returns it) stays fixed across gathers and steps, and
+    stays so while the members' supports are unchanged; a member that fixes nodes of its own is read anew."""
+    bodies = [_cube((0.3 * k, 0.0, 0.0)) for k in range(2)]
+    stack = BodyStack(bodies)
+    sim = Simulation([stack], 0.01)
+    stack.fix([0])
+    stack.gather()
+    sim.step()
+    assert stack.fixed[0] and stack.supported()[0]
+    np.testing.assert_array_equal(stack.positions[0], stack.rest[0])  # held where it was
+    bodies[1].fix([0])
+    stack.gather()
+    assert stack.fixed[stack.offsets[1]] and not stack.fixed[0]  # the members' supports, read anew
+
+
 def test_soft_objects_in_the_users_tray(capsys):
     """examples/soft_objects_in_tray.py in a short form: cubes dropped into pybullet_data's tray, in the user's own
     client, end up stepped as one stack, resting on the tray floor with the tray carrying their weight."""
