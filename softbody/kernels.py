@@ -139,3 +139,27 @@ def isotropic_blocks(S: np.ndarray, lam: float, mu: float, K: np.ndarray) -> Non
             for j in range(3):
                 K[r, 3 * i + j] = lam * S[r, 3 * i + j] + mu * S[r, 3 * j + i]
             K[r, 4 * i] += mu * tr
+
+
+@_jit
+def apply_frames(T: np.ndarray, x: np.ndarray, transpose: bool, out: np.ndarray) -> None:
+    """Per-node frames T (N, 3, 3) applied to x (N, 3) into out (N, 3): T_n^T x_n (``transpose``) or T_n x_n
+    (softbody.integrator.to_local and to_global with dense frames)."""
+    for n in range(T.shape[0]):
+        x0, x1, x2 = x[n, 0], x[n, 1], x[n, 2]
+        if transpose:
+            for i in range(3):
+                out[n, i] = T[n, 0, i] * x0 + T[n, 1, i] * x1 + T[n, 2, i] * x2
+        else:
+            for i in range(3):
+                out[n, i] = T[n, i, 0] * x0 + T[n, i, 1] * x1 + T[n, i, 2] * x2
+
+
+@_jit
+def frame_products(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
+    """A_n B_n^T for stacks of 3x3 matrices A, B (N, 3, 3) into out (N, 3, 3) (numpy's stacked matmul of small
+    matrices costs about ten times this)."""
+    for n in range(A.shape[0]):
+        for i in range(3):
+            for j in range(3):
+                out[n, i, j] = A[n, i, 0] * B[n, j, 0] + A[n, i, 1] * B[n, j, 1] + A[n, i, 2] * B[n, j, 2]

@@ -256,3 +256,25 @@ def test_a_zero_normal_gives_the_numpy_paths_nan_frame_not_an_error(monkeypatch)
             F0 = contact.tangent_frames(normals)
     np.testing.assert_array_equal(F, F0)  # NaN where NaN, the same bits elsewhere
     assert np.isnan(F[1]).all() and np.isfinite(F[[0, 2]]).all()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_per_node_frames_kernels_equal_numpy(monkeypatch):
+    """Dense per-node frames applied to vectors both ways (integrator.to_local, to_global) and the products of two
+    stacks of frames (the preconditioner's node rotations), compiled against numpy's einsum and matmul."""
+    from softbody import integrator
+
+    rng = np.random.default_rng(21)
+    T = np.linalg.qr(rng.standard_normal((300, 3, 3)))[0]
+    x = rng.standard_normal((300, 3))
+    out = integrator.to_local(T, x), integrator.to_global(T, x)
+    with monkeypatch.context() as m:
+        _numpy_path(m)
+        ref = integrator.to_local(T, x), integrator.to_global(T, x)
+    for a, b in zip(out, ref):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(integrator.to_global(T, integrator.to_local(T, x)), x, atol=1e-14)
+    Q = np.linalg.qr(rng.standard_normal((300, 3, 3)))[0]
+    G = np.empty_like(Q)
+    kernels.frame_products(Q, T, G)
+    np.testing.assert_allclose(G, Q @ np.swapaxes(T, 1, 2), rtol=0, atol=1e-15)
