@@ -12,7 +12,6 @@ import numpy as np
 import scipy.sparse as sp
 
 
-
 @dataclass
 class BlockPattern:
     """Node-level sparsity pattern of a mesh's 3N x 3N matrices.
