@@ -2,6 +2,8 @@
 path, and the reproducible choice of PARDISO's fill-reducing ordering."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
@@ -61,3 +63,24 @@ def test_the_ordering_with_fewer_factorisation_flops_is_kept_reproducibly(kind, 
     again.factorize(data)
     assert again.ordering == chosen.ordering
     np.testing.assert_allclose(again.solve(b), chosen.solve(b), rtol=1e-11)
+
+
+def test_pypardiso_is_pointed_at_mkl_in_this_environment(tmp_path, monkeypatch):
+    """MKL's runtime in the environment's lib directory is handed to pypardiso (which would otherwise search all of
+    sys.prefix), the shortest name first; a path the user gave is kept; no library, no hint."""
+    from softbody import linsolve
+
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "libmkl_rt.so.3").write_bytes(b"")
+    (tmp_path / "lib" / "libmkl_rt.so.3.debug").write_bytes(b"")
+    monkeypatch.setattr(linsolve.sys, "prefix", str(tmp_path))
+    monkeypatch.delenv("PYPARDISO_MKL_RT", raising=False)
+    linsolve._point_pypardiso_at_mkl()
+    assert os.environ["PYPARDISO_MKL_RT"] == str(tmp_path / "lib" / "libmkl_rt.so.3")
+    monkeypatch.setenv("PYPARDISO_MKL_RT", "/somewhere/libmkl_rt.so")
+    linsolve._point_pypardiso_at_mkl()
+    assert os.environ["PYPARDISO_MKL_RT"] == "/somewhere/libmkl_rt.so"
+    monkeypatch.delenv("PYPARDISO_MKL_RT")
+    monkeypatch.setattr(linsolve.sys, "prefix", str(tmp_path / "empty"))
+    linsolve._point_pypardiso_at_mkl()
+    assert "PYPARDISO_MKL_RT" not in os.environ
