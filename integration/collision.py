@@ -455,7 +455,8 @@ def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tupl
     c, q = rigid.pose() if pose is None else pose
     Rl = quat_matrix(q)
     if kernels.ENABLED:  # the same closed forms point by point (integration.kernels)
-        kinds, sizes, R, pos = rigid.primitive_arrays() if parts is rigid.primitive_parts() else kernels.part_arrays(parts)
+        own = parts is rigid.primitive_parts()  # the link's own parts: their arrays are kept with it
+        kinds, sizes, R, pos = rigid.primitive_arrays() if own else kernels.part_arrays(parts)
         x = np.ascontiguousarray(x, dtype=float)
         point, normal, dist = np.empty_like(x), np.empty_like(x), np.empty(len(x))
         kernels.primitive_distances(kinds, sizes, Rl @ R, c + pos @ Rl.T, x, point, normal, dist)

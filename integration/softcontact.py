@@ -17,8 +17,9 @@ nodes on the outer side of a triangle count.
 
 Broad phase: the bodies' boxes against each other's grown by their reach (one vectorised test), the nodes of
 the bodies that meet a box against that box, then per body a k-d tree (scipy's cKDTree) over its triangles'
-centres, queried with the nodes of the other bodies in its box; narrow phase vectorised over the candidate pairs of all bodies at once (a pile of small bodies costs
-one query per body in reach of another, not one per pair and direction).
+centres, queried with the nodes of the other bodies in its box; narrow phase vectorised over the candidate pairs
+of all bodies at once (a pile of small bodies costs one query per body in reach of another, not one per pair and
+direction).
 """
 from __future__ import annotations
 
