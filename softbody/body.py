@@ -128,6 +128,7 @@ class FemBody:
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
         self._rest_P = np.ascontiguousarray(P) if self._rotate_grads is not None else None  # for kernels.warped_pairs
+        self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
         xim, wm = et.mass_rule
@@ -530,6 +531,11 @@ class FemBody:
         if np.shape(g) != (E, k, 3 * q) or np.shape(y) != (self.n_nodes, 3):
             raise InvalidInputError(f"warped_product needs g of shape {(E, k, 3 * q)} (rotated_gradients) and y of "
                                     f"shape {(self.n_nodes, 3)}, got {np.shape(g)} and {np.shape(y)}")
+        if kernels.ENABLED:  # the same sums element by element, the stress in closed form (softbody.kernels)
+            out = np.empty((self.n_nodes, 3))
+            kernels.warped_product(np.ascontiguousarray(g, dtype=float), self._elements_c, *self._lame,
+                                   np.ascontiguousarray(y, dtype=float), out)
+            return out
         return warped_product(g, self.mesh.elements, self._matrix_free_data()[1], self._scatter, y)
 
     @property

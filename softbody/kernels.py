@@ -163,3 +163,39 @@ def frame_products(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
         for i in range(3):
             for j in range(3):
                 out[n, i, j] = A[n, i, 0] * B[n, j, 0] + A[n, i, 1] * B[n, j, 1] + A[n, i, 2] * B[n, j, 2]
+
+
+@_jit
+def warped_product(g: np.ndarray, elements: np.ndarray, lam: float, mu: float, y: np.ndarray, out: np.ndarray) -> None:
+    """K' y into out (N, 3), zeroed first, element by element: g (E, k, 3q) the rotated weighted gradients
+    (FemBody.rotated_gradients), elements (E, k), y (N, 3). Per quadrature point p the weighted displacement
+    gradient H_ij = sum_a y_a,i g_a,3p+j, the isotropic stress sigma = lam tr(H) I + mu (H + H^T) in closed form
+    (softbody.warping.stress_map as a matrix), and the forces g_a,3p+j sigma_ji added at the element's nodes: the
+    sums of softbody.warping.warped_product, whose batched products of small matrices cost several times this."""
+    E, k, q3 = g.shape
+    out[:] = 0.0
+    for e in range(E):
+        for p in range(q3 // 3):
+            h00 = h01 = h02 = h10 = h11 = h12 = h20 = h21 = h22 = 0.0
+            for a in range(k):
+                node = elements[e, a]
+                y0, y1, y2 = y[node, 0], y[node, 1], y[node, 2]
+                g0, g1, g2 = g[e, a, 3 * p], g[e, a, 3 * p + 1], g[e, a, 3 * p + 2]
+                h00 += y0 * g0
+                h01 += y0 * g1
+                h02 += y0 * g2
+                h10 += y1 * g0
+                h11 += y1 * g1
+                h12 += y1 * g2
+                h20 += y2 * g0
+                h21 += y2 * g1
+                h22 += y2 * g2
+            tr = lam * (h00 + h11 + h22)
+            s00, s11, s22 = tr + 2.0 * mu * h00, tr + 2.0 * mu * h11, tr + 2.0 * mu * h22
+            s01, s02, s12 = mu * (h01 + h10), mu * (h02 + h20), mu * (h12 + h21)
+            for a in range(k):
+                node = elements[e, a]
+                g0, g1, g2 = g[e, a, 3 * p], g[e, a, 3 * p + 1], g[e, a, 3 * p + 2]
+                out[node, 0] += g0 * s00 + g1 * s01 + g2 * s02
+                out[node, 1] += g0 * s01 + g1 * s11 + g2 * s12
+                out[node, 2] += g0 * s02 + g1 * s12 + g2 * s22

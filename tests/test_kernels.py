@@ -278,3 +278,30 @@ def test_per_node_frames_kernels_equal_numpy(monkeypatch):
     G = np.empty_like(Q)
     kernels.frame_products(Q, T, G)
     np.testing.assert_allclose(G, Q @ np.swapaxes(T, 1, 2), rtol=0, atol=1e-15)
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+@pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
+def test_matrix_free_product_kernel_equals_numpy_and_the_assembled_matrix(kind, monkeypatch):
+    """K' y element by element (softbody.kernels.warped_product, the stress in closed form) equals numpy's path
+    (batched products with the stress map, a sparse scatter) to round-off and the product with the assembled
+    warped stiffness, on a randomly deformed box and on a stack of two bodies (whose elements are offset)."""
+    from softbody import FemBody, LinearElastic, box_mesh
+    from softbody.stack import BodyStack
+
+    rng = np.random.default_rng(23)
+    mat = LinearElastic(1e6, 0.3, 1000.0)
+    body = FemBody(box_mesh((1.0, 0.6, 0.3), (4, 3, 2), kind), mat)
+    other = FemBody(box_mesh((0.5, 0.5, 0.5), (2, 2, 2), kind, center=(2.0, 0.0, 0.0)), mat)
+    for b in (body, BodyStack([body, other])):
+        b.positions = b.positions + 0.05 * rng.standard_normal(b.positions.shape)
+        R = b.rotations()
+        g = b.rotated_gradients(R)
+        y = rng.standard_normal(b.positions.shape)
+        got = b.warped_product(g, y)
+        with monkeypatch.context() as m:
+            _numpy_path(m)
+            ref = b.warped_product(g, y)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+        K = b.pattern.to_bsr(b.stiffness_blocks(b.warped_stiffness_upper(R)[0]))
+        np.testing.assert_allclose(got, (K @ y.ravel()).reshape(-1, 3), rtol=0, atol=1e-11 * np.abs(ref).max())
