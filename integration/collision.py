@@ -150,6 +150,22 @@ def _length(v: np.ndarray) -> float:
 _NO_ROWS, _ZERO3 = np.zeros((0, 3)), np.zeros(3)  # the prefilter's sweep arguments when there is no sweep
 
 
+def _face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink, margin: float,
+                            touching: np.ndarray | None, sweep: Sweep | None) -> bool:
+    """kernels.face_contacts_possible for CollisionDetector.face_contacts's arguments: False only if it would find
+    no face contact."""
+    lo, hi = rigid.aabb()
+    corners, corner_centres = rigid.corner_points()
+    swept = sweep is not None
+    return kernels.face_contacts_possible(
+        np.ascontiguousarray(positions, dtype=float), np.ascontiguousarray(triangles, dtype=np.int64),
+        np.zeros(len(positions), dtype=bool) if touching is None else touching, np.asarray(lo, dtype=float),
+        np.asarray(hi, dtype=float), margin, *rigid.round_part_arrays(), rigid.round_parts(),
+        np.ascontiguousarray(corners, dtype=float).reshape(-1, 3), np.ascontiguousarray(corner_centres, dtype=float).reshape(-1, 3),
+        swept, sweep.h if swept else 0.0, RIGID_SLACK, SOFT_SLACK, sweep.velocities if swept else _NO_ROWS,
+        *((sweep.v, sweep.w, sweep.centre) if swept else (_ZERO3, _ZERO3, _ZERO3)))
+
+
 class CollisionDetector:
     """Finds node contacts of soft bodies against rigid bodies within ``margin`` [m]."""
 
@@ -279,6 +295,8 @@ class CollisionDetector:
         """
         if not len(rigid.round_parts()) and not len(rigid.corner_points()[0]):
             return FaceHits.empty()  # a plane: no point of it lies between the nodes of a triangle outside it
+        if kernels.ENABLED and not _face_contacts_possible(positions, triangles, rigid, margin, touching, sweep):
+            return FaceHits.empty()  # most calls: nothing comes near, said by one compiled pass
         if boxes is None:
             boxes = triangle_boxes(positions, triangles)
         tlo, thi = boxes[0] - margin, boxes[1] + margin

@@ -23,73 +23,171 @@ SLACK = 1e-9
 
 
 @_jit
+def _face_point_may_touch(q0: float, q1: float, q2: float, a: tuple, b: tuple, c: tuple, n0: float, n1: float,
+                          n2: float, A2: float, k0: float, k1: float, k2: float, margin: float, swept: bool, h: float,
+                          rigid_slack: float, soft_slack: float, vs: float, moving: bool, v: np.ndarray, w: np.ndarray,
+                          centre: np.ndarray) -> bool:
+    """Whether rigid point q may touch a triangle (vertices a, b, c (3-tuples), unit outward normal n, |2 area| A2),
+    by the tests of collision.CollisionDetector.face_contacts with thresholds wider by SLACK (False only where that
+    code drops the point): within ``margin`` [m] of the plane; its part's centre k not on the inner side; within
+    what the two sides close within the step (``swept``: the triangle's mean normal velocity vs, the link's
+    velocity v and spin w about ``centre`` if ``moving``; slacks as collision.RIGID_SLACK and SOFT_SLACK); and
+    within the margin by the lower bound of its plane distance and its distance to the line of the edge it lies
+    beyond. A degenerate triangle (A2 not > 0) may always touch: the numpy code decides."""
+    lim = margin * (1.0 + SLACK) + 1e-300
+    a0, a1, a2 = a
+    d = (q0 - a0) * n0 + (q1 - a1) * n1 + (q2 - a2) * n2
+    if not abs(d) < lim:
+        return False
+    outer = (k0 - a0) * n0 + (k1 - a1) * n1 + (k2 - a2) * n2
+    if not (math.isnan(outer) or outer > -SLACK * margin):
+        return False
+    if swept:  # what the two sides close along -n within the step
+        reach = margin + h * soft_slack * max(vs, 0.0)
+        if moving:
+            r0, r1, r2 = q0 - centre[0], q1 - centre[1], q2 - centre[2]
+            p0 = v[0] + w[1] * r2 - w[2] * r1
+            p1 = v[1] + w[2] * r0 - w[0] * r2
+            p2 = v[2] + w[0] * r1 - w[1] * r0
+            reach += h * rigid_slack * max(-(p0 * n0 + p1 * n1 + p2 * n2), 0.0)
+        if not d < reach * (1.0 + SLACK) + SLACK * margin:
+            return False
+    if not A2 > 0.0:
+        return True
+    # barycentric weights of the projection, and the lower bound beside the triangle
+    p0, p1, p2 = q0 - d * n0, q1 - d * n1, q2 - d * n2
+    beside = 0.0
+    for e in range(3):  # edge e opposite vertex e: from vertex e+1 to e+2
+        if e == 0:
+            (u0, u1, u2), (o0, o1, o2) = b, c
+        elif e == 1:
+            (u0, u1, u2), (o0, o1, o2) = c, a
+        else:
+            (u0, u1, u2), (o0, o1, o2) = a, b
+        e0, e1, e2 = o0 - u0, o1 - u1, o2 - u2
+        f0, f1, f2 = p0 - u0, p1 - u1, p2 - u2
+        # weight of vertex e: ((edge) x (p - start)) . n / area2 (n unit)
+        wgt = ((e1 * f2 - e2 * f1) * n0 + (e2 * f0 - e0 * f2) * n1 + (e0 * f1 - e1 * f0) * n2) / A2
+        if wgt < 0.0:
+            length = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            if length > 0.0:
+                beside = max(beside, -wgt * A2 / length)
+    return d * d + beside * beside < lim * lim
+
+
+@_jit
+def _is_moving(v: np.ndarray, w: np.ndarray) -> bool:
+    return v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0 or w[0] != 0.0 or w[1] != 0.0 or w[2] != 0.0
+
+
+@_jit
 def round_face_prefilter(a: np.ndarray, b: np.ndarray, c: np.ndarray, nrm: np.ndarray, area2: np.ndarray,
                          tris: np.ndarray, pts: np.ndarray, centres: np.ndarray, keep: np.ndarray, margin: float,
                          swept: bool, h: float, rigid_slack: float, soft_slack: float, nodes: np.ndarray,
                          velocities: np.ndarray, v: np.ndarray, w: np.ndarray, centre: np.ndarray) -> None:
     """Clear keep[t, s] (T, S) where support point pts[t, s] (3,) of round part s cannot touch triangle tris[t]
-    (vertices a, b, c (.., 3), unit outward normal nrm, |2 area| area2, indices into these arrays): farther than
-    ``margin`` [m] from its plane; its part's centre ``centres[s]`` not on the outer side; beyond what the two
-    sides close within the step (``swept``: link velocity v, spin w about ``centre``, the triangle's velocity the
-    mean of its ``nodes`` (.., 3) rows of ``velocities``; slacks as collision.RIGID_SLACK and SOFT_SLACK); or
-    farther from the triangle than the margin by the lower bound of face_contacts (its plane distance and the
-    distance to the line of the edge it lies beyond)."""
-    lim = margin * (1.0 + SLACK) + 1e-300
-    moving = v[0] != 0.0 or v[1] != 0.0 or v[2] != 0.0 or w[0] != 0.0 or w[1] != 0.0 or w[2] != 0.0
+    (vertices a, b, c (.., 3), unit outward normal nrm, |2 area| area2, indices into these arrays; the triangle's
+    velocity the mean of its ``nodes`` (.., 3) rows of ``velocities``): _face_point_may_touch, with the part's
+    centre ``centres[s]``."""
+    moving = _is_moving(v, w)
     for k in range(tris.shape[0]):
         t = tris[k]
         n0, n1, n2 = nrm[t, 0], nrm[t, 1], nrm[t, 2]
-        a0, a1, a2 = a[t, 0], a[t, 1], a[t, 2]
+        vs = 0.0
+        if swept:
+            for j in range(3):
+                i = nodes[t, j]
+                vs += (velocities[i, 0] * n0 + velocities[i, 1] * n1 + velocities[i, 2] * n2) / 3.0
+        va, vb, vc = (a[t, 0], a[t, 1], a[t, 2]), (b[t, 0], b[t, 1], b[t, 2]), (c[t, 0], c[t, 1], c[t, 2])
         for s in range(keep.shape[1]):
-            if not keep[k, s]:
-                continue
-            q0, q1, q2 = pts[k, s, 0], pts[k, s, 1], pts[k, s, 2]
-            d = (q0 - a0) * n0 + (q1 - a1) * n1 + (q2 - a2) * n2
-            if not abs(d) < lim:
+            if keep[k, s] and not _face_point_may_touch(
+                    pts[k, s, 0], pts[k, s, 1], pts[k, s, 2], va, vb, vc, n0, n1, n2, area2[t], centres[s, 0],
+                    centres[s, 1], centres[s, 2], margin, swept, h, rigid_slack, soft_slack, vs, moving, v, w, centre):
                 keep[k, s] = False
-                continue
-            outer = (centres[s, 0] - a0) * n0 + (centres[s, 1] - a1) * n1 + (centres[s, 2] - a2) * n2
-            if not (math.isnan(outer) or outer > -SLACK * margin):
-                keep[k, s] = False
-                continue
-            if swept:  # what the two sides close along -n within the step
-                vs = 0.0
-                for j in range(3):
-                    i = nodes[t, j]
-                    vs += (velocities[i, 0] * n0 + velocities[i, 1] * n1 + velocities[i, 2] * n2) / 3.0
-                reach = margin + h * soft_slack * max(vs, 0.0)
-                if moving:
-                    r0, r1, r2 = q0 - centre[0], q1 - centre[1], q2 - centre[2]
-                    p0 = v[0] + w[1] * r2 - w[2] * r1
-                    p1 = v[1] + w[2] * r0 - w[0] * r2
-                    p2 = v[2] + w[0] * r1 - w[1] * r0
-                    reach += h * rigid_slack * max(-(p0 * n0 + p1 * n1 + p2 * n2), 0.0)
-                if not d < reach * (1.0 + SLACK) + SLACK * margin:
-                    keep[k, s] = False
+
+
+@_jit
+def face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, touching: np.ndarray, lo: np.ndarray,
+                           hi: np.ndarray, margin: float, round_kinds: np.ndarray, round_sizes: np.ndarray,
+                           round_R: np.ndarray, round_pos: np.ndarray, smooth: np.ndarray, corners: np.ndarray,
+                           corner_centres: np.ndarray, swept: bool, h: float, rigid_slack: float, soft_slack: float,
+                           velocities: np.ndarray, v: np.ndarray, w: np.ndarray, centre: np.ndarray) -> bool:
+    """Whether collision.CollisionDetector.face_contacts may find anything for a link (False only where it finds
+    nothing, so that the caller can skip it): some candidate point passes _face_point_may_touch on some surface
+    triangle (T, 3) of nodes at ``positions`` (N, 3) whose box, grown by ``margin``, meets the link's box lo, hi
+    (3,). Candidates: the support points of the round parts along each triangle's inward normal (round_kinds
+    (P,): 0 sphere, 2 capsule, 3 cylinder; round_sizes (P, 2) radius and length; round_R (P, 3, 3) and round_pos
+    (P, 3) in the world), not on triangles with a ``touching`` (N,) node where the point's part is ``smooth`` (S,)
+    (RigidLink.round_parts); and the ``corners`` (K, 3) [with their parts' centres (K, 3)] inside the triangle's
+    grown box. Its tests are those of face_contacts (wider by SLACK) less the ones that only ever drop more."""
+    moving = _is_moving(v, w)
+    grow = margin * (1.0 + SLACK)
+    for t in range(triangles.shape[0]):
+        ia, ib, ic = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        far = False
+        for j in range(3):
+            top = max(positions[ia, j], positions[ib, j], positions[ic, j]) + grow
+            bottom = min(positions[ia, j], positions[ib, j], positions[ic, j]) - grow
+            if top < lo[j] or bottom > hi[j]:
+                far = True
+        if far:
+            continue
+        u0, u1, u2 = positions[ib, 0] - positions[ia, 0], positions[ib, 1] - positions[ia, 1], positions[ib, 2] - positions[ia, 2]
+        e0, e1, e2 = positions[ic, 0] - positions[ia, 0], positions[ic, 1] - positions[ia, 1], positions[ic, 2] - positions[ia, 2]
+        c0, c1, c2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0
+        A2 = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        if not A2 > 0.0:
+            return True  # degenerate: the numpy code decides
+        n0, n1, n2 = c0 / A2, c1 / A2, c2 / A2
+        vs = 0.0
+        if swept:
+            for j in range(3):
+                i = triangles[t, j]
+                vs += (velocities[i, 0] * n0 + velocities[i, 1] * n1 + velocities[i, 2] * n2) / 3.0
+        touched = touching[ia] or touching[ib] or touching[ic]
+        va = (positions[ia, 0], positions[ia, 1], positions[ia, 2])
+        vb = (positions[ib, 0], positions[ib, 1], positions[ib, 2])
+        vc = (positions[ic, 0], positions[ic, 1], positions[ic, 2])
+        s = 0
+        for p in range(round_kinds.shape[0]):
+            kind = round_kinds[p]
+            R = round_R[p]
+            k0, k1, k2 = round_pos[p, 0], round_pos[p, 1], round_pos[p, 2]
+            r, length = round_sizes[p, 0], round_sizes[p, 1]
+            for end in range(1 if kind == 0 else 2):
+                if smooth[s] and touched:
+                    s += 1
                     continue
-            # barycentric weights of the projection, and the lower bound beside the triangle
-            p0, p1, p2 = q0 - d * n0, q1 - d * n1, q2 - d * n2
-            A2 = area2[t]
-            if not A2 > 0.0:  # degenerate: the numpy code decides
-                continue
-            beside = 0.0
-            for e in range(3):  # edge e opposite vertex e: from vertex e+1 to e+2
-                if e == 0:
-                    u0, u1, u2, o0, o1, o2 = b[t, 0], b[t, 1], b[t, 2], c[t, 0], c[t, 1], c[t, 2]
-                elif e == 1:
-                    u0, u1, u2, o0, o1, o2 = c[t, 0], c[t, 1], c[t, 2], a0, a1, a2
-                else:
-                    u0, u1, u2, o0, o1, o2 = a0, a1, a2, b[t, 0], b[t, 1], b[t, 2]
-                e0, e1, e2 = o0 - u0, o1 - u1, o2 - u2
-                f0, f1, f2 = p0 - u0, p1 - u1, p2 - u2
-                # weight of vertex e: ((edge) x (p - start)) . n / area2 (n unit)
-                wgt = ((e1 * f2 - e2 * f1) * n0 + (e2 * f0 - e0 * f2) * n1 + (e0 * f1 - e1 * f0) * n2) / A2
-                if wgt < 0.0:
-                    length = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-                    if length > 0.0:
-                        beside = max(beside, -wgt * A2 / length)
-            if d * d + beside * beside >= lim * lim:
-                keep[k, s] = False
+                d0, d1, d2 = -n0, -n1, -n2  # the support point along the inward normal (RigidLink.support_points)
+                if kind == 0 or kind == 2:
+                    q0, q1, q2 = k0 + r * d0, k1 + r * d1, k2 + r * d2
+                else:  # a cylinder's rim: the direction's part across the axis, scaled to the radius
+                    l0 = d0 * R[0, 0] + d1 * R[1, 0] + d2 * R[2, 0]
+                    l1 = d0 * R[0, 1] + d1 * R[1, 1] + d2 * R[2, 1]
+                    norm = math.sqrt(l0 * l0 + l1 * l1)
+                    f = r / norm if norm > 1e-12 else 0.0
+                    q0 = k0 + f * (l0 * R[0, 0] + l1 * R[0, 1])
+                    q1 = k1 + f * (l0 * R[1, 0] + l1 * R[1, 1])
+                    q2 = k2 + f * (l0 * R[2, 0] + l1 * R[2, 1])
+                if kind != 0:
+                    z = 0.5 * length if end == 0 else -0.5 * length
+                    q0, q1, q2 = q0 + z * R[0, 2], q1 + z * R[1, 2], q2 + z * R[2, 2]
+                if _face_point_may_touch(q0, q1, q2, va, vb, vc, n0, n1, n2, A2, k0, k1, k2, margin, swept, h,
+                                         rigid_slack, soft_slack, vs, moving, v, w, centre):
+                    return True
+                s += 1
+        for k in range(corners.shape[0]):
+            inside = True
+            for j in range(3):
+                top = max(positions[ia, j], positions[ib, j], positions[ic, j]) + grow
+                bottom = min(positions[ia, j], positions[ib, j], positions[ic, j]) - grow
+                if corners[k, j] < bottom or corners[k, j] > top:
+                    inside = False
+            if inside and _face_point_may_touch(corners[k, 0], corners[k, 1], corners[k, 2], va, vb, vc, n0, n1, n2,
+                                                A2, corner_centres[k, 0], corner_centres[k, 1], corner_centres[k, 2],
+                                                margin, swept, h, rigid_slack, soft_slack, vs, moving, v, w, centre):
+                return True
+    return False
 
 
 @_jit

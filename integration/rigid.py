@@ -196,6 +196,23 @@ class RigidLink:
             self._round = np.array(flags, dtype=bool)
         return self._round
 
+    def round_part_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The round parts (those of :meth:`support_points`) in the world, for kernels.face_contacts_possible:
+        kinds (P,) as kernels.KINDS, sizes (P, 2) (radius, length; a sphere's length 0), part-to-world rotations
+        (P, 3, 3) and centres (P, 3) [m] at the link's current pose."""
+        if "_round_local" not in self.__dict__:  # the parts in the link's frame, made once
+            parts = [prt for prt in self.convex_parts() if prt[0] in ("sphere", "capsule", "cylinder")]
+            sizes = np.zeros((len(parts), 2))
+            for i, (_, size, _, _, _) in enumerate(parts):
+                sizes[i, :len(size)] = size
+            self._round_local = (np.array([kernels.KINDS[k] for k, *_ in parts], dtype=np.int64), sizes,
+                                 np.array([R for _, _, R, _, _ in parts], dtype=float).reshape(-1, 3, 3),
+                                 np.array([pos for _, _, _, pos, _ in parts], dtype=float).reshape(-1, 3))
+        kinds, sizes, R, pos = self._round_local
+        c, q = self.pose()
+        Rl = quat_matrix(q)
+        return kinds, sizes, Rl @ R, c + pos @ Rl.T
+
     def support_points(self, directions: np.ndarray) -> np.ndarray:
         """For each world direction (T, 3) (unit vectors), the points (T, S, 3) of the link's round parts
         furthest along it: a sphere's, and each end's of a capsule (its two hemispheres) or of a cylinder

@@ -62,15 +62,16 @@ def test_warped_stiffness_kernels_equal_numpy_and_the_rotated_element_matrices(k
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
-@pytest.mark.parametrize("kind", ["sphere", "capsule", "cylinder"])
+@pytest.mark.parametrize("kind", ["sphere", "capsule", "cylinder", "box"])
 def test_round_face_prefilter_changes_no_face_contact(kind, monkeypatch):
-    """Round parts at random poses in and over a bumpy soft surface, at rest and moving (sweeps): the face contacts
-    found with the compiled prefilter (integration.kernels) are those found without it, field by field."""
+    """Round parts and a box at random poses in and over a bumpy soft surface, at rest and moving (sweeps): the face
+    contacts found with the compiled early-out (kernels.face_contacts_possible) and prefilter are those found
+    without them, field by field; the early-out skips the search in some poses and never where contacts are."""
     import pybullet as p
 
     from integration import World
     from integration import kernels as contact_kernels
-    from integration.collision import CollisionDetector, Sweep
+    from integration.collision import CollisionDetector, Sweep, _face_contacts_possible
     from softbody import FemBody, LinearElastic, box_mesh
 
     rng = np.random.default_rng(11)
@@ -81,10 +82,11 @@ def test_round_face_prefilter_changes_no_face_contact(kind, monkeypatch):
     tris = body.mesh.surface_triangles()
     shape = {"sphere": dict(shapeType=p.GEOM_SPHERE, radius=0.05),
              "capsule": dict(shapeType=p.GEOM_CAPSULE, radius=0.03, height=0.12),
-             "cylinder": dict(shapeType=p.GEOM_CYLINDER, radius=0.04, height=0.1)}[kind]
+             "cylinder": dict(shapeType=p.GEOM_CYLINDER, radius=0.04, height=0.1),
+             "box": dict(shapeType=p.GEOM_BOX, halfExtents=[0.04, 0.03, 0.02])}[kind]
     col = p.createCollisionShape(physicsClientId=cid, **shape)
-    radius = shape["radius"]
-    found = 0
+    radius = shape.get("radius", 0.03)
+    found, skipped = 0, 0
     for trial in range(60):
         pos = [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), 0.05 + radius + rng.uniform(-0.015, 0.01)]
         orn = p.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
@@ -98,13 +100,16 @@ def test_round_face_prefilter_changes_no_face_contact(kind, monkeypatch):
                           rb.pose()[0], rb.bounding_radius())
         args = (0, x, tris, rb, 0.01, touching, touch_normal, None, sweep)
         with_kernel = CollisionDetector.face_contacts(*args)
+        possible = _face_contacts_possible(x, tris, rb, 0.01, touching, sweep)
+        skipped += not possible
+        assert possible or not len(with_kernel)
         with monkeypatch.context() as m:
             m.setattr(contact_kernels, "ENABLED", False)
             without = CollisionDetector.face_contacts(*args)
         for f in with_kernel.__dataclass_fields__:
             np.testing.assert_array_equal(getattr(with_kernel, f), getattr(without, f), err_msg=f)
         found += len(with_kernel)
-    assert found > 20  # the poses made contacts to compare
+    assert found > 20 and skipped > 3  # the poses made contacts to compare, and some the early-out skipped
     world.close()
 
 
