@@ -204,8 +204,7 @@ class CollisionDetector:
                 parts.append(found)
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
                 continue  # a plane: no face contacts (CollisionDetector.face_contacts)
-            if boxes is None:
-                boxes = triangle_boxes(positions, triangles)
+            if touching is None:
                 touching, touch_normal = np.zeros(len(positions), dtype=bool), np.zeros((len(positions), 3))
             touching[:] = False
             touch_normal[:] = 0.0
@@ -213,10 +212,16 @@ class CollisionDetector:
             touching[found.node[resting]] = True
             touch_normal[found.node[resting]] = found.normal[resting]
             touching[supported] = True
+            if kernels.ENABLED and not _face_contacts_possible(positions, triangles, rb, margin, touching, sweep):
+                continue  # nothing near (face_contacts would say the same, after the triangles' boxes)
+            if boxes is None:
+                boxes = triangle_boxes(positions, triangles)
             faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching, touch_normal, boxes,
                                             sweep))
         found = Contacts.concat(parts)
-        if len(found):
+        if len(parts) == 1 and np.all(found.node[1:] > found.node[:-1]):
+            pass  # one link's contacts, one per node and in node order already
+        elif len(found):
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
             found = found.select(order[run_starts(found.node[order])])
         return found, FaceHits.concat(faces)
@@ -225,6 +230,20 @@ class CollisionDetector:
                       rigid: RigidLink, margin: float, sweep: Sweep | None = None) -> Contacts:
         """Contacts of the given surface nodes (ids into positions (N, 3)) against one rigid body within
         ``margin`` [m] (and, given a ``sweep``, within its reach of the rigid point facing them)."""
+        parts = rigid.primitive_parts()
+        if parts is not None and sweep is not None and kernels.ENABLED:  # the lines below, node by node
+            c, q = rigid.pose()
+            Rl = quat_matrix(q)
+            kinds, sizes, R, pos = rigid.primitive_arrays()
+            lo, hi = rigid.aabb()
+            count, node, point, normal, dist = kernels.primitive_node_contacts(
+                positions, surface_nodes, np.asarray(lo, dtype=float), np.asarray(hi, dtype=float), margin,
+                sweep.margin, sweep.h, RIGID_SLACK, SOFT_SLACK, sweep.velocities, sweep.speeds, sweep.v, sweep.w,
+                sweep.centre, sweep.radius, kinds, sizes, Rl @ R, c + pos @ Rl.T)
+            self.last_candidates += count
+            n = len(node)
+            return Contacts(np.full(n, body_index), node, np.full(n, rigid.id), point, normal, dist,
+                            np.full(n, rigid.link))
         x = positions.take(surface_nodes, axis=0)
         lo, hi = rigid.aabb()
         inside = np.all((x >= lo - margin) & (x <= hi + margin), axis=1)
@@ -238,7 +257,6 @@ class CollisionDetector:
         self.last_candidates += len(cand)
         if not len(cand):
             return Contacts.empty()
-        parts = rigid.primitive_parts()
         if parts is not None:  # primitives: closed-form distances, all candidates at once
             point, normal, dist = primitive_distances(rigid, parts, positions.take(cand, axis=0))
             near = dist < (margin if sweep is None else sweep.reach(point, normal, sweep.velocities[cand]))

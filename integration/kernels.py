@@ -15,8 +15,8 @@ import numpy as np
 
 from softbody.kernels import ENABLED, _jit
 
-__all__ = ["ENABLED", "KINDS", "friction_update", "node_normals_at", "part_arrays", "primitive_distances",
-           "round_face_prefilter", "tangent_frames"]
+__all__ = ["ENABLED", "KINDS", "face_contacts_possible", "friction_update", "node_normals_at", "part_arrays",
+           "primitive_distances", "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -394,21 +394,96 @@ def _shape(kind: int, s0: float, s1: float, s2: float, px: float, py: float, pz:
 
 
 @_jit
+def _nearest_part(kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins: np.ndarray, x0: float, x1: float,
+                  x2: float):
+    """Closest point (3 floats), outward normal (3) and signed distance of world point x to the nearest of the parts
+    (primitive_distances's arguments); the first part wins a tie."""
+    bx = by = bz = mx = my = mz = 0.0
+    best = np.inf
+    for j in range(kinds.shape[0]):
+        R = Rw[j]
+        rx, ry, rz = x0 - origins[j, 0], x1 - origins[j, 1], x2 - origins[j, 2]
+        px = rx * R[0, 0] + ry * R[1, 0] + rz * R[2, 0]  # (x - origin) @ Rw
+        py = rx * R[0, 1] + ry * R[1, 1] + rz * R[2, 1]
+        pz = rx * R[0, 2] + ry * R[1, 2] + rz * R[2, 2]
+        cx, cy, cz, nx, ny, nz, d = _shape(kinds[j], sizes[j, 0], sizes[j, 1], sizes[j, 2], px, py, pz)
+        if j == 0 or d < best:
+            best = d
+            # back to the world: c @ Rw.T + origin, n @ Rw.T
+            bx = R[0, 0] * cx + R[0, 1] * cy + R[0, 2] * cz + origins[j, 0]
+            by = R[1, 0] * cx + R[1, 1] * cy + R[1, 2] * cz + origins[j, 1]
+            bz = R[2, 0] * cx + R[2, 1] * cy + R[2, 2] * cz + origins[j, 2]
+            mx = R[0, 0] * nx + R[0, 1] * ny + R[0, 2] * nz
+            my = R[1, 0] * nx + R[1, 1] * ny + R[1, 2] * nz
+            mz = R[2, 0] * nx + R[2, 1] * ny + R[2, 2] * nz
+    return bx, by, bz, mx, my, mz, best
+
+
+@_jit
 def primitive_distances(kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins: np.ndarray, x: np.ndarray,
                         point: np.ndarray, normal: np.ndarray, dist: np.ndarray) -> None:
     """collision.primitive_distances point by point: for world points x (m, 3) the closest point, outward normal
     and signed distance on the nearest of P parts (kinds (P,) as KINDS, sizes (P, 3), part-to-world rotations
     Rw (P, 3, 3), origins (P, 3)), into point, normal (m, 3) and dist (m,); the first part wins a tie."""
     for i in range(x.shape[0]):
-        for j in range(kinds.shape[0]):
-            R = Rw[j]
-            rx, ry, rz = x[i, 0] - origins[j, 0], x[i, 1] - origins[j, 1], x[i, 2] - origins[j, 2]
-            px = rx * R[0, 0] + ry * R[1, 0] + rz * R[2, 0]  # (x - origin) @ Rw
-            py = rx * R[0, 1] + ry * R[1, 1] + rz * R[2, 1]
-            pz = rx * R[0, 2] + ry * R[1, 2] + rz * R[2, 2]
-            cx, cy, cz, nx, ny, nz, d = _shape(kinds[j], sizes[j, 0], sizes[j, 1], sizes[j, 2], px, py, pz)
-            if j == 0 or d < dist[i]:
-                dist[i] = d
-                for a in range(3):  # back to the world: c @ Rw.T + origin, n @ Rw.T
-                    point[i, a] = R[a, 0] * cx + R[a, 1] * cy + R[a, 2] * cz + origins[j, a]
-                    normal[i, a] = R[a, 0] * nx + R[a, 1] * ny + R[a, 2] * nz
+        (point[i, 0], point[i, 1], point[i, 2], normal[i, 0], normal[i, 1], normal[i, 2],
+         dist[i]) = _nearest_part(kinds, sizes, Rw, origins, x[i, 0], x[i, 1], x[i, 2])
+
+
+@_jit
+def primitive_node_contacts(positions: np.ndarray, surface: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                            bound: float, margin: float, h: float, rigid_slack: float, soft_slack: float,
+                            velocities: np.ndarray, speeds: np.ndarray, v: np.ndarray, w: np.ndarray,
+                            centre: np.ndarray, radius: float, kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray,
+                            origins: np.ndarray):
+    """collision.CollisionDetector.node_contacts for a link of primitive parts and a sweep, node by node: the
+    ``surface`` nodes (s,) at ``positions`` (N, 3) inside the link's box lo, hi (3,) grown by ``bound`` [m] and
+    inside its bounding sphere (``radius``, about ``centre``) swept over the step (Sweep.swept, the soft nodes'
+    travel from their ``speeds`` (N,)); of those, the ones nearer the parts (primitive_distances's arguments) than
+    their reach (Sweep.reach: ``margin`` plus what the link's velocity v and spin w and the nodes' ``velocities``
+    (N, 3) close within h, with the slacks). Returns (candidates that passed the box and sphere, the contacts'
+    nodes (m,), points, normals (m, 3), distances (m,))."""
+    s = surface.shape[0]
+    travel = 0.0
+    for k in range(s):
+        travel = max(travel, speeds[surface[k]])
+    travel = soft_slack * h * travel
+    finite = math.isfinite(radius)
+    p0, p1, p2 = rigid_slack * h * v[0], rigid_slack * h * v[1], rigid_slack * h * v[2]
+    length2 = p0 * p0 + p1 * p1 + p2 * p2
+    reach = radius + rigid_slack * h * math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * radius + margin + travel
+    moving = _is_moving(v, w)
+    nodes = np.empty(s, dtype=np.int64)
+    point, normal, dist = np.empty((s, 3)), np.empty((s, 3)), np.empty(s)
+    candidates = m = 0
+    for k in range(s):
+        i = surface[k]
+        x0, x1, x2 = positions[i, 0], positions[i, 1], positions[i, 2]
+        if not (x0 >= lo[0] - bound and x1 >= lo[1] - bound and x2 >= lo[2] - bound
+                and x0 <= hi[0] + bound and x1 <= hi[1] + bound and x2 <= hi[2] + bound):
+            continue
+        if finite:
+            r0, r1, r2 = x0 - centre[0], x1 - centre[1], x2 - centre[2]
+            if length2 != 0.0:
+                t = min(max((r0 * p0 + r1 * p1 + r2 * p2) / length2, 0.0), 1.0)
+                r0, r1, r2 = r0 - t * p0, r1 - t * p1, r2 - t * p2
+            if not r0 * r0 + r1 * r1 + r2 * r2 <= reach * reach:
+                continue
+        candidates += 1
+        cx, cy, cz, nx, ny, nz, d = _nearest_part(kinds, sizes, Rw, origins, x0, x1, x2)
+        soft = max(-(velocities[i, 0] * nx + velocities[i, 1] * ny + velocities[i, 2] * nz), 0.0)
+        if moving:
+            q0, q1, q2 = cx - centre[0], cy - centre[1], cz - centre[2]
+            u0 = v[0] + (w[1] * q2 - w[2] * q1)
+            u1 = v[1] + (w[2] * q0 - w[0] * q2)
+            u2 = v[2] + (w[0] * q1 - w[1] * q0)
+            limit = margin + h * (rigid_slack * max(u0 * nx + u1 * ny + u2 * nz, 0.0) + soft_slack * soft)
+        else:
+            limit = margin + h * (soft_slack * soft)
+        if d < limit:
+            nodes[m] = i
+            point[m, 0], point[m, 1], point[m, 2] = cx, cy, cz
+            normal[m, 0], normal[m, 1], normal[m, 2] = nx, ny, nz
+            dist[m] = d
+            m += 1
+    return candidates, nodes[:m], point[:m], normal[:m], dist[:m]

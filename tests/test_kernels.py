@@ -248,6 +248,63 @@ def test_compiled_primitive_distances_equal_numpys(monkeypatch):
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_node_contacts_equal_numpys(monkeypatch):
+    """Node contacts of a bumpy soft surface against a compound link of four primitives and a plane, at rest and
+    moving (random link velocity and spin, random node velocities): the compiled pass (box, swept sphere, closest
+    parts and reach node by node, kernels.primitive_node_contacts) finds the nodes numpy's chain finds, with the
+    same points, normals and distances, and counts the same candidates."""
+    import pybullet as p
+
+    from integration import World
+    from integration import kernels as contact_kernels
+    from integration.collision import CollisionDetector, Sweep
+    from softbody import FemBody, LinearElastic, box_mesh
+
+    world = World()
+    cid = world.client
+    rng = np.random.default_rng(31)
+    col = p.createCollisionShapeArray(
+        [p.GEOM_SPHERE, p.GEOM_BOX, p.GEOM_CAPSULE, p.GEOM_CYLINDER], radii=[0.05, 0.0, 0.03, 0.04],
+        halfExtents=[[0, 0, 0], [0.05, 0.03, 0.04], [0, 0, 0], [0, 0, 0]], lengths=[0.0, 0.0, 0.1, 0.08],
+        collisionFramePositions=[[0.1, 0, 0], [-0.1, 0, 0.02], [0, 0.1, 0], [0, -0.1, -0.02]],
+        collisionFrameOrientations=[p.getQuaternionFromEuler(rng.uniform(-1, 1, 3).tolist()) for _ in range(4)],
+        physicsClientId=cid)
+    soft = FemBody(box_mesh((0.5, 0.5, 0.1), (8, 8, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
+    x = soft.positions + 0.004 * rng.standard_normal(soft.positions.shape)
+    surface = np.unique(soft.mesh.surface_triangles())
+    detector = CollisionDetector(cid)
+    plane = world.add_plane(normal=(0.1, -0.2, 1.0), point=(0, 0, -0.04))
+    found = 0
+    for trial in range(40):
+        if trial % 4 == 3:
+            rb = plane
+        else:
+            pos = [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), 0.05 + rng.uniform(-0.04, 0.03)]
+            orn = p.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
+            rb = world.rigid(p.createMultiBody(0, col, basePosition=pos, baseOrientation=orn, physicsClientId=cid))
+        vel = 0.5 * rng.standard_normal(x.shape)
+        moving = trial % 2 == 1
+        sweep = Sweep(0.01, 0.01, vel, np.linalg.norm(vel, axis=1), *((rng.standard_normal(3), 3 * rng.standard_normal(3))
+                      if moving else (np.zeros(3), np.zeros(3))), rb.pose()[0], rb.bounding_radius())
+        bound = sweep.bound(surface)
+        before = detector.last_candidates
+        got = detector.node_contacts(0, x, surface, rb, bound, sweep)
+        between = detector.last_candidates
+        with monkeypatch.context() as m:
+            m.setattr(contact_kernels, "ENABLED", False)
+            want = detector.node_contacts(0, x, surface, rb, bound, sweep)
+        assert between - before == detector.last_candidates - between
+        np.testing.assert_array_equal(got.node, want.node)
+        for f in ("body", "rigid", "link"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+        for f in ("point", "normal", "distance"):
+            np.testing.assert_allclose(getattr(got, f), getattr(want, f), rtol=0, atol=1e-12)
+        found += len(got)
+    assert found > 100
+    world.close()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_a_zero_normal_gives_the_numpy_paths_nan_frame_not_an_error(monkeypatch):
     """The kernels divide as numpy does (error_model "numpy"): a zero-length contact normal (a degenerate query)
     gives the same NaN frame as the numpy path instead of raising ZeroDivisionError."""
