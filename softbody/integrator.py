@@ -171,6 +171,20 @@ def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, ma
     A: block data (nnzb, 3, 3). Returns the rotated block data (for products) and the scale.
     """
     pat = body.pattern
+    if kernels.ENABLED:  # the same arithmetic, block by block and entry by entry (softbody.kernels)
+        if T is not None:
+            where = np.full(pat.n_nodes, -1)
+            where[T.nodes] = np.arange(len(T.nodes))
+            rotated = np.empty(A.shape)
+            kernels.rotate_blocks(np.ascontiguousarray(A, dtype=float), pat.block_row, pat.indices, where,
+                                  np.ascontiguousarray(T.R, dtype=float), rotated)
+            A = rotated
+        data = np.empty(len(pat.up_gather))
+        scale = kernels.constrained_upper(np.ascontiguousarray(A, dtype=float).reshape(-1), pat.up_gather,
+                                          pat.up_row, pat.up_col, pat.up_diag, mask.ravel(), data)
+        with timed(timings, "factorize"):
+            solver.factorize(data)
+        return A, scale
     if T is not None:
         A = A.copy()
         where = np.full(pat.n_nodes, -1)

@@ -199,3 +199,45 @@ def warped_product(g: np.ndarray, elements: np.ndarray, lam: float, mu: float, y
                 out[node, 0] += g0 * s00 + g1 * s01 + g2 * s02
                 out[node, 1] += g0 * s01 + g1 * s11 + g2 * s12
                 out[node, 2] += g0 * s02 + g1 * s12 + g2 * s22
+
+
+@_jit
+def rotate_blocks(A: np.ndarray, block_row: np.ndarray, indices: np.ndarray, where: np.ndarray, R: np.ndarray,
+                  out: np.ndarray) -> None:
+    """T^T A T for block data A (nnzb, 3, 3) into out (a copy of A where neither node turns): block k of row node
+    block_row[k] and column node indices[k] becomes R_r^T A_k R_c, with R (m, 3, 3) the frames of the turned nodes
+    (where (N,): a node's row in R, -1 for the identity). softbody.integrator.factorize_constrained's two batched
+    products (the rows, then the columns), block by block."""
+    for k in range(A.shape[0]):
+        r, c = where[block_row[k]], where[indices[k]]
+        for i in range(3):
+            for j in range(3):
+                out[k, i, j] = A[k, i, j]
+        if r >= 0:
+            for j in range(3):
+                a0, a1, a2 = out[k, 0, j], out[k, 1, j], out[k, 2, j]
+                for i in range(3):
+                    out[k, i, j] = R[r, 0, i] * a0 + R[r, 1, i] * a1 + R[r, 2, i] * a2
+        if c >= 0:
+            for i in range(3):
+                a0, a1, a2 = out[k, i, 0], out[k, i, 1], out[k, i, 2]
+                for j in range(3):
+                    out[k, i, j] = a0 * R[c, 0, j] + a1 * R[c, 1, j] + a2 * R[c, 2, j]
+
+
+@_jit
+def constrained_upper(flat: np.ndarray, gather: np.ndarray, up_row: np.ndarray, up_col: np.ndarray,
+                      up_diag: np.ndarray, mask: np.ndarray, data: np.ndarray) -> float:
+    """The upper-triangle values data (nnz_up,) = flat[gather] of block data (flattened) with the constrained dofs
+    (mask (3N,) bool) eliminated: their rows and columns zero and their diagonal the mean diagonal entry (the
+    scale, returned). softbody.integrator.factorize_constrained's gather and masking in one pass."""
+    scale = 0.0
+    for d in range(up_diag.shape[0]):
+        scale += flat[gather[up_diag[d]]]
+    scale /= up_diag.shape[0]
+    for k in range(gather.shape[0]):
+        data[k] = 0.0 if mask[up_row[k]] or mask[up_col[k]] else flat[gather[k]]
+    for d in range(up_diag.shape[0]):
+        if mask[d]:
+            data[up_diag[d]] = scale
+    return scale

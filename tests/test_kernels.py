@@ -367,3 +367,35 @@ def test_matrix_free_product_kernel_equals_numpy_and_the_assembled_matrix(kind, 
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
         K = b.pattern.to_bsr(b.stiffness_blocks(b.warped_stiffness_upper(R)[0]))
         np.testing.assert_allclose(got, (K @ y.ravel()).reshape(-1, 3), rtol=0, atol=1e-11 * np.abs(ref).max())
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_constrained_factorisation_data_equals_numpys(monkeypatch):
+    """integrator.factorize_constrained with nodes turned into random frames and some of their components
+    eliminated: the compiled passes (kernels.rotate_blocks, kernels.constrained_upper) hand the solver the values
+    numpy's products, gather and masking give, and return the same rotated blocks and scale; with no frames too."""
+    from softbody import FemBody, LinearElastic, box_mesh
+    from softbody.integrator import NodeFrames, factorize_constrained
+
+    class Keep:  # a solver that keeps what it is given
+        def factorize(self, data):
+            self.data = data.copy()
+
+    rng = np.random.default_rng(41)
+    body = FemBody(box_mesh((1.0, 0.6, 0.3), (4, 3, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
+    A = body.system_blocks(body.warped_stiffness_upper(body.rotations())[0], 1.0, 1e-4)
+    nodes = rng.choice(body.n_nodes, 12, replace=False)
+    T = NodeFrames(nodes, np.linalg.qr(rng.standard_normal((12, 3, 3)))[0])
+    mask = np.zeros((body.n_nodes, 3), dtype=bool)
+    mask[nodes[:8], 0] = True
+    mask[nodes[:3]] = True
+    for frames in (T, None):
+        got, ref = Keep(), Keep()
+        out = factorize_constrained(body, A, frames, mask, got)
+        with monkeypatch.context() as m:
+            _numpy_path(m)
+            want = factorize_constrained(body, A, frames, mask, ref)
+        np.testing.assert_allclose(out[0], want[0], rtol=0, atol=1e-14 * np.abs(A).max())
+        assert out[1] == pytest.approx(want[1], rel=1e-14)
+        np.testing.assert_allclose(got.data, ref.data, rtol=0, atol=1e-14 * np.abs(A).max())
+        assert (got.data == 0).sum() > 0.05 * len(got.data)  # the eliminated rows and columns are in the test
