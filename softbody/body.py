@@ -321,6 +321,10 @@ class FemBody:
 
     def mass_product(self, y: np.ndarray) -> np.ndarray:
         """M y for y (N, 3); returns (N, 3)."""
+        if kernels.ENABLED and np.ndim(y) == 2 and np.shape(y)[1] == 3:  # row by row, compiled (softbody.kernels)
+            M, out = self._mass_csr, np.empty((self.n_nodes, 3))
+            kernels.scalar_product(M.indptr, M.indices, M.data, np.ascontiguousarray(y, dtype=float), out)
+            return out
         return self._mass_csr @ y
 
     def node_frames(self, R: np.ndarray) -> np.ndarray:

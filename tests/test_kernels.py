@@ -347,7 +347,8 @@ def test_per_node_frames_kernels_equal_numpy(monkeypatch):
 def test_matrix_free_product_kernel_equals_numpy_and_the_assembled_matrix(kind, monkeypatch):
     """K' y element by element (softbody.kernels.warped_product, the stress in closed form) equals numpy's path
     (batched products with the stress map, a sparse scatter) to round-off and the product with the assembled
-    warped stiffness, on a randomly deformed box and on a stack of two bodies (whose elements are offset)."""
+    warped stiffness, on a randomly deformed box and on a stack of two bodies (whose elements are offset); the
+    compiled mass product (kernels.scalar_product) equals the product with the assembled mass blocks."""
     from softbody import FemBody, LinearElastic, box_mesh
     from softbody.stack import BodyStack
 
@@ -367,6 +368,9 @@ def test_matrix_free_product_kernel_equals_numpy_and_the_assembled_matrix(kind, 
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
         K = b.pattern.to_bsr(b.stiffness_blocks(b.warped_stiffness_upper(R)[0]))
         np.testing.assert_allclose(got, (K @ y.ravel()).reshape(-1, 3), rtol=0, atol=1e-11 * np.abs(ref).max())
+        M = b.pattern.to_bsr(b.system_blocks(np.zeros((b._upper.n_upper, 9)), 1.0, 0.0))  # the mass matrix, blocks
+        np.testing.assert_allclose(b.mass_product(y), (M @ y.ravel()).reshape(-1, 3), rtol=0,
+                                   atol=1e-14 * np.abs(M.data).max() * np.abs(y).max())
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
