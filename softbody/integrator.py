@@ -233,6 +233,8 @@ class DirectSystem:
         if not reuse or getattr(self, "_rotated", None) is None:
             self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
+        if kernels.ENABLED:  # only the blocks that meet the constrained nodes (softbody.kernels)
+            return self._solve_compiled(T, mask, value, b)
         A, scale = pat.to_bsr(self._rotated), self._scale
         rhs = b - (A @ value.reshape(-1)).reshape(-1, 3)
         rhs[mask] = scale * value[mask]
@@ -240,6 +242,27 @@ class DirectSystem:
             y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
         y[mask] = value[mask]  # exact, not up to round-off
         reaction = np.where(mask, (A @ y.reshape(-1)).reshape(-1, 3) - b, 0.0)
+        return to_global(T, y), reaction
+
+    def _solve_compiled(self, T: NodeFrames | None, mask: np.ndarray, value: np.ndarray, b: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+        """The rest of :meth:`solve` with the products A value (the values live on the constrained nodes only) and
+        A y (its constrained rows only) over the blocks that meet the constrained nodes (kernels.block_product_at)."""
+        pat, N = self.body.pattern, self.body.pattern.n_nodes
+        A = np.ascontiguousarray(self._rotated, dtype=float)
+        held = mask.any(axis=1)
+        Av = np.empty((N, 3))
+        kernels.block_product_at(A, pat.indptr, pat.indices, np.arange(N), held, value, Av)
+        rhs = b - Av
+        rhs[mask] = self._scale * value[mask]
+        with timed(self.timings, "solve"):
+            y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
+        y[mask] = value[mask]  # exact, not up to round-off
+        nodes = np.flatnonzero(held)
+        Ay = np.empty((len(nodes), 3))
+        kernels.block_product_at(A, pat.indptr, pat.indices, nodes, np.ones(N, dtype=bool), y, Ay)
+        reaction = np.zeros((N, 3))
+        reaction[nodes] = np.where(mask[nodes], Ay - b[nodes], 0.0)
         return to_global(T, y), reaction
 
     def apply(self, y: np.ndarray) -> np.ndarray:

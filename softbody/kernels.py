@@ -255,3 +255,23 @@ def scalar_product(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, y:
             s1 += m * y[j, 1]
             s2 += m * y[j, 2]
         out[i, 0], out[i, 1], out[i, 2] = s0, s1, s2
+
+
+@_jit
+def block_product_at(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray, columns: np.ndarray,
+                     x: np.ndarray, out: np.ndarray) -> None:
+    """Part of the product of a block matrix (BSR: blocks A (nnzb, 3, 3), indptr, indices) with x (N, 3): rows
+    ``rows`` (m,) of it into out (m, 3), summing only the blocks whose column node is flagged in ``columns`` (N,)
+    bool. Where x vanishes off the flagged nodes this is those rows of A x, summed as scipy's BSR product sums
+    them: the constrained part of DirectSystem.solve's two products, without a pass over the whole matrix."""
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            if columns[j]:
+                x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
+                s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
+                s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
+                s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2

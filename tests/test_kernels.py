@@ -403,3 +403,36 @@ def test_constrained_factorisation_data_equals_numpys(monkeypatch):
         assert out[1] == pytest.approx(want[1], rel=1e-14)
         np.testing.assert_allclose(got.data, ref.data, rtol=0, atol=1e-14 * np.abs(A).max())
         assert (got.data == 0).sum() > 0.05 * len(got.data)  # the eliminated rows and columns are in the test
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_direct_solve_with_constrained_products_equals_numpys(monkeypatch):
+    """DirectSystem.solve with some nodes turned into frames and some of their components held at values: the
+    compiled products over the constrained nodes' blocks (kernels.block_product_at) give numpy's velocities and
+    reactions (whole sparse products); the held components take their values, and only they have reactions."""
+    from softbody import FemBody, LinearElastic, box_mesh
+    from softbody.integrator import Constraints, DirectSystem
+    from softbody.linsolve import SpdSolver
+
+    rng = np.random.default_rng(43)
+    body = FemBody(box_mesh((1.0, 0.6, 0.3), (4, 3, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
+    A = body.system_blocks(body.warped_stiffness_upper(body.rotations())[0], 1.0, 1e-4)
+    b = rng.standard_normal((body.n_nodes, 3))
+    nodes = rng.choice(body.n_nodes, 10, replace=False)
+    mask = rng.random((10, 3)) < 0.5
+    mask[0] = True
+    cons = Constraints(nodes, mask, rng.standard_normal((10, 3)), np.linalg.qr(rng.standard_normal((10, 3, 3)))[0])
+    pat = body.pattern
+    out = []
+    for compiled in (True, False):
+        with monkeypatch.context() as m:
+            if not compiled:
+                _numpy_path(m)
+            system = DirectSystem(body, A, b, SpdSolver(pat.up_indptr, pat.up_indices, 3 * body.n_nodes))
+            out.append(system.solve(cons))
+    (y, r), (y0, r0) = out
+    np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12 * np.abs(y0).max())
+    np.testing.assert_allclose(r, r0, rtol=0, atol=1e-12 * np.abs(r0).max())
+    local = np.einsum("mji,mj->mi", cons.frames, y[nodes])  # the held components took their values
+    np.testing.assert_allclose(local[mask], cons.value[mask], atol=1e-12)
+    assert np.abs(r[nodes][mask]).max() > 0 and not r[np.setdiff1d(np.arange(body.n_nodes), nodes)].any()
