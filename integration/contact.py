@@ -222,26 +222,21 @@ class _ContactSet:
         self.solver, self.c, self.h = solver, c, h
         m = len(c)
         self.frames = tangent_frames(c.normal)
-        self.vr_free = np.einsum("mji,mj->mi", self.frames, c.rigid_velocity)  # rigid velocity in (n, t1, t2)
         # d(local rigid velocity) / d du: the point Jacobians in the contact frames
         self.G = None if c.jacobian is None else np.einsum("mji,mjn->min", self.frames, c.jacobian)
-        # the gap to close: a contact that may start active (a node, or a point on its own triangle) closes
-        # its whole gap; a neighbour (its point not on that triangle yet) only keeps from penetrating further,
-        # its distance to the triangle's extended plane being no penetration to undo
-        gap = c.distance if may_start is None else np.where(may_start, c.distance, np.maximum(c.distance, 0.0))
-        # a penetration (an overlap the scene started with, or a contact caught late) is undone at a bounded
-        # speed, over as many steps as it takes, so that it adds no more than that speed's kinetic energy
-        bounded = np.maximum(gap, -solver.push_speed * h)
-        self.gap = bounded if c.carried is None else np.where(c.carried, gap, bounded)
-        self.target = self.vr_free.copy()
-        self.target[:, 0] -= self.gap / h
         prev_active, prev_stick, prev_slip = previous
         self.keys = keys
-        touching = c.distance <= 0 if may_start is None else (c.distance <= 0) & may_start
         was_active = _in_set(keys, prev_active)
-        self.active = touching | was_active
-        self.friction = c.mu > 0
-        self.stick = self.friction & (_in_set(keys, prev_stick) | ~was_active)
+        if kernels.ENABLED:  # the lines below, contact by contact (integration.kernels)
+            self.vr_free, self.gap, self.target = np.empty((m, 3)), np.empty(m), np.empty((m, 3))
+            self.active, self.friction, self.stick = (np.empty(m, dtype=bool) for _ in range(3))
+            kernels.contact_start(self.frames, np.ascontiguousarray(c.rigid_velocity, dtype=float), c.distance,
+                                  np.ones(m, dtype=bool) if may_start is None else may_start,
+                                  np.zeros(m, dtype=bool) if c.carried is None else c.carried, -solver.push_speed * h,
+                                  h, c.mu, was_active, _in_set(keys, prev_stick), self.vr_free, self.gap, self.target,
+                                  self.active, self.friction, self.stick)
+        else:
+            self._start(c, may_start, was_active, _in_set(keys, prev_stick), solver.push_speed)
         self.slip_force = np.zeros((m, 3))  # local frame, tangential components only
         carried = np.flatnonzero(_in_set(keys, prev_slip) & ~self.stick)
         if len(carried):  # last step's sliding friction, in this step's tangent plane
@@ -258,6 +253,27 @@ class _ContactSet:
         self.gap_rate = np.zeros(m)
         self.mag = np.zeros((m, 1))
         self.d_stick = self.new_slip = np.zeros((m, 2))
+
+    def _start(self, c: NodeContacts, may_start: np.ndarray | None, was_active: np.ndarray, in_stick: np.ndarray,
+               push_speed: float) -> None:
+        """The rigid velocities in the contact frames, the gaps to close, the targets and the starting state
+        (numpy; kernels.contact_start does the same contact by contact)."""
+        h = self.h
+        self.vr_free = np.einsum("mji,mj->mi", self.frames, c.rigid_velocity)  # rigid velocity in (n, t1, t2)
+        # the gap to close: a contact that may start active (a node, or a point on its own triangle) closes
+        # its whole gap; a neighbour (its point not on that triangle yet) only keeps from penetrating further,
+        # its distance to the triangle's extended plane being no penetration to undo
+        gap = c.distance if may_start is None else np.where(may_start, c.distance, np.maximum(c.distance, 0.0))
+        # a penetration (an overlap the scene started with, or a contact caught late) is undone at a bounded
+        # speed, over as many steps as it takes, so that it adds no more than that speed's kinetic energy
+        bounded = np.maximum(gap, -push_speed * h)
+        self.gap = bounded if c.carried is None else np.where(c.carried, gap, bounded)
+        self.target = self.vr_free.copy()
+        self.target[:, 0] -= self.gap / h
+        touching = c.distance <= 0 if may_start is None else (c.distance <= 0) & may_start
+        self.active = touching | was_active
+        self.friction = c.mu > 0
+        self.stick = self.friction & (in_stick | ~was_active)
 
     def tolerate(self, slop: float) -> None:
         """Leave penetrations up to ``slop`` [m] where they are (closing only what lies beyond): a contact
@@ -374,17 +390,27 @@ class _ContactSet:
     def result(self, iterations: int) -> tuple[ContactResult, tuple]:
         """The contact result of the final solve, and the friction state for the next step."""
         keys, active, stick, m = self.keys, self.active, self.stick, len(self.c)
-        force_local = np.where(active[:, None], self.rl, 0.0)
-        slipping = active & ~stick & self.friction
-        force_local[slipping, 1:] = self.slip_force[slipping, 1:]
-        force_local[active & ~self.friction, 1:] = 0.0
-        force = np.einsum("mij,mj->mi", self.frames, force_local)
-        # friction state for the next step, including the switches this step did not make
-        next_stick = active & self.friction & ((stick & ~self.want_slip) | self.want_stick)
-        next_slip = active & self.friction & ~next_stick
-        slip_local = np.zeros((m, 3))
-        slip_local[:, 1:] = np.where(self.want_slip[:, None], self.mag * self.d_stick, self.new_slip)
-        slip_world = np.einsum("mij,mj->mi", self.frames, slip_local)
+        if kernels.ENABLED:  # the lines below, contact by contact (integration.kernels)
+            force, slip_world = np.empty((m, 3)), np.empty((m, 3))
+            next_stick, next_slip = np.empty(m, dtype=bool), np.empty(m, dtype=bool)
+            kernels.contact_finish(self.frames, np.ascontiguousarray(self.rl, dtype=float), self.slip_force, active,
+                                   stick, self.friction, self.want_slip, self.want_stick,
+                                   np.ascontiguousarray(self.mag, dtype=float).reshape(m, 1),
+                                   np.ascontiguousarray(self.d_stick, dtype=float),
+                                   np.ascontiguousarray(self.new_slip, dtype=float), force, next_stick, next_slip,
+                                   slip_world)
+        else:
+            force_local = np.where(active[:, None], self.rl, 0.0)
+            slipping = active & ~stick & self.friction
+            force_local[slipping, 1:] = self.slip_force[slipping, 1:]
+            force_local[active & ~self.friction, 1:] = 0.0
+            force = np.einsum("mij,mj->mi", self.frames, force_local)
+            # friction state for the next step, including the switches this step did not make
+            next_stick = active & self.friction & ((stick & ~self.want_slip) | self.want_stick)
+            next_slip = active & self.friction & ~next_stick
+            slip_local = np.zeros((m, 3))
+            slip_local[:, 1:] = np.where(self.want_slip[:, None], self.mag * self.d_stick, self.new_slip)
+            slip_world = np.einsum("mij,mj->mi", self.frames, slip_local)
         previous = (set(keys[active].tolist()), set(keys[next_stick].tolist()),
                     {int(k): f for k, f in zip(keys[next_slip], slip_world[next_slip])})
         viol = max(0.0, -float(self.gap_rate.min(initial=0.0)) * self.h)

@@ -487,3 +487,57 @@ def primitive_node_contacts(positions: np.ndarray, surface: np.ndarray, lo: np.n
             dist[m] = d
             m += 1
     return candidates, nodes[:m], point[:m], normal[:m], dist[:m]
+
+
+@_jit
+def contact_start(frames: np.ndarray, rigid_velocity: np.ndarray, distance: np.ndarray, may_start: np.ndarray,
+                  carried: np.ndarray, floor: float, h: float, mu: np.ndarray, was_active: np.ndarray,
+                  in_stick: np.ndarray, vr_free: np.ndarray, gap: np.ndarray, target: np.ndarray, active: np.ndarray,
+                  friction: np.ndarray, stick: np.ndarray) -> None:
+    """The start of an active-set loop (contact._ContactSet.__init__'s arithmetic, contact by contact): from the
+    contact frames (m, 3, 3), the rigid points' velocities (m, 3), the distances (m,), ``may_start`` and
+    ``carried`` (m,) bool, the deepest penetration undone in one step ``floor`` = -push_speed h [m], friction mu
+    (m,) and last step's state (was_active, in_stick (m,) bool), fill: the rigid velocities in the contact frames
+    vr_free (m, 3), the gaps (m,) to close, the target velocities (m, 3), and active, friction, stick (m,) bool."""
+    for k in range(frames.shape[0]):
+        for i in range(3):
+            vr_free[k, i] = (frames[k, 0, i] * rigid_velocity[k, 0] + frames[k, 1, i] * rigid_velocity[k, 1]
+                             + frames[k, 2, i] * rigid_velocity[k, 2])
+        g = distance[k] if may_start[k] else max(distance[k], 0.0)
+        gap[k] = g if carried[k] else max(g, floor)
+        target[k, 0] = vr_free[k, 0] - gap[k] / h
+        target[k, 1], target[k, 2] = vr_free[k, 1], vr_free[k, 2]
+        active[k] = (distance[k] <= 0 and may_start[k]) or was_active[k]
+        friction[k] = mu[k] > 0
+        stick[k] = friction[k] and (in_stick[k] or not was_active[k])
+
+
+@_jit
+def contact_finish(frames: np.ndarray, rl: np.ndarray, slip_force: np.ndarray, active: np.ndarray,
+                   stick: np.ndarray, friction: np.ndarray, want_slip: np.ndarray, want_stick: np.ndarray,
+                   mag: np.ndarray, d_stick: np.ndarray, new_slip: np.ndarray, force: np.ndarray,
+                   next_stick: np.ndarray, next_slip: np.ndarray, slip_world: np.ndarray) -> None:
+    """The end of an active-set loop (contact._ContactSet.result's arithmetic, contact by contact): the world
+    forces (m, 3) [N] on the soft points from the last solve's forces rl (m, 3) in the contact frames (m, 3, 3)
+    (zero where inactive; the sliding friction slip_force (m, 3) where sliding; no tangential part without
+    friction), and the friction state for the next step: next_stick, next_slip (m,) bool and the sliding forces
+    in the world slip_world (m, 3), from the switches wanted but not made (want_slip, want_stick) and mag (m, 1),
+    d_stick, new_slip (m, 2) of the last read."""
+    for k in range(frames.shape[0]):
+        f0 = f1 = f2 = 0.0
+        if active[k]:
+            f0, f1, f2 = rl[k, 0], rl[k, 1], rl[k, 2]
+            if not stick[k] and friction[k]:
+                f1, f2 = slip_force[k, 1], slip_force[k, 2]
+            if not friction[k]:
+                f1 = f2 = 0.0
+        for i in range(3):
+            force[k, i] = frames[k, i, 0] * f0 + frames[k, i, 1] * f1 + frames[k, i, 2] * f2
+        next_stick[k] = active[k] and friction[k] and ((stick[k] and not want_slip[k]) or want_stick[k])
+        next_slip[k] = active[k] and friction[k] and not next_stick[k]
+        if want_slip[k]:
+            s1, s2 = mag[k, 0] * d_stick[k, 0], mag[k, 0] * d_stick[k, 1]
+        else:
+            s1, s2 = new_slip[k, 0], new_slip[k, 1]
+        for i in range(3):
+            slip_world[k, i] = frames[k, i, 0] * 0.0 + frames[k, i, 1] * s1 + frames[k, i, 2] * s2

@@ -164,10 +164,10 @@ def test_node_frames_kernel_equals_numpy(monkeypatch):
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
-    """The compiled parts of the contact solve (tangent frames, the active set's friction update) against their
-    numpy references, end to end: a soft cube sliding down a 30 degree incline (mu 0.5 < tan 30: its contacts
-    slide) and the sheet-on-sphere scene (contacts added and released), stepped with and without them, give the
-    same trajectories to round-off and the same count of sliding contacts."""
+    """The compiled parts of the contact solve (tangent frames, the active set's start, friction update and
+    results) against their numpy references, end to end: a soft cube sliding down a 30 degree incline (mu 0.5 <
+    tan 30: its contacts slide) and the sheet-on-sphere scene (contacts added and released), stepped with and without them, give the
+    same trajectories and contact forces, bit for bit, and the same count of sliding contacts."""
     from types import SimpleNamespace
 
     from experiments.scenes import sheet_on_sphere
@@ -197,13 +197,15 @@ def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
                 if not enabled:
                     m.setattr(contact, "kernels", SimpleNamespace(ENABLED=False))
                 world, body = build()
-                slipping = 0
+                slipping, forces = 0, []
                 for _ in range(steps):
                     world.step()
                     slipping += sum(int(np.sum(res.active & ~res.stick)) for _, res in world.contact_results.values())
-                runs.append((body.positions.copy(), slipping))
+                    forces += [res.force for _, res in world.contact_results.values()]
+                runs.append((body.positions.copy(), slipping, np.concatenate(forces)))
                 world.close()
         np.testing.assert_array_equal(runs[0][0], runs[1][0])  # the same arithmetic: bit for bit
+        np.testing.assert_array_equal(runs[0][2], runs[1][2])  # the contact forces too
         assert runs[0][1] == runs[1][1]
         if build is incline:
             assert runs[0][1] > 0  # contacts slid at some step
