@@ -11,6 +11,8 @@ import copy
 import numpy as np
 import scipy.sparse as sp
 
+from . import kernels
+
 
 @dataclass
 class BlockPattern:
@@ -210,6 +212,11 @@ class UpperAssembly:
         """U (n_upper, 9) with its diagonal blocks (still zero) set: minus the sums of the other blocks of their
         row, the blocks right of it in the upper data and the transposes of those above it ("pairs")."""
         N = self.pattern.n_nodes
+        if kernels.ENABLED:  # the same sums block by block (softbody.kernels)
+            if "_upper_rows" not in self.__dict__:  # the upper blocks' row and column nodes, made once
+                self._upper_rows = (self.pattern.block_row[self.upper], self.pattern.indices[self.upper])
+            kernels.diagonal_from_rows(U, *self._upper_rows, self.diag, np.empty((2 * N, 9)))
+            return U
         s = self.row_col_sums @ U
         U[self.diag] = -(s[:N] + s[N:, [0, 3, 6, 1, 4, 7, 2, 5, 8]])
         return U

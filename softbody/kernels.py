@@ -275,3 +275,22 @@ def block_product_at(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, row
                 s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
                 s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
         out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2
+
+
+@_jit
+def diagonal_from_rows(U: np.ndarray, rows: np.ndarray, cols: np.ndarray, diag: np.ndarray, sums: np.ndarray) -> None:
+    """Set the diagonal blocks diag (N,) of upper block data U (n_upper, 9) (blocks (rows[k], cols[k]), row-major)
+    to minus the sums of the other blocks of their block row: those right of the diagonal as they are, those above
+    it transposed (UpperAssembly.with_diagonal's sparse product, summed in its order). sums (2N, 9) is scratch."""
+    sums[:] = 0.0
+    N = diag.shape[0]
+    for k in range(U.shape[0]):
+        r, c = rows[k], cols[k]
+        for e in range(9):
+            sums[r, e] += U[k, e]
+            sums[N + c, e] += U[k, e]
+    for n in range(N):
+        d = diag[n]
+        for i in range(3):
+            for j in range(3):
+                U[d, 3 * i + j] = -(sums[n, 3 * i + j] + sums[N + n, 3 * j + i])
