@@ -429,7 +429,7 @@ class _NodeSet(_ContactSet):
         an extra right-hand side (N, 3) (None if nothing slides)."""
         c, h = self.c, self.h
         mask = self.mask()
-        sel = mask.any(axis=1)
+        sel = mask[:, 0] | mask[:, 1] | mask[:, 2]
         cons = Constraints(c.node[sel], mask[sel], self.target[sel], self.frames[sel])
         key = (c.node[sel].tobytes(), mask[sel].tobytes())
         self.reuse = key == self.last_key

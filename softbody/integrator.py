@@ -70,7 +70,7 @@ class Constraints:
         """Per-node arrays: frames (NodeFrames, or None if all identity), mask (N, 3), value (N, 3)."""
         T = None
         if self.frames is not None and len(self):
-            rotated = (self.frames != np.eye(3)).any(axis=(1, 2))
+            rotated = (self.frames.reshape(-1, 9) != _EYE9).any(axis=1)
             if rotated.any():
                 T = NodeFrames(self.nodes[rotated], self.frames[rotated])
         mask = np.zeros((n_nodes, 3), dtype=bool)
@@ -78,6 +78,14 @@ class Constraints:
         mask[self.nodes] = self.mask
         value[self.nodes] = np.where(self.mask, self.value, 0.0)
         return T, mask, value
+
+
+_EYE9 = np.eye(3).ravel()
+
+
+def _any_component(mask: np.ndarray) -> np.ndarray:
+    """(N,) whether any of a node's three components is set in mask (N, 3) (numpy's any over an axis costs more)."""
+    return mask[:, 0] | mask[:, 1] | mask[:, 2]
 
 
 def merge(first: Constraints, second: Constraints) -> Constraints:
@@ -250,7 +258,7 @@ class DirectSystem:
         A y (its constrained rows only) over the blocks that meet the constrained nodes (kernels.block_product_at)."""
         pat, N = self.body.pattern, self.body.pattern.n_nodes
         A = np.ascontiguousarray(self._rotated, dtype=float)
-        held = mask.any(axis=1)
+        held = _any_component(mask)
         Av = np.empty((N, 3))
         kernels.block_product_at(A, pat.indptr, pat.indices, np.arange(N), held, value, Av)
         rhs = b - Av
@@ -423,14 +431,14 @@ class IterativeSystem:
                 self._product = _product_of(self.body.pattern.to_bsr(A))
         keep = mask if everything else mask & self.body.supported()[:, None]
         factorize_constrained(self.body, A, T, keep, self.pre.solver, self.timings)
-        self.pre.factorized(T, self.Q, keep.any(axis=1))
+        self.pre.factorized(T, self.Q, _any_component(keep))
         self.stats["factorizations"] += 1
 
     def _prepared(self, T: NodeFrames | None, mask: np.ndarray) -> tuple[Frames, ConstraintCorrection | None]:
         """The preconditioner for constraint set (T, mask): its per-node frames C and the correction for
         the constrained nodes that the factorisation does not eliminate (refactorising if needed)."""
         pre, limit = self.pre, self.settings.max_corrected_nodes
-        constrained = mask.any(axis=1)
+        constrained = _any_component(mask)
         # the columns of every node corrected since the factorisation are kept; past 4x the limit
         # (memory n_dof x 3 per node) a refactorisation starts them afresh
         if pre.stale or np.count_nonzero(constrained & ~pre.eliminated) > limit or pre.cached_nodes > 4 * limit:
