@@ -229,6 +229,14 @@ class UpperAssembly:
             self._element_scatter = np.ascontiguousarray(self.scatter.reshape(P, 3, 3, -1).transpose(3, 0, 1, 2))
         return self._element_scatter
 
+    def full_sources(self) -> tuple[np.ndarray, np.ndarray]:
+        """What ``full`` copies block by block: the upper block (nnzb,) of each block, and whether transposed (nnzb,)
+        (for softbody.kernels.system_blocks; made at first use)."""
+        if "_full_sources" not in self.__dict__:
+            entries = self.full_from_upper.reshape(-1, 9)
+            self._full_sources = (entries[:, 0] // 9, entries[:, 1] % 9 == 3)
+        return self._full_sources
+
     def full(self, upper: np.ndarray) -> np.ndarray:
         """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper`` (n_upper, 9)."""
         return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)

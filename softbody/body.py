@@ -570,6 +570,11 @@ class FemBody:
 
     def system_blocks(self, K_upper: np.ndarray, c_m: float, c_k: float) -> np.ndarray:
         """Block data (nnzb, 3, 3) of c_m M + c_k K for K given by its upper blocks (n_upper, 9)."""
+        if kernels.ENABLED:  # the lines below in one pass, block by block (softbody.kernels)
+            out = np.empty((self.pattern.nnzb, 3, 3))
+            kernels.system_blocks(np.ascontiguousarray(K_upper, dtype=float), self._mass_upper, c_m, c_k,
+                                  *self._upper.full_sources(), out)
+            return out
         A = c_k * K_upper
         A[:, [0, 4, 8]] += (c_m * self._mass_upper)[:, None]
         return self._upper.full(A)

@@ -294,3 +294,19 @@ def diagonal_from_rows(U: np.ndarray, rows: np.ndarray, cols: np.ndarray, diag: 
         for i in range(3):
             for j in range(3):
                 U[d, 3 * i + j] = -(sums[n, 3 * i + j] + sums[N + n, 3 * j + i])
+
+
+@_jit
+def system_blocks(K: np.ndarray, mass: np.ndarray, c_m: float, c_k: float, source: np.ndarray,
+                  transposed: np.ndarray, out: np.ndarray) -> None:
+    """Block data out (nnzb, 3, 3) of c_m M + c_k K from the upper blocks K (n_upper, 9) (row-major) and the mass's
+    upper blocks (n_upper,) (multiples of I3): block k copies upper block source[k], transposed where
+    ``transposed[k]`` (FemBody.system_blocks's scaled copy, the mass added on the diagonals, and
+    UpperAssembly.full's gather, in one pass)."""
+    for k in range(source.shape[0]):
+        s = source[k]
+        m = c_m * mass[s]
+        for i in range(3):
+            for j in range(3):
+                v = c_k * (K[s, 3 * j + i] if transposed[k] else K[s, 3 * i + j])
+                out[k, i, j] = v + m if i == j else v

@@ -37,7 +37,7 @@ def test_polar_kernel_equals_the_numpy_iteration_and_the_svd(monkeypatch):
 def test_warped_stiffness_kernels_equal_numpy_and_the_rotated_element_matrices(kind, monkeypatch):
     """A randomly deformed box: the warped stiffness K' = sum_e R_e K_e R_e^T and the warped rest loads made by the
     compiled passes (tet4: softbody.kernels.warped_pairs, element by element; every kind: the isotropic map in
-    closed form) equal numpy's (sparse products, a bincount, a matrix product) to round-off, and K' equals the
+    closed form; the system's blocks c_m M + c_k K' made from them) equal numpy's (sparse products, a bincount, a matrix product) to round-off, and K' equals the
     assembly of the rotated element matrices themselves (independent of the pair layout and its diagonal-from-rows
     rule)."""
     from softbody import FemBody, LinearElastic, box_mesh
@@ -47,9 +47,12 @@ def test_warped_stiffness_kernels_equal_numpy_and_the_rotated_element_matrices(k
     body.positions = body.positions + 0.05 * rng.standard_normal(body.positions.shape)
     R = body.rotations()
     K, load = body.warped_stiffness_upper(R)
+    A = body.system_blocks(K, 1.3, 1e-3)
     with monkeypatch.context() as m:
         _numpy_path(m)
         K0, load0 = body.warped_stiffness_upper(R)
+        A0 = body.system_blocks(K, 1.3, 1e-3)
+    np.testing.assert_array_equal(A, A0)  # the system's blocks from K (kernels.system_blocks): the same arithmetic
     np.testing.assert_allclose(K, K0, rtol=0, atol=1e-12 * np.abs(K0).max())
     np.testing.assert_allclose(load, load0, rtol=0, atol=1e-12 * np.abs(load0).max())
     k = body.mesh.elements.shape[1]
