@@ -161,7 +161,8 @@ def _face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, rigid:
         np.ascontiguousarray(positions, dtype=float), np.ascontiguousarray(triangles, dtype=np.int64),
         np.zeros(len(positions), dtype=bool) if touching is None else touching, np.asarray(lo, dtype=float),
         np.asarray(hi, dtype=float), margin, *rigid.round_part_arrays(), rigid.round_parts(),
-        np.ascontiguousarray(corners, dtype=float).reshape(-1, 3), np.ascontiguousarray(corner_centres, dtype=float).reshape(-1, 3),
+        np.ascontiguousarray(corners, dtype=float).reshape(-1, 3),
+        np.ascontiguousarray(corner_centres, dtype=float).reshape(-1, 3),
         swept, sweep.h if swept else 0.0, RIGID_SLACK, SOFT_SLACK, sweep.velocities if swept else _NO_ROWS,
         *((sweep.v, sweep.w, sweep.centre) if swept else (_ZERO3, _ZERO3, _ZERO3)))
 

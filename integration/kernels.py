@@ -1,12 +1,17 @@
 """Compiled kernels (numba, through softbody.kernels: cached on disk, ``SOFTBODY_NO_NUMBA=1`` turns them off)
 for the contact search, where numpy would spread a little arithmetic over dozens of calls or over a whole surface:
 
-- ``round_face_prefilter``: the per-candidate tests of face contacts against round parts, as a conservative
-  prefilter in front of the numpy code that decides (collision.py): it only drops candidates that code would drop
-  (its thresholds are wider by a relative 1e-9), so the contacts found are the same with it and without it;
-- ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere).
+- ``face_contacts_possible`` and ``round_face_prefilter``: the tests of face contacts, as a conservative early-out
+  for a whole link and a prefilter of candidates in front of the numpy code that decides (collision.py): they only
+  skip what that code would drop (their thresholds are wider by a relative 1e-9), so the contacts found are the
+  same with them and without them;
+- ``primitive_node_contacts`` (and ``primitive_distances``): node contacts against links of primitive parts, the
+  closed-form distances of distance.py point by point;
+- ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere);
+- ``tangent_frames``, ``contact_start``, ``friction_update``, ``contact_finish``: the contact set's arithmetic in
+  the active-set loop (contact.py), contact by contact, bit for bit numpy's.
 
-Both are compared with their numpy references in tests/test_kernels.py."""
+Each is compared with its numpy reference in tests/test_kernels.py."""
 from __future__ import annotations
 
 import math
@@ -132,8 +137,10 @@ def face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, touchin
                 far = True
         if far:
             continue
-        u0, u1, u2 = positions[ib, 0] - positions[ia, 0], positions[ib, 1] - positions[ia, 1], positions[ib, 2] - positions[ia, 2]
-        e0, e1, e2 = positions[ic, 0] - positions[ia, 0], positions[ic, 1] - positions[ia, 1], positions[ic, 2] - positions[ia, 2]
+        u0, u1, u2 = (positions[ib, 0] - positions[ia, 0], positions[ib, 1] - positions[ia, 1],
+                      positions[ib, 2] - positions[ia, 2])
+        e0, e1, e2 = (positions[ic, 0] - positions[ia, 0], positions[ic, 1] - positions[ia, 1],
+                      positions[ic, 2] - positions[ia, 2])
         c0, c1, c2 = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0
         A2 = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
         if not A2 > 0.0:

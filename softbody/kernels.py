@@ -4,7 +4,8 @@ On a small mesh a step's numpy work is dominated by the cost of each call (1-5 u
 the polar decomposition of the warping rotations, for instance, is about fifty numpy calls per Newton
 iteration whatever the number of elements. These kernels do the same arithmetic in one compiled loop.
 They are compiled on first use and cached on disk (numba's ``cache=True``, next to this file in
-``__pycache__``), so only the first run after an install pays the compilation (a few seconds, once).
+``__pycache__``), so only the first run after an install pays the compilation (about 10 s for the
+sheet-on-sphere scene's kernels, both modules, once).
 
 Every kernel has a numpy reference in the module that uses it; the tests compare the two.
 ``ENABLED`` is False when numba is missing or ``SOFTBODY_NO_NUMBA=1`` is set: then the numpy code runs.

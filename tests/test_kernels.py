@@ -36,10 +36,10 @@ def test_polar_kernel_equals_the_numpy_iteration_and_the_svd(monkeypatch):
 @pytest.mark.parametrize("kind", ["tet4", "hex8", "tet10"])
 def test_warped_stiffness_kernels_equal_numpy_and_the_rotated_element_matrices(kind, monkeypatch):
     """A randomly deformed box: the warped stiffness K' = sum_e R_e K_e R_e^T and the warped rest loads made by the
-    compiled passes (tet4: softbody.kernels.warped_pairs, element by element; every kind: the isotropic map in
-    closed form; the system's blocks c_m M + c_k K' made from them) equal numpy's (sparse products, a bincount, a matrix product) to round-off, and K' equals the
-    assembly of the rotated element matrices themselves (independent of the pair layout and its diagonal-from-rows
-    rule)."""
+    compiled passes (tet4: softbody.kernels.warped_pairs, element by element, and the diagonal blocks from their
+    rows; every kind: the isotropic map in closed form; the system's blocks c_m M + c_k K' made from them) equal
+    numpy's (sparse products, a bincount, a matrix product) to round-off, and K' equals the assembly of the rotated
+    element matrices themselves (independent of the pair layout and its diagonal-from-rows rule)."""
     from softbody import FemBody, LinearElastic, box_mesh
 
     rng = np.random.default_rng(3)
@@ -169,8 +169,9 @@ def test_node_frames_kernel_equals_numpy(monkeypatch):
 def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
     """The compiled parts of the contact solve (tangent frames, the active set's start, friction update and
     results) against their numpy references, end to end: a soft cube sliding down a 30 degree incline (mu 0.5 <
-    tan 30: its contacts slide) and the sheet-on-sphere scene (contacts added and released), stepped with and without them, give the
-    same trajectories and contact forces, bit for bit, and the same count of sliding contacts."""
+    tan 30: its contacts slide) and the sheet-on-sphere scene (contacts added and released), stepped with and
+    without them, give the same trajectories and contact forces, bit for bit, and the same count of sliding
+    contacts."""
     from types import SimpleNamespace
 
     from experiments.scenes import sheet_on_sphere
@@ -289,8 +290,8 @@ def test_compiled_node_contacts_equal_numpys(monkeypatch):
             rb = world.rigid(p.createMultiBody(0, col, basePosition=pos, baseOrientation=orn, physicsClientId=cid))
         vel = 0.5 * rng.standard_normal(x.shape)
         moving = trial % 2 == 1
-        sweep = Sweep(0.01, 0.01, vel, np.linalg.norm(vel, axis=1), *((rng.standard_normal(3), 3 * rng.standard_normal(3))
-                      if moving else (np.zeros(3), np.zeros(3))), rb.pose()[0], rb.bounding_radius())
+        motion = (rng.standard_normal(3), 3 * rng.standard_normal(3)) if moving else (np.zeros(3), np.zeros(3))
+        sweep = Sweep(0.01, 0.01, vel, np.linalg.norm(vel, axis=1), *motion, rb.pose()[0], rb.bounding_radius())
         bound = sweep.bound(surface)
         before = detector.last_candidates
         got = detector.node_contacts(0, x, surface, rb, bound, sweep)
