@@ -526,6 +526,12 @@ class _FaceSet(_RowSet):
         x_end = self.x_tri + h * vs[self.part][c.nodes]
         vr = c.rigid_velocity if c.jacobian is None or not len(du) else c.rigid_velocity + c.jacobian @ du
         q_end = c.point + h * vr
+        if kernels.ENABLED:  # the lines below, contact by contact (integration.kernels)
+            first = np.empty(len(q_end), dtype=bool)
+            kernels.face_eligible(np.ascontiguousarray(x_end, dtype=float), np.ascontiguousarray(q_end, dtype=float),
+                                  c.group, np.ascontiguousarray(c.normal, dtype=float),
+                                  self.active if active is None else active, SAME_FACE, first)
+            return first
         inside = (barycentric(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]) >= -1e-9).all(axis=1)
         dist = np.linalg.norm(q_end - closest_on_triangles(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]), axis=1)
         groups = int(c.group.max()) + 1

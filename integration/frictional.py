@@ -25,6 +25,8 @@ from typing import Callable
 
 import numpy as np
 
+from . import kernels
+
 
 @dataclass
 class ContactState:
@@ -41,6 +43,11 @@ def bounded_quadratic(Q: np.ndarray, c: np.ndarray, bounded: np.ndarray, x0: np.
     """argmin 1/2 x^T Q x + c^T x subject to x_i >= 0 where ``bounded`` (n,) bool, for Q symmetric positive
     definite (n, n): Bertsekas' projected Newton method with an Armijo search along the projected arc.
     Returns x (n,) and the number of Newton steps."""
+    if kernels.ENABLED:  # the same method, compiled (integration.kernels)
+        x0 = np.zeros(len(c)) if x0 is None else x0
+        return kernels.bounded_quadratic(np.ascontiguousarray(Q, dtype=float), np.ascontiguousarray(c, dtype=float),
+                                         np.ascontiguousarray(bounded, dtype=bool), np.ascontiguousarray(x0, dtype=float),
+                                         float(tol), int(max_iter))
     n = len(c)
     x = np.zeros(n) if x0 is None else np.where(bounded, np.maximum(x0, 0.0), x0)
 

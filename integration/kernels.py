@@ -9,7 +9,8 @@ for the contact search, where numpy would spread a little arithmetic over dozens
   closed-form distances of distance.py point by point;
 - ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere);
 - ``tangent_frames``, ``contact_start``, ``friction_update``, ``contact_finish``: the contact set's arithmetic in
-  the active-set loop (contact.py), contact by contact, bit for bit numpy's.
+  the active-set loop (contact.py), contact by contact, bit for bit numpy's;
+- ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible).
 
 Each is compared with its numpy reference in tests/test_kernels.py."""
 from __future__ import annotations
@@ -20,8 +21,9 @@ import numpy as np
 
 from softbody.kernels import ENABLED, _jit
 
-__all__ = ["ENABLED", "KINDS", "face_contacts_possible", "friction_update", "node_normals_at", "part_arrays",
-           "primitive_distances", "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
+__all__ = ["ENABLED", "KINDS", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
+           "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_node_contacts",
+           "round_face_prefilter", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -548,3 +550,171 @@ def contact_finish(frames: np.ndarray, rl: np.ndarray, slip_force: np.ndarray, a
             s1, s2 = new_slip[k, 0], new_slip[k, 1]
         for i in range(3):
             slip_world[k, i] = frames[k, i, 0] * 0.0 + frames[k, i, 1] * s1 + frames[k, i, 2] * s2
+
+
+@_jit
+def _closest_on_triangle(p0: float, p1: float, p2: float, a0: float, a1: float, a2: float, b0: float, b1: float,
+                         b2: float, c0: float, c1: float, c2: float):
+    """collision.closest_on_triangles for one point and triangle (Ericson's Voronoi regions, the same arithmetic)."""
+    ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
+    ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
+    ap0, ap1, ap2 = p0 - a0, p1 - a1, p2 - a2
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    bp0, bp1, bp2 = p0 - b0, p1 - b1, p2 - b2
+    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    cp0, cp1, cp2 = p0 - c0, p1 - c1, p2 - c2
+    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    if d1 <= 0 and d2 <= 0:  # the vertex regions, then the edges', then the face (the numpy code's precedence)
+        return a0, a1, a2
+    if d3 >= 0 and d4 <= d3:
+        return b0, b1, b2
+    if d6 >= 0 and d5 <= d6:
+        return c0, c1, c2
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        t = d1 / (d1 - d3) if d1 - d3 != 0 else 0.0
+        return a0 + t * ab0, a1 + t * ab1, a2 + t * ab2
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        t = d2 / (d2 - d6) if d2 - d6 != 0 else 0.0
+        return a0 + t * ac0, a1 + t * ac1, a2 + t * ac2
+    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+        den = (d4 - d3) + (d5 - d6)
+        t = (d4 - d3) / den if den != 0 else 0.0
+        return b0 + t * (c0 - b0), b1 + t * (c1 - b1), b2 + t * (c2 - b2)
+    denom = va + vb + vc
+    v = vb / denom if denom != 0 else 0.0
+    w = vc / denom if denom != 0 else 0.0
+    return a0 + v * ab0 + w * ac0, a1 + v * ab1 + w * ac1, a2 + v * ab2 + w * ac2
+
+
+@_jit
+def face_eligible(x: np.ndarray, q: np.ndarray, group: np.ndarray, normal: np.ndarray, active: np.ndarray,
+                  same_face: float, out: np.ndarray) -> None:
+    """contact._FaceSet.eligible's tests, contact by contact: out (m,) True for the contacts whose rigid point q
+    (m, 3) projects into its triangle x (m, 3, 3) (barycentric weights >= -1e-9) and has it as the nearest of its
+    ``group`` (m,) (to 1e-9 m), none of whose normals (m, 3) is within ``same_face`` (a cosine) of an ``active``
+    (m,) contact's of the same group, the first such contact of each group."""
+    m = q.shape[0]
+    dist = np.empty(m)
+    ok = np.empty(m, dtype=np.bool_)
+    groups = 0
+    for k in range(m):
+        groups = max(groups, group[k] + 1)
+        a0, a1, a2 = x[k, 0, 0], x[k, 0, 1], x[k, 0, 2]
+        b0, b1, b2 = x[k, 1, 0], x[k, 1, 1], x[k, 1, 2]
+        c0, c1, c2 = x[k, 2, 0], x[k, 2, 1], x[k, 2, 2]
+        p0, p1, p2 = q[k, 0], q[k, 1], q[k, 2]
+        # barycentric weights (collision.barycentric): n = (b - a) x (c - a)
+        u0, u1, u2, v0, v1, v2 = b0 - a0, b1 - a1, b2 - a2, c0 - a0, c1 - a1, c2 - a2
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        nn = n0 * n0 + n1 * n1 + n2 * n2
+        e0, e1, e2, f0, f1, f2 = c0 - b0, c1 - b1, c2 - b2, p0 - b0, p1 - b1, p2 - b2
+        wa = ((e1 * f2 - e2 * f1) * n0 + (e2 * f0 - e0 * f2) * n1 + (e0 * f1 - e1 * f0) * n2) / nn
+        e0, e1, e2, f0, f1, f2 = a0 - c0, a1 - c1, a2 - c2, p0 - c0, p1 - c1, p2 - c2
+        wb = ((e1 * f2 - e2 * f1) * n0 + (e2 * f0 - e0 * f2) * n1 + (e0 * f1 - e1 * f0) * n2) / nn
+        ok[k] = wa >= -1e-9 and wb >= -1e-9 and 1.0 - wa - wb >= -1e-9
+        r0, r1, r2 = _closest_on_triangle(p0, p1, p2, a0, a1, a2, b0, b1, b2, c0, c1, c2)
+        dist[k] = math.sqrt((p0 - r0) ** 2 + (p1 - r1) ** 2 + (p2 - r2) ** 2)
+    nearest = np.full(groups, np.inf)
+    for k in range(m):
+        nearest[group[k]] = min(nearest[group[k]], dist[k])
+    taken = np.zeros(groups, dtype=np.bool_)
+    for k in range(m):
+        good = ok[k] and dist[k] <= nearest[group[k]] + 1e-9
+        if good:  # across a crease only: not nearly parallel to an active contact of the same rigid point
+            for j in range(m):
+                if active[j] and group[j] == group[k] and (normal[k, 0] * normal[j, 0] + normal[k, 1] * normal[j, 1]
+                                                          + normal[k, 2] * normal[j, 2]) > same_face:
+                    good = False
+                    break
+        out[k] = good and not taken[group[k]]
+        if out[k]:
+            taken[group[k]] = True
+
+
+@_jit
+def _quadratic(Q: np.ndarray, c: np.ndarray, y: np.ndarray) -> float:
+    return 0.5 * (y @ (Q @ y)) + c @ y
+
+
+@_jit
+def bounded_quadratic(Q: np.ndarray, c: np.ndarray, bounded: np.ndarray, x0: np.ndarray, tol: float,
+                      max_iter: int):
+    """frictional.bounded_quadratic (Bertsekas' projected Newton method with an Armijo search along the projected
+    arc, the same steps and tests), compiled: argmin 1/2 x^T Q x + c^T x subject to x_i >= 0 where ``bounded``,
+    from x0. Returns x (n,) and the number of Newton steps."""
+    n = c.shape[0]
+    x = np.empty(n)
+    for i in range(n):
+        x[i] = max(x0[i], 0.0) if bounded[i] else x0[i]
+    fx = _quadratic(Q, c, x)
+    scale = 1e-300
+    for i in range(n):
+        scale = max(scale, abs(c[i]))
+    held = np.empty(n, dtype=np.bool_)
+    pg = np.empty(n)
+    d = np.empty(n)
+    y = np.empty(n)
+    for it in range(1, max_iter + 1):
+        g = Q @ x + c
+        top, pg_max = 0.0, 0.0
+        for i in range(n):
+            top = max(top, abs(x[i]))
+            pg[i] = x[i] - max(x[i] - g[i], 0.0) if bounded[i] else g[i]
+            pg_max = max(pg_max, abs(pg[i]))
+        eps = min(1e-12 * max(top, 1.0), np.linalg.norm(pg))
+        free_count = 0
+        for i in range(n):
+            held[i] = bounded[i] and x[i] <= eps and g[i] > 0
+            free_count += not held[i]
+        if pg_max <= tol * scale:  # optimality: the projected gradient vanishes
+            return x, it - 1
+        free = np.empty(free_count, dtype=np.int64)
+        k = 0
+        for i in range(n):
+            if not held[i]:
+                free[k] = i
+                k += 1
+        Qf = np.empty((free_count, free_count))
+        gf = np.empty(free_count)
+        for a in range(free_count):
+            gf[a] = g[free[a]]
+            for b in range(free_count):
+                Qf[a, b] = Q[free[a], free[b]]
+        d[:] = 0.0
+        if free_count:
+            try:
+                step = np.linalg.solve(Qf, gf)
+            except Exception:  # singular: the least-squares step
+                step = np.linalg.lstsq(Qf, gf)[0]
+            for a in range(free_count):
+                d[free[a]] = -step[a]
+        alpha = 1.0
+        accepted = False
+        fy = fx
+        for _ in range(40):
+            for i in range(n):
+                y[i] = x[i] + alpha * d[i]
+                if bounded[i]:
+                    y[i] = max(y[i], 0.0)
+            fy = _quadratic(Q, c, y)
+            slope_free, slope_held = 0.0, 0.0  # Armijo on the projected arc (Bertsekas 1982)
+            for i in range(n):
+                if held[i]:
+                    slope_held += g[i] * (y[i] - x[i])
+                else:
+                    slope_free += g[i] * (y[i] - x[i])
+            if fy <= fx + 1e-4 * slope_free + 1e-4 * slope_held:
+                accepted = True
+                break
+            alpha *= 0.5
+        if not accepted:
+            return x, it
+        x, y = y, x
+        fx = fy
+    return x, max_iter

@@ -442,3 +442,74 @@ def test_direct_solve_with_constrained_products_equals_numpys(monkeypatch):
     local = np.einsum("mji,mj->mi", cons.frames, y[nodes])  # the held components took their values
     np.testing.assert_allclose(local[mask], cons.value[mask], atol=1e-12)
     assert np.abs(r[nodes][mask]).max() > 0 and not r[np.setdiff1d(np.arange(body.n_nodes), nodes)].any()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_bounded_quadratic_equals_numpys_and_is_optimal(monkeypatch):
+    """Random bound-constrained quadratic programs (the frictional solve's form: some variables >= 0, others free),
+    positive definite and rank-deficient: the compiled projected Newton method (kernels.bounded_quadratic) gives
+    numpy's minimiser (frictional.bounded_quadratic) and its objective, and the result meets the optimality
+    conditions (bounds held, the gradient zero on the free and interior variables and >= 0 on those at a bound)."""
+    from integration import frictional
+    from integration import kernels as contact_kernels
+
+    rng = np.random.default_rng(47)
+    at_bound = 0
+    for trial in range(60):
+        n = int(rng.integers(1, 60))
+        A = rng.standard_normal((n, n if trial % 4 else max(1, n // 2)))  # every fourth: rank deficient
+        Q = A @ A.T + (1e-3 * np.eye(n) if trial % 4 else 0.0)
+        c = rng.standard_normal(n)
+        bounded = rng.random(n) < 0.6
+        x0 = rng.standard_normal(n)
+        x, _ = frictional.bounded_quadratic(Q, c, bounded, x0)
+        with monkeypatch.context() as m:
+            m.setattr(contact_kernels, "ENABLED", False)
+            x_ref, _ = frictional.bounded_quadratic(Q, c, bounded, x0)
+        f = lambda y: 0.5 * y @ Q @ y + c @ y  # noqa: E731
+        assert f(x) == pytest.approx(f(x_ref), rel=1e-9, abs=1e-9)
+        if trial % 4:  # strictly convex: one minimiser
+            np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-8 * max(1.0, np.abs(x_ref).max()))
+            g = Q @ x + c
+            tol = 1e-7 * max(1.0, np.abs(c).max())
+            assert np.all(x[bounded] >= 0)
+            interior = ~bounded | (x > 1e-9)
+            assert np.abs(g[interior]).max(initial=0.0) < tol
+            assert np.all(g[~interior] > -tol)
+            at_bound += int((~interior).sum())
+    assert at_bound > 100  # the bounds were active in the comparison
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_face_eligibility_equals_numpys(monkeypatch):
+    """Face contacts after a solve: which may carry an impulse (their rigid point inside its triangle at the end of
+    the step, the nearest of its group, not nearly parallel to an active contact of that point, the first per
+    point), compiled (kernels.face_eligible) and numpy (contact._FaceSet.eligible's own lines), on random triangles
+    with several contacts per rigid point."""
+    from types import SimpleNamespace
+
+    from integration import contact
+
+    rng = np.random.default_rng(53)
+    some = 0
+    for trial in range(40):
+        m, groups, N = 40, 12, 30
+        positions = rng.uniform(-1.0, 1.0, (N, 3))
+        nodes = np.array([rng.choice(N, 3, replace=False) for _ in range(m)])
+        weights = rng.dirichlet(np.ones(3), m) * 1.2 - 0.066  # mostly inside, some outside
+        point = np.einsum("ms,msi->mi", weights, positions[nodes]) + 0.01 * rng.standard_normal((m, 3))
+        normal = rng.standard_normal((m, 3))
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        group = rng.integers(0, groups, m)
+        normal[1::4] = normal[0::4][: len(normal[1::4])]  # some contacts of a point share a face's normal
+        c = SimpleNamespace(nodes=nodes, rigid_velocity=0.1 * rng.standard_normal((m, 3)), jacobian=None,
+                            point=point, group=group, normal=normal)
+        fake = SimpleNamespace(c=c, h=0.01, x_tri=positions[nodes], part=0, active=rng.random(m) < 0.3)
+        vs = [0.1 * rng.standard_normal((N, 3))]
+        got = contact._FaceSet.eligible(fake, vs, np.zeros(0))
+        with monkeypatch.context() as mp:
+            mp.setattr(contact, "kernels", SimpleNamespace(ENABLED=False))
+            want = contact._FaceSet.eligible(fake, vs, np.zeros(0))
+        np.testing.assert_array_equal(got, want)
+        some += int(want.sum())
+    assert some > 40
