@@ -34,12 +34,13 @@ overshot.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from typing import TYPE_CHECKING
-
 from softbody.integrator import Constraints, LinearSystem
+
+from . import kernels
 
 if TYPE_CHECKING:
     from .bullet import BodyDynamics
@@ -110,6 +111,12 @@ class Rows:
 
     def values(self, part: int, v: np.ndarray) -> np.ndarray:
         """C_part v: (m,) for the soft velocities v (N, 3) of one part, (m, k) for k of them (k, N, 3)."""
+        if kernels.ENABLED:  # row by row, compiled (integration.kernels)
+            V = np.ascontiguousarray(v, dtype=float)
+            out = np.empty((len(self.target), 1 if V.ndim == 2 else len(V)))
+            kernels.row_values(part, self.part, self.node, np.ascontiguousarray(self.weight, dtype=float),
+                               np.ascontiguousarray(self.direction, dtype=float), V[None] if V.ndim == 2 else V, out)
+            return out[:, 0] if V.ndim == 2 else out
         on = self.part == part
         w = np.where(on, self.weight, 0.0)
         if v.ndim == 2:
@@ -154,7 +161,8 @@ class CoupledSystem:
             if len(cols):
                 y0, r0 = out[i]
                 w = z[cols]
-                out[i] = (y0 + np.tensordot(w, Y, axes=1), r0 + np.tensordot(w, R, axes=1))
+                k = len(w)  # the weighted sums of the responses, as products with their flattened stacks
+                out[i] = (y0 + (w @ Y.reshape(k, -1)).reshape(y0.shape), r0 + (w @ R.reshape(k, -1)).reshape(r0.shape))
         return out
 
 

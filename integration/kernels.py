@@ -718,3 +718,21 @@ def bounded_quadratic(Q: np.ndarray, c: np.ndarray, bounded: np.ndarray, x0: np.
         x, y = y, x
         fx = fy
     return x, max_iter
+
+
+@_jit
+def row_values(which: int, part: np.ndarray, node: np.ndarray, weight: np.ndarray, direction: np.ndarray,
+               V: np.ndarray, out: np.ndarray) -> None:
+    """coupling.Rows.values for k velocity fields V (k, N, 3) of soft body ``which``: out (m, k) = sum over the
+    row's slots on that body (part (m, s) == which) of weight (m, s) times the slot node's velocity along the
+    row's direction (m, 3)."""
+    m, s = part.shape
+    for r in range(m):
+        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+        for j in range(V.shape[0]):
+            total = 0.0
+            for slot in range(s):
+                if part[r, slot] == which:
+                    i = node[r, slot]
+                    total += weight[r, slot] * (V[j, i, 0] * d0 + V[j, i, 1] * d1 + V[j, i, 2] * d2)
+            out[r, j] = total

@@ -513,3 +513,35 @@ def test_compiled_face_eligibility_equals_numpys(monkeypatch):
         np.testing.assert_array_equal(got, want)
         some += int(want.sum())
     assert some > 40
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_row_values_equal_numpys(monkeypatch):
+    """coupling.Rows.values (the rows' velocities along their directions from one body's velocity fields, for one
+    field and for a stack of them), compiled (kernels.row_values) against numpy's einsum, on rows whose slots lie
+    on two bodies and unused slots; and the coupled system's combination of responses against tensordot."""
+    from integration import coupling
+    from integration import kernels as contact_kernels
+
+    rng = np.random.default_rng(59)
+    m, s, N, k = 50, 3, 40, 7
+    part = rng.integers(-1, 2, (m, s))
+    rows = coupling.Rows(part, rng.integers(0, N, (m, s)), rng.standard_normal((m, s)), rng.standard_normal((m, 3)),
+                         np.zeros((m, 0)), np.zeros(m))
+    v, V = rng.standard_normal((N, 3)), rng.standard_normal((k, N, 3))
+    for which in (0, 1):
+        got = rows.values(which, v), rows.values(which, V)
+        with monkeypatch.context() as mp:
+            mp.setattr(contact_kernels, "ENABLED", False)
+            want = rows.values(which, v), rows.values(which, V)
+        for a, b in zip(got, want):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+        assert np.abs(want[0]).max() > 0.1
+    Y, R = rng.standard_normal((k, N, 3)), rng.standard_normal((k, N, 3))
+    system = coupling.CoupledSystem(np.eye(k), np.zeros(k), [(np.zeros((N, 3)), np.ones((N, 3)))],
+                                    [(list(range(k)), Y, R)], 0)
+    z = rng.standard_normal(k)
+    (y, r), = system.combine(z)
+    np.testing.assert_allclose(y, np.tensordot(z, Y, axes=1), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(r, 1.0 + np.tensordot(z, R, axes=1), rtol=0, atol=1e-13)
