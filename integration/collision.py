@@ -439,7 +439,11 @@ class CollisionDetector:
             # the contact forces ill-determined: the friction problem is singular, and its solution gained energy)
             group[round_pt] = row_groups(np.column_stack([feature[round_pt],
                                                           np.round(q[round_pt] / (1e-9 + 1e-6 * margin))]))
-        closest = closest_on_triangles(q, A, B, C)
+        if kernels.ENABLED:  # the same closest points, row by row (integration.kernels)
+            closest = np.empty(q.shape)
+            kernels.closest_points(*(np.ascontiguousarray(v, dtype=float) for v in (q, A, B, C)), closest)
+        else:
+            closest = closest_on_triangles(q, A, B, C)
         reach = np.linalg.norm(q - closest, axis=1)
         inside = (bary >= -1e-9).all(axis=1)
         ok = (reach < margin) & ~(inside & self_at_node(bary, ti, tri_touch))
@@ -459,8 +463,13 @@ class CollisionDetector:
         primary = inside.copy()
         if primary.any():
             qi = q[primary]
-            nearest = closest_on_triangles(qi[:, None], xt[None, :, 0], xt[None, :, 1], xt[None, :, 2])  # (P, T, 3)
-            dist = np.sqrt(((nearest - qi[:, None]) ** 2).sum(axis=2)).min(axis=1)
+            if kernels.ENABLED:  # the same distances, point by point (integration.kernels)
+                dist = np.empty(len(qi))
+                kernels.nearest_triangle_distances(np.ascontiguousarray(qi, dtype=float),
+                                                   np.ascontiguousarray(xt, dtype=float), dist)
+            else:
+                nearest = closest_on_triangles(qi[:, None], xt[None, :, 0], xt[None, :, 1], xt[None, :, 2])  # (P, T, 3)
+                dist = np.sqrt(((nearest - qi[:, None]) ** 2).sum(axis=2)).min(axis=1)
             primary[primary] = np.abs(d[primary]) <= dist + 1e-9
         order = np.lexsort((~primary, group))
         first = run_starts(group[order])

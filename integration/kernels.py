@@ -736,3 +736,26 @@ def row_values(which: int, part: np.ndarray, node: np.ndarray, weight: np.ndarra
                     i = node[r, slot]
                     total += weight[r, slot] * (V[j, i, 0] * d0 + V[j, i, 1] * d1 + V[j, i, 2] * d2)
             out[r, j] = total
+
+
+@_jit
+def closest_points(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, out: np.ndarray) -> None:
+    """collision.closest_on_triangles row by row: the closest points out (m, 3) of triangles (a, b, c) (m, 3 each)
+    to points q (m, 3)."""
+    for k in range(q.shape[0]):
+        out[k, 0], out[k, 1], out[k, 2] = _closest_on_triangle(
+            q[k, 0], q[k, 1], q[k, 2], a[k, 0], a[k, 1], a[k, 2], b[k, 0], b[k, 1], b[k, 2], c[k, 0], c[k, 1], c[k, 2])
+
+
+@_jit
+def nearest_triangle_distances(q: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
+    """The distance out (P,) from each point q (P, 3) to the nearest of the triangles x (T, 3, 3) (their closest
+    points by collision.closest_on_triangles)."""
+    for k in range(q.shape[0]):
+        p0, p1, p2 = q[k, 0], q[k, 1], q[k, 2]
+        best = np.inf
+        for t in range(x.shape[0]):
+            r0, r1, r2 = _closest_on_triangle(p0, p1, p2, x[t, 0, 0], x[t, 0, 1], x[t, 0, 2], x[t, 1, 0],
+                                              x[t, 1, 1], x[t, 1, 2], x[t, 2, 0], x[t, 2, 1], x[t, 2, 2])
+            best = min(best, math.sqrt((r0 - p0) ** 2 + (r1 - p1) ** 2 + (r2 - p2) ** 2))
+        out[k] = best

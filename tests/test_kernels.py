@@ -545,3 +545,34 @@ def test_compiled_row_values_equal_numpys(monkeypatch):
     (y, r), = system.combine(z)
     np.testing.assert_allclose(y, np.tensordot(z, Y, axes=1), rtol=0, atol=1e-13)
     np.testing.assert_allclose(r, 1.0 + np.tensordot(z, R, axes=1), rtol=0, atol=1e-13)
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_compiled_closest_points_on_triangles_equal_numpys():
+    """Closest points of random points on random triangles (every Voronoi region, and degenerate triangles: a
+    repeated vertex, three in a line), compiled row by row (kernels.closest_points) and as distances to the
+    nearest of many triangles (kernels.nearest_triangle_distances), against collision.closest_on_triangles, bit for
+    bit; and on proper triangles each closest point is no farther than any point of its triangle (random samples)."""
+    from integration import kernels as contact_kernels
+    from integration.collision import closest_on_triangles
+
+    rng = np.random.default_rng(61)
+    m = 2000
+    a, b, c, q = (rng.standard_normal((m, 3)) for _ in range(4))
+    b[:20] = a[:20]  # degenerate: a repeated vertex
+    c[20:40] = 0.5 * (a[20:40] + b[20:40])  # three in a line
+    got = np.empty((m, 3))
+    contact_kernels.closest_points(q, a, b, c, got)
+    want = closest_on_triangles(q, a, b, c)
+    np.testing.assert_array_equal(got, want)
+    w = rng.dirichlet(np.ones(3), (m, 50))
+    samples = w[..., :1] * a[:, None] + w[..., 1:2] * b[:, None] + w[..., 2:] * c[:, None]
+    proper = slice(40, None)  # (on a degenerate triangle both give a vertex, not the nearest point of the segment)
+    assert np.all(np.linalg.norm(q - got, axis=1)[proper]
+                  <= np.linalg.norm(q[:, None] - samples, axis=2).min(axis=1)[proper] + 1e-12)
+    x = np.stack([a[:300], b[:300], c[:300]], axis=1)
+    dist = np.empty(100)
+    contact_kernels.nearest_triangle_distances(q[:100], x, dist)
+    ref = np.sqrt(((closest_on_triangles(q[:100, None], x[None, :, 0], x[None, :, 1], x[None, :, 2])
+                    - q[:100, None]) ** 2).sum(axis=2)).min(axis=1)
+    np.testing.assert_array_equal(dist, ref)
