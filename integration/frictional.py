@@ -108,6 +108,9 @@ def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarr
     def solve(slide: np.ndarray, stuck: np.ndarray, gn_used: np.ndarray, gamma: np.ndarray) -> tuple[np.ndarray, int]:
         """The convex problem with the sticking contacts' tangents free and the sliding ones' friction given
         (mu gn_used along their directions); returns gamma (m, 3) and the Newton steps."""
+        if kernels.ENABLED:  # the lines below and bounded_quadratic in one compiled call (integration.kernels)
+            return kernels.friction_subproblem(D, w0, bias, mu, st.direction, slide, stuck, allowed, gn_used, gamma,
+                                               1e-12, 200)
         normal = np.flatnonzero(allowed)
         stick = np.flatnonzero(stuck & allowed)
         idx = np.concatenate([3 * normal, (3 * stick[:, None] + np.array([1, 2])).ravel()])

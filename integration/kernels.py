@@ -759,3 +759,51 @@ def nearest_triangle_distances(q: np.ndarray, x: np.ndarray, out: np.ndarray) ->
                                               x[t, 1, 1], x[t, 1, 2], x[t, 2, 0], x[t, 2, 1], x[t, 2, 2])
             best = min(best, math.sqrt((r0 - p0) ** 2 + (r1 - p1) ** 2 + (r2 - p2) ** 2))
         out[k] = best
+
+
+@_jit
+def friction_subproblem(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, direction: np.ndarray,
+                        slide: np.ndarray, stuck: np.ndarray, allowed: np.ndarray, gn_used: np.ndarray,
+                        gamma: np.ndarray, tol: float, max_iter: int):
+    """frictional.solve_contacts's convex subproblem, compiled: with the sliding contacts' friction impulses given
+    (mu gn_used along their ``direction`` (m, 2)), the normal impulses of the ``allowed`` contacts (>= 0) and the
+    tangential ones of the sticking (``stuck``) allowed contacts that minimise 1/2 gamma^T D gamma + gamma^T (w0 + b),
+    warm-started from ``gamma`` (m, 3); D (3m, 3m), w0 (3m,), bias b (m,) on the normal rows, mu (m,). Returns
+    gamma (m, 3) and the Newton steps of bounded_quadratic."""
+    m = bias.shape[0]
+    fixed = np.zeros(3 * m)
+    for j in range(m):
+        if slide[j]:
+            f = mu[j] * gn_used[j]
+            fixed[3 * j + 1], fixed[3 * j + 2] = f * direction[j, 0], f * direction[j, 1]
+    c = w0 + D @ fixed
+    for j in range(m):
+        c[3 * j] += bias[j]
+    count = 0
+    for j in range(m):
+        count += allowed[j] + 2 * (stuck[j] and allowed[j])
+    idx = np.empty(count, dtype=np.int64)
+    bounded = np.zeros(count, dtype=np.bool_)
+    k = 0
+    for j in range(m):  # the normal rows first, then the sticking tangents (the numpy code's order)
+        if allowed[j]:
+            idx[k] = 3 * j
+            bounded[k] = True
+            k += 1
+    for j in range(m):
+        if stuck[j] and allowed[j]:
+            idx[k], idx[k + 1] = 3 * j + 1, 3 * j + 2
+            k += 2
+    Q = np.empty((count, count))
+    cq, x0 = np.empty(count), np.empty(count)
+    flat = gamma.ravel()
+    for a in range(count):
+        cq[a] = c[idx[a]]
+        x0[a] = flat[idx[a]]
+        for b in range(count):
+            Q[a, b] = D[idx[a], idx[b]]
+    x, steps = bounded_quadratic(Q, cq, bounded, x0, tol, max_iter)
+    out = fixed.copy()
+    for a in range(count):
+        out[idx[a]] = x[a]
+    return out.reshape(m, 3), steps
