@@ -306,20 +306,37 @@ def signals_as_exceptions(signums: Sequence[int] = (signal.SIGTERM, signal.SIGHU
             signal.signal(s, h)
 
 
+def signal_in(exc: BaseException | None) -> BaseException | None:
+    """The Terminated or KeyboardInterrupt that ``exc`` is or was raised from (its causes and contexts, in turn):
+    a signal that arrives while C code calls back into Python (numba loading a compiled kernel from its cache,
+    for one) surfaces as a SystemError caused by the exception the handler raised; None if there is none."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, (Terminated, KeyboardInterrupt)):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) -> int:
     """Run a command: an InvalidInputError is a one-line usage error (exit 2); Ctrl-C exits 130, SIGTERM and
-    SIGHUP 128 + the signal number, after the command's ``finally`` blocks (e.g. a recording closed)."""
+    SIGHUP 128 + the signal number, after the command's ``finally`` blocks (e.g. a recording closed), also when
+    the signal arrived inside C code that turned it into a SystemError (:func:`signal_in`)."""
     try:
         with signals_as_exceptions():
             command()
     except InvalidInputError as exc:
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
-    except KeyboardInterrupt:
-        print("\n# interrupted", file=sys.stderr)
-        return 130
-    except Terminated as exc:
-        print(f"\n# {exc}", file=sys.stderr)
-        return 128 + exc.signum
+    except (KeyboardInterrupt, Terminated, SystemError) as exc:
+        sig = signal_in(exc)
+        if sig is None:
+            raise
+        if isinstance(sig, KeyboardInterrupt):
+            print("\n# interrupted", file=sys.stderr)
+            return 130
+        print(f"\n# {sig}", file=sys.stderr)
+        return 128 + sig.signum
     return 0
 
 

@@ -139,6 +139,30 @@ def test_quiet_c_output_restores_the_descriptors(capfd):
 
 
 # ---------------------------------------------------------------------------- signals
+def test_a_signal_turned_into_a_system_error_by_c_code_still_terminates(capsys):
+    """A SIGTERM whose exception surfaced as a SystemError (it arrived while C code called back into Python: numba
+    loading a compiled kernel from its cache does) exits with 128 + the signal number, and Ctrl-C likewise with 130;
+    a SystemError of any other cause is not swallowed."""
+    import argparse
+
+    from experiments.cli import Terminated, _dispatch
+
+    def raising(first: BaseException):
+        def command():
+            try:
+                raise first
+            except BaseException as exc:  # what CPython does when a C function returns with an exception set
+                raise SystemError("<function _numba_unpickle> returned a result with an exception set") from exc
+        return command
+
+    parser = argparse.ArgumentParser(prog="softbody")
+    assert _dispatch(parser, raising(Terminated(signal.SIGTERM))) == 128 + signal.SIGTERM
+    assert "terminated by SIGTERM" in capsys.readouterr().err
+    assert _dispatch(parser, raising(KeyboardInterrupt())) == 130
+    with pytest.raises(SystemError):
+        _dispatch(parser, raising(ValueError("not a signal")))
+
+
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
 def test_termination_during_run_record_leaves_a_verified_recording(signum, tmp_path):
     """SIGTERM / SIGHUP during `softbody run --record`: the recording is flushed and closed (rerun verifies it,
