@@ -468,7 +468,7 @@ class CollisionDetector:
                 kernels.nearest_triangle_distances(np.ascontiguousarray(qi, dtype=float),
                                                    np.ascontiguousarray(xt, dtype=float), dist)
             else:
-                nearest = closest_on_triangles(qi[:, None], xt[None, :, 0], xt[None, :, 1], xt[None, :, 2])  # (P, T, 3)
+                nearest = closest_on_triangles(qi[:, None], xt[None, :, 0], xt[None, :, 1], xt[None, :, 2])
                 dist = np.sqrt(((nearest - qi[:, None]) ** 2).sum(axis=2)).min(axis=1)
             primary[primary] = np.abs(d[primary]) <= dist + 1e-9
         order = np.lexsort((~primary, group))

@@ -162,7 +162,8 @@ class CoupledSystem:
                 y0, r0 = out[i]
                 w = z[cols]
                 k = len(w)  # the weighted sums of the responses, as products with their flattened stacks
-                out[i] = (y0 + (w @ Y.reshape(k, -1)).reshape(y0.shape), r0 + (w @ R.reshape(k, -1)).reshape(r0.shape))
+                out[i] = (y0 + (w @ Y.reshape(k, -1)).reshape(y0.shape),
+                          r0 + (w @ R.reshape(k, -1)).reshape(r0.shape))
         return out
 
 

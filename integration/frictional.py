@@ -45,9 +45,9 @@ def bounded_quadratic(Q: np.ndarray, c: np.ndarray, bounded: np.ndarray, x0: np.
     Returns x (n,) and the number of Newton steps."""
     if kernels.ENABLED:  # the same method, compiled (integration.kernels)
         x0 = np.zeros(len(c)) if x0 is None else x0
-        return kernels.bounded_quadratic(np.ascontiguousarray(Q, dtype=float), np.ascontiguousarray(c, dtype=float),
-                                         np.ascontiguousarray(bounded, dtype=bool), np.ascontiguousarray(x0, dtype=float),
-                                         float(tol), int(max_iter))
+        a = np.ascontiguousarray
+        return kernels.bounded_quadratic(a(Q, dtype=float), a(c, dtype=float), a(bounded, dtype=bool),
+                                         a(x0, dtype=float), float(tol), int(max_iter))
     n = len(c)
     x = np.zeros(n) if x0 is None else np.where(bounded, np.maximum(x0, 0.0), x0)
 
@@ -109,8 +109,10 @@ def solve_contacts(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarr
         """The convex problem with the sticking contacts' tangents free and the sliding ones' friction given
         (mu gn_used along their directions); returns gamma (m, 3) and the Newton steps."""
         if kernels.ENABLED:  # the lines below and bounded_quadratic in one compiled call (integration.kernels)
-            return kernels.friction_subproblem(D, w0, bias, mu, st.direction, slide, stuck, allowed, gn_used, gamma,
-                                               1e-12, 200)
+            c = np.ascontiguousarray
+            return kernels.friction_subproblem(c(D, dtype=float), c(w0, dtype=float), c(bias, dtype=float),
+                                               c(mu, dtype=float), c(st.direction, dtype=float), c(slide), c(stuck),
+                                               c(allowed), c(gn_used, dtype=float), c(gamma, dtype=float), 1e-12, 200)
         normal = np.flatnonzero(allowed)
         stick = np.flatnonzero(stuck & allowed)
         idx = np.concatenate([3 * normal, (3 * stick[:, None] + np.array([1, 2])).ravel()])
