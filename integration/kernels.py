@@ -123,7 +123,7 @@ def face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, touchin
     nothing, so that the caller can skip it): some candidate point passes _face_point_may_touch on some surface
     triangle (T, 3) of nodes at ``positions`` (N, 3) whose box, grown by ``margin``, meets the link's box lo, hi
     (3,). Candidates: the support points of the round parts along each triangle's inward normal (round_kinds
-    (P,): 0 sphere, 2 capsule, 3 cylinder; round_sizes (P, 2) radius and length; round_R (P, 3, 3) and round_pos
+    (P,): 0 sphere, 2 capsule, 3 cylinder; round_sizes (P, >= 2) radius and length; round_R (P, 3, 3) and round_pos
     (P, 3) in the world), not on triangles with a ``touching`` (N,) node where the point's part is ``smooth`` (S,)
     (RigidLink.round_parts); and the ``corners`` (K, 3) [with their parts' centres (K, 3)] inside the triangle's
     grown box. Its tests are those of face_contacts (wider by SLACK) less the ones that only ever drop more."""

@@ -198,16 +198,11 @@ class RigidLink:
 
     def round_part_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The round parts (those of :meth:`support_points`) in the world, for kernels.face_contacts_possible:
-        kinds (P,) as kernels.KINDS, sizes (P, 2) (radius, length; a sphere's length 0), part-to-world rotations
+        kinds (P,) as kernels.KINDS, sizes (P, 3) (radius, length, 0; a sphere's length 0), part-to-world rotations
         (P, 3, 3) and centres (P, 3) [m] at the link's current pose."""
-        if "_round_local" not in self.__dict__:  # the parts in the link's frame, made once
-            parts = [prt for prt in self.convex_parts() if prt[0] in ("sphere", "capsule", "cylinder")]
-            sizes = np.zeros((len(parts), 2))
-            for i, (_, size, _, _, _) in enumerate(parts):
-                sizes[i, :len(size)] = size
-            self._round_local = (np.array([kernels.KINDS[k] for k, *_ in parts], dtype=np.int64), sizes,
-                                 np.array([R for _, _, R, _, _ in parts], dtype=float).reshape(-1, 3, 3),
-                                 np.array([pos for _, _, _, pos, _ in parts], dtype=float).reshape(-1, 3))
+        if "_round_local" not in self.__dict__:  # the parts in the link's frame (kernels.part_arrays), made once
+            self._round_local = kernels.part_arrays([prt[:4] for prt in self.convex_parts()
+                                                     if prt[0] in ("sphere", "capsule", "cylinder")])
         kinds, sizes, R, pos = self._round_local
         c, q = self.pose()
         Rl = quat_matrix(q)

@@ -215,6 +215,21 @@ def test_compiled_contact_loop_steps_as_the_numpy_one(monkeypatch):
             assert runs[0][1] > 0  # contacts slid at some step
 
 
+def _four_primitives(cid: int, rng: np.random.Generator, scale: float) -> int:
+    """pybullet's compound collision shape of a sphere, a box, a capsule and a cylinder [m, times ``scale``], each
+    turned at random and offset from the link's centre."""
+    import pybullet as p
+
+    return p.createCollisionShapeArray(
+        [p.GEOM_SPHERE, p.GEOM_BOX, p.GEOM_CAPSULE, p.GEOM_CYLINDER], radii=[scale * r for r in (0.1, 0.0, 0.05, 0.07)],
+        halfExtents=[[0, 0, 0], [scale * e for e in (0.1, 0.05, 0.08)], [0, 0, 0], [0, 0, 0]],
+        lengths=[scale * h for h in (0.0, 0.0, 0.2, 0.15)],
+        collisionFramePositions=[[scale * c for c in pos] for pos in ([0.2, 0, 0], [-0.2, 0, 0.05], [0, 0.2, 0],
+                                                                      [0, -0.2, -0.05])],
+        collisionFrameOrientations=[p.getQuaternionFromEuler(rng.uniform(-1, 1, 3).tolist()) for _ in range(4)],
+        physicsClientId=cid)
+
+
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_compiled_primitive_distances_equal_numpys(monkeypatch):
     """A link of four primitives (sphere, box, capsule, cylinder, each turned and offset; pybullet's compound
@@ -229,12 +244,7 @@ def test_compiled_primitive_distances_equal_numpys(monkeypatch):
     world = World()
     cid = world.client
     rng = np.random.default_rng(12)
-    col = p.createCollisionShapeArray(
-        [p.GEOM_SPHERE, p.GEOM_BOX, p.GEOM_CAPSULE, p.GEOM_CYLINDER], radii=[0.1, 0.0, 0.05, 0.07],
-        halfExtents=[[0, 0, 0], [0.1, 0.05, 0.08], [0, 0, 0], [0, 0, 0]], lengths=[0.0, 0.0, 0.2, 0.15],
-        collisionFramePositions=[[0.2, 0, 0], [-0.2, 0, 0.05], [0, 0.2, 0], [0, -0.2, -0.05]],
-        collisionFrameOrientations=[p.getQuaternionFromEuler(rng.uniform(-1, 1, 3).tolist()) for _ in range(4)],
-        physicsClientId=cid)
+    col = _four_primitives(cid, rng, 1.0)
     body = p.createMultiBody(0, col, basePosition=[0.1, 0.2, 0.3],
                              baseOrientation=p.getQuaternionFromEuler([0.4, -0.2, 0.7]), physicsClientId=cid)
     links = [world.rigid(body), world.add_plane(normal=(0.3, -0.2, 1.0), point=(0, 0, -0.1))]
@@ -269,12 +279,7 @@ def test_compiled_node_contacts_equal_numpys(monkeypatch):
     world = World()
     cid = world.client
     rng = np.random.default_rng(31)
-    col = p.createCollisionShapeArray(
-        [p.GEOM_SPHERE, p.GEOM_BOX, p.GEOM_CAPSULE, p.GEOM_CYLINDER], radii=[0.05, 0.0, 0.03, 0.04],
-        halfExtents=[[0, 0, 0], [0.05, 0.03, 0.04], [0, 0, 0], [0, 0, 0]], lengths=[0.0, 0.0, 0.1, 0.08],
-        collisionFramePositions=[[0.1, 0, 0], [-0.1, 0, 0.02], [0, 0.1, 0], [0, -0.1, -0.02]],
-        collisionFrameOrientations=[p.getQuaternionFromEuler(rng.uniform(-1, 1, 3).tolist()) for _ in range(4)],
-        physicsClientId=cid)
+    col = _four_primitives(cid, rng, 0.5)
     soft = FemBody(box_mesh((0.5, 0.5, 0.1), (8, 8, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
     x = soft.positions + 0.004 * rng.standard_normal(soft.positions.shape)
     surface = np.unique(soft.mesh.surface_triangles())
