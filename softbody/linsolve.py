@@ -1,8 +1,10 @@
 """Sparse symmetric positive definite solves with the symbolic analysis done once per pattern.
 
 Backends: "pardiso" (Intel MKL PARDISO through pypardiso, real SPD, mtype 2, upper triangle,
-analysis / numeric factorisation / solve as separate phases) and "superlu" (scipy, the fallback
-when MKL is not installed). Pick with ``backend="auto"`` (default) or by name.
+analysis / numeric factorisation / solve as separate phases), "blocks" (softbody.cholesky: a compiled
+Cholesky in 3x3 node blocks, for small systems, where PARDISO's cost is mostly per call) and "superlu"
+(scipy, the fallback when MKL is not installed). Pick with ``backend="auto"`` (default: "blocks" for a
+system whose factor is small, see :func:`prefers_blocks`, else PARDISO, else SuperLU) or by name.
 """
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import cholesky, kernels
 from .errors import InvalidInputError, SolverError
 
 
@@ -38,7 +41,20 @@ try:  # pragma: no cover - availability depends on the machine
 except Exception:  # ImportError, or mkl_rt missing
     HAVE_PARDISO = False
 
-BACKENDS = ("auto", "pardiso", "superlu")
+BACKENDS = ("auto", "pardiso", "blocks", "superlu")
+
+# systems of at most this many unknowns are considered for the "blocks" backend (its symbolic analysis, a
+# minimum-degree ordering in Python, takes about 50 ms at this size; far below it the factor decides)
+BLOCKS_MAX_UNKNOWNS = 1800
+
+
+def prefers_blocks(indptr: np.ndarray, indices: np.ndarray, n: int) -> cholesky.BlockSymbolic | None:
+    """The block factor's symbolic analysis if "auto" should pick the "blocks" backend for this pattern (small, in
+    3x3 blocks, a factor of at most cholesky.SMALL_FACTOR block products, numba available), else None."""
+    if not kernels.ENABLED or n % 3 or n > BLOCKS_MAX_UNKNOWNS:
+        return None
+    symbolic = cholesky.BlockSymbolic.of(indptr, indices, n)
+    return symbolic if symbolic.multiply_adds <= cholesky.SMALL_FACTOR else None
 
 
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -61,7 +77,8 @@ class SpdSolver:
 
     indptr, indices: the upper triangle (including the diagonal) of A in CSR with sorted indices,
     size n. ``factorize(data)`` takes the matching values; the symbolic analysis (ordering) runs on
-    the first call only. ``solve(b)`` takes b of shape (n,) or (n, m).
+    the first call only. ``solve(b)`` takes b of shape (n,) or (n, m). precision "single" factorises and
+    solves in single precision (PARDISO) or in double (the other backends).
     """
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto",
@@ -70,7 +87,15 @@ class SpdSolver:
             raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
         if backend == "pardiso" and not HAVE_PARDISO:
             raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
-        self.backend = "pardiso" if backend == "auto" and HAVE_PARDISO else ("superlu" if backend == "auto" else backend)
+        if backend == "blocks" and (n % 3 or not kernels.ENABLED):
+            raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks (n a multiple of 3, got {n}) and numba")
+        self._blocks = prefers_blocks(indptr, indices, n) if backend == "auto" else None
+        if backend == "blocks":
+            self._blocks = cholesky.BlockSymbolic.of(indptr, indices, n)
+        if self._blocks is not None:
+            self.backend = "blocks"
+        else:
+            self.backend = "pardiso" if backend == "auto" and HAVE_PARDISO else ("superlu" if backend == "auto" else backend)
         if precision not in ("double", "single"):
             raise InvalidInputError(f"precision must be 'double' or 'single', got {precision!r}")
         self.precision = precision
@@ -155,6 +180,16 @@ class SpdSolver:
         if self.backend == "pardiso":
             self._data = np.ascontiguousarray(data, dtype=self.dtype)  # kept for the solve phase
             self._pardiso(22, self._data, np.zeros(self.n))
+        elif self.backend == "blocks":
+            S = self._blocks
+            if self._factor is None:
+                self._factor = np.empty((len(S.row), 3, 3))
+                self._where = np.empty(len(S.perm), dtype=np.int64)
+            failed = cholesky.factorize_blocks(data, S.dest, S.mirror, S.col_ptr, S.row, S.row_ptr, S.row_col,
+                                               S.row_pos, self._factor, self._where)
+            if failed >= 0:
+                self._factor = None
+                raise SolverError(f"block Cholesky failed at node {int(S.perm[failed])} (matrix not positive definite)")
         else:
             U = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
             A = (U + sp.triu(U, 1).T).tocsc()
@@ -168,6 +203,14 @@ class SpdSolver:
         b = np.asarray(b, dtype=float)
         if self.backend == "pardiso":
             return self._pardiso(33, self._data, np.asfortranarray(b))
+        if self.backend == "blocks":
+            if self._factor is None:
+                raise SolverError("solve before a successful factorisation")
+            S, N = self._blocks, self.n // 3
+            B = np.ascontiguousarray(b.reshape(N, 3, -1))
+            x = np.empty(B.shape)
+            cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, B, x)
+            return x.reshape(b.shape)
         return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
 
     def __del__(self):  # release MKL's memory for this factorisation

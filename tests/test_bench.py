@@ -43,7 +43,7 @@ def test_run_bench_tiny_writes_json_markdown_plot_profile_and_pybullet(tmp_path)
     for phase in ("collision", "rotations", "forces", "assembly", "factorize", "solve", "contact", "total"):
         assert _number(r["phases_ms"][phase]), phase
     assert r["method"] in ("direct", "iterative") and r["threads"] == 1
-    assert r["floor_backend"] in ("pardiso", "superlu")
+    assert r["floor_backend"] in ("pardiso", "blocks", "superlu")
     assert r["contacts_max"] >= 1  # 12 warm-up steps: the sheet touches the sphere after about 10
     # the profile: a table on disk and calls per step far below the element count of a per-element loop
     prof = r["profile"]

@@ -84,3 +84,63 @@ def test_pypardiso_is_pointed_at_mkl_in_this_environment(tmp_path, monkeypatch):
     monkeypatch.setattr(linsolve.sys, "prefix", str(tmp_path / "empty"))
     linsolve._point_pypardiso_at_mkl()
     assert "PYPARDISO_MKL_RT" not in os.environ
+
+
+@pytest.mark.skipif(not softbody.kernels.ENABLED, reason="the block backend is compiled (numba)")
+@pytest.mark.parametrize("kind, cells", [("tet4", (4, 4, 2)), ("tet10", (2, 2, 1)), ("hex8", (3, 2, 2))])
+def test_the_block_cholesky_solves_like_scipy_for_one_and_many_right_hand_sides(kind, cells):
+    p, data, A, n = _system(kind, cells)
+    rng = np.random.default_rng(1)
+    s = SpdSolver(p.up_indptr, p.up_indices, n, "blocks")
+    s.factorize(data)
+    for b in (rng.standard_normal(n), rng.standard_normal((n, 4)), np.asfortranarray(rng.standard_normal((n, 3)))):
+        ref = spla.spsolve(A.tocsc(), b)
+        x = s.solve(b)
+        assert x.shape == b.shape
+        assert np.linalg.norm(x - ref) <= 1e-12 * np.linalg.norm(ref)
+    # refactorised with other values on the same pattern (the symbolic analysis is kept)
+    s.factorize(2.0 * data)
+    b = rng.standard_normal(n)
+    np.testing.assert_allclose(s.solve(b), 0.5 * spla.spsolve(A.tocsc(), b), rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.skipif(not softbody.kernels.ENABLED, reason="the block backend is compiled (numba)")
+def test_the_block_factor_is_a_permuted_cholesky_factor_and_rejects_an_indefinite_matrix():
+    from softbody import cholesky
+
+    p, data, A, n = _system("tet4", (3, 2, 2))
+    S = cholesky.BlockSymbolic.of(p.up_indptr, p.up_indices, n)
+    N = n // 3
+    assert sorted(S.perm.tolist()) == list(range(N))
+    s = SpdSolver(p.up_indptr, p.up_indices, n, "blocks")
+    s.factorize(data)
+    L = np.zeros((n, n))  # L L^T must equal P^T A P, entry by entry
+    for j in range(N):
+        for q in range(S.col_ptr[j], S.col_ptr[j + 1]):
+            i = S.row[q]
+            L[3 * i:3 * i + 3, 3 * j:3 * j + 3] = s._factor[q]
+    dofs = (3 * S.perm[:, None] + np.arange(3)).ravel()
+    PAP = A.toarray()[np.ix_(dofs, dofs)]
+    np.testing.assert_allclose(L @ L.T, PAP, rtol=0, atol=1e-12 * np.abs(PAP).max())
+    assert np.all(np.triu(L, 1) == 0)
+    bad = data.copy()
+    bad[p.up_diag[7]] = -1.0  # one negative pivot
+    with pytest.raises(softbody.errors.SolverError, match="not positive definite"):
+        s.factorize(bad)
+    with pytest.raises(softbody.errors.SolverError, match="before a successful"):
+        s.solve(np.ones(n))
+
+
+@pytest.mark.skipif(not softbody.kernels.ENABLED, reason="the block backend is compiled (numba)")
+def test_auto_picks_the_block_backend_for_small_systems_only():
+    from softbody import cholesky
+
+    small, _, _, n_small = _system("tet4", (4, 4, 2))
+    assert SpdSolver(small.up_indptr, small.up_indices, n_small).backend == "blocks"
+    large, data, _, n_large = _system("tet4", (16, 16, 4))  # 1445 nodes: beyond BLOCKS_MAX_UNKNOWNS
+    assert SpdSolver(large.up_indptr, large.up_indices, n_large).backend in ("pardiso", "superlu")
+    mid, _, _, n_mid = _system("hex8", (10, 10, 3))  # few enough unknowns, too large a factor
+    assert cholesky.BlockSymbolic.of(mid.up_indptr, mid.up_indices, n_mid).multiply_adds > cholesky.SMALL_FACTOR
+    assert SpdSolver(mid.up_indptr, mid.up_indices, n_mid).backend in ("pardiso", "superlu")
+    with pytest.raises(softbody.errors.InvalidInputError, match="multiple of 3"):
+        SpdSolver(np.array([0, 1, 2, 3, 4]), np.arange(4), 4, "blocks")
