@@ -26,7 +26,6 @@ Two ways to solve, same answer to the stated tolerance:
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -105,17 +104,23 @@ def merge(first: Constraints, second: Constraints) -> Constraints:
 Timings = dict  # phase -> seconds, accumulated: rotations, forces, assembly, factorize, solve
 
 
-@contextmanager
-def timed(timings: Timings | None, phase: str):
-    """Add the wall time of the block to timings[phase] (no-op when timings is None)."""
-    if timings is None:
-        yield
-        return
-    tic = time.perf_counter()
-    try:
-        yield
-    finally:
-        timings[phase] = timings.get(phase, 0.0) + time.perf_counter() - tic
+class timed:
+    """``with timed(timings, phase):`` adds the wall time of the block to timings[phase] (nothing when timings is
+    None). A class, not a generator context manager: a step enters a dozen of these, and contextlib's costs
+    about 3 us each."""
+
+    __slots__ = ("timings", "phase", "tic")
+
+    def __init__(self, timings: Timings | None, phase: str):
+        self.timings, self.phase = timings, phase
+
+    def __enter__(self) -> None:
+        if self.timings is not None:
+            self.tic = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        if self.timings is not None:
+            self.timings[self.phase] = self.timings.get(self.phase, 0.0) + time.perf_counter() - self.tic
 
 
 @dataclass
@@ -180,19 +185,11 @@ def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, ma
     """
     pat = body.pattern
     if kernels.ENABLED:  # the same arithmetic, block by block and entry by entry (softbody.kernels)
+        frame_of = np.full(pat.n_nodes, -1)
         if T is not None:
-            where = np.full(pat.n_nodes, -1)
-            where[T.nodes] = np.arange(len(T.nodes))
-            rotated = np.empty(A.shape)
-            kernels.rotate_blocks(np.ascontiguousarray(A, dtype=float), pat.block_row, pat.indices, where,
-                                  np.ascontiguousarray(T.R, dtype=float), rotated)
-            A = rotated
-        data = np.empty(len(pat.up_gather))
-        scale = kernels.constrained_upper(np.ascontiguousarray(A, dtype=float).reshape(-1), pat.up_gather,
-                                          pat.up_row, pat.up_col, pat.up_diag, mask.ravel(), data)
-        with timed(timings, "factorize"):
-            solver.factorize(data)
-        return A, scale
+            frame_of[T.nodes] = np.arange(len(T.nodes))
+        R = _NO_FRAMES if T is None else np.ascontiguousarray(T.R, dtype=float)
+        return _factorize_compiled(body, A, frame_of, R, T is not None, mask, solver, timings)
     if T is not None:
         A = A.copy()
         where = np.full(pat.n_nodes, -1)
@@ -207,6 +204,27 @@ def factorize_constrained(body: FemBody, A: np.ndarray, T: NodeFrames | None, ma
         data = data.copy()
         data[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
         data[pat.up_diag[mflat]] = scale
+    with timed(timings, "factorize"):
+        solver.factorize(data)
+    return A, scale
+
+
+_NO_FRAMES = np.zeros((0, 3, 3))
+
+
+def _factorize_compiled(body: FemBody, A: np.ndarray, frame_of: np.ndarray, R: np.ndarray, turned: bool,
+                        mask: np.ndarray, solver: SpdSolver, timings: Timings | None) -> tuple[np.ndarray, float]:
+    """factorize_constrained by kernels: frame_of (N,) each node's row in the frames R (m, 3, 3) (-1: identity);
+    turned: whether any node turns (else A is used as it is)."""
+    pat = body.pattern
+    A = np.ascontiguousarray(A, dtype=float)
+    if turned:
+        rotated = np.empty(A.shape)
+        kernels.rotate_blocks(A, pat.block_row, pat.indices, frame_of, R, rotated)
+        A = rotated
+    data = np.empty(len(pat.up_gather))
+    scale = kernels.constrained_upper(A.reshape(-1), pat.up_gather, pat.up_row, pat.up_col, pat.up_diag,
+                                      mask.reshape(-1), data)
     with timed(timings, "factorize"):
         solver.factorize(data)
     return A, scale
@@ -234,6 +252,8 @@ class DirectSystem:
         homogeneous=True drops the step's own load b (extra_rhs alone is the load): the response to the
         constrained values and extra_rhs alone, for a coupling that makes them unknowns.
         """
+        if kernels.ENABLED:  # the same arithmetic in a few compiled passes (softbody.kernels)
+            return self._solve_compiled(cons, extra_rhs, reuse, homogeneous)
         pat = self.body.pattern
         T, mask, value = cons.dense(pat.n_nodes)
         load = np.zeros_like(self.b) if homogeneous else self.b
@@ -241,8 +261,6 @@ class DirectSystem:
         if not reuse or getattr(self, "_rotated", None) is None:
             self._rotated, self._scale = factorize_constrained(self.body, self.A, T, mask, self.solver, self.timings)
             self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
-        if kernels.ENABLED:  # only the blocks that meet the constrained nodes (softbody.kernels)
-            return self._solve_compiled(T, mask, value, b)
         A, scale = pat.to_bsr(self._rotated), self._scale
         rhs = b - (A @ value.reshape(-1)).reshape(-1, 3)
         rhs[mask] = scale * value[mask]
@@ -252,26 +270,35 @@ class DirectSystem:
         reaction = np.where(mask, (A @ y.reshape(-1)).reshape(-1, 3) - b, 0.0)
         return to_global(T, y), reaction
 
-    def _solve_compiled(self, T: NodeFrames | None, mask: np.ndarray, value: np.ndarray, b: np.ndarray
+    def _solve_compiled(self, cons: Constraints, extra_rhs: np.ndarray | None, reuse: bool, homogeneous: bool
                         ) -> tuple[np.ndarray, np.ndarray]:
-        """The rest of :meth:`solve` with the products A value (the values live on the constrained nodes only) and
-        A y (its constrained rows only) over the blocks that meet the constrained nodes (kernels.block_product_at)."""
+        """:meth:`solve` by kernels: the constraints spread over the nodes (kernels.local_constraints), the loads
+        turned into their frames, the eliminated factorisation, the right-hand side with A value over the held
+        nodes' blocks only (kernels.constrained_rhs), and the held values and reactions after the solve
+        (kernels.constrained_finish, the products over the held nodes' rows only)."""
         pat, N = self.body.pattern, self.body.pattern.n_nodes
+        R = _NO_FRAMES if cons.frames is None else np.ascontiguousarray(cons.frames, dtype=float)
+        frame_of, mask, value = np.empty(N, dtype=np.int64), np.empty((N, 3), dtype=bool), np.empty((N, 3))
+        turned = kernels.local_constraints(np.asarray(cons.nodes, dtype=np.int64), np.asarray(cons.mask, dtype=bool),
+                                           np.asarray(cons.value, dtype=float), R, frame_of, mask, value)
+        load = np.zeros((N, 3)) if homogeneous else self.b
+        if extra_rhs is not None:
+            load = load + extra_rhs
+        b = np.empty((N, 3))
+        kernels.frames_apply(frame_of, R, np.ascontiguousarray(load, dtype=float), True, b)
+        if not reuse or getattr(self, "_rotated", None) is None:
+            self._rotated, self._scale = _factorize_compiled(self.body, self.A, frame_of, R, turned > 0, mask,
+                                                             self.solver, self.timings)
+            self.stats["factorizations"] = self.stats.get("factorizations", 0) + 1
         A = np.ascontiguousarray(self._rotated, dtype=float)
-        held = _any_component(mask)
-        Av = np.empty((N, 3))
-        kernels.block_product_at(A, pat.indptr, pat.indices, np.arange(N), held, value, Av)
-        rhs = b - Av
-        rhs[mask] = self._scale * value[mask]
+        rhs, held = np.empty((N, 3)), np.empty(N, dtype=bool)
+        kernels.constrained_rhs(A, pat.indptr, pat.indices, mask, value, b, self._scale, held, rhs)
         with timed(self.timings, "solve"):
-            y = self.solver.solve(rhs.ravel()).reshape(-1, 3)
-        y[mask] = value[mask]  # exact, not up to round-off
-        nodes = np.flatnonzero(held)
-        Ay = np.empty((len(nodes), 3))
-        kernels.block_product_at(A, pat.indptr, pat.indices, nodes, np.ones(N, dtype=bool), y, Ay)
-        reaction = np.zeros((N, 3))
-        reaction[nodes] = np.where(mask[nodes], Ay - b[nodes], 0.0)
-        return to_global(T, y), reaction
+            y = np.ascontiguousarray(self.solver.solve(rhs.reshape(-1)), dtype=float).reshape(N, 3)
+        reaction, out = np.empty((N, 3)), np.empty((N, 3))
+        kernels.constrained_finish(A, pat.indptr, pat.indices, mask, value, held, b, y, reaction)
+        kernels.frames_apply(frame_of, R, y, False, out)
+        return out, reaction
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""

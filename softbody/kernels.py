@@ -259,26 +259,6 @@ def scalar_product(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, y:
 
 
 @_jit
-def block_product_at(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, rows: np.ndarray, columns: np.ndarray,
-                     x: np.ndarray, out: np.ndarray) -> None:
-    """Part of the product of a block matrix (BSR: blocks A (nnzb, 3, 3), indptr, indices) with x (N, 3): rows
-    ``rows`` (m,) of it into out (m, 3), summing only the blocks whose column node is flagged in ``columns`` (N,)
-    bool. Where x vanishes off the flagged nodes this is those rows of A x, summed as scipy's BSR product sums
-    them: the constrained part of DirectSystem.solve's two products, without a pass over the whole matrix."""
-    for r in range(rows.shape[0]):
-        i = rows[r]
-        s0, s1, s2 = 0.0, 0.0, 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            if columns[j]:
-                x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
-                s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
-                s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
-                s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
-        out[r, 0], out[r, 1], out[r, 2] = s0, s1, s2
-
-
-@_jit
 def diagonal_from_rows(U: np.ndarray, rows: np.ndarray, cols: np.ndarray, diag: np.ndarray, sums: np.ndarray) -> None:
     """Set the diagonal blocks diag (N,) of upper block data U (n_upper, 9) (blocks (rows[k], cols[k]), row-major)
     to minus the sums of the other blocks of their block row: those right of the diagonal as they are, those above
@@ -311,3 +291,97 @@ def system_blocks(K: np.ndarray, mass: np.ndarray, c_m: float, c_k: float, sourc
             for j in range(3):
                 v = c_k * (K[s, 3 * j + i] if transposed[k] else K[s, 3 * i + j])
                 out[k, i, j] = v + m if i == j else v
+
+
+@_jit
+def local_constraints(nodes: np.ndarray, cmask: np.ndarray, cvalue: np.ndarray, frames: np.ndarray,
+                      frame_of: np.ndarray, mask: np.ndarray, value: np.ndarray) -> int:
+    """integrator.Constraints.dense for m constraints (nodes (m,), cmask (m, 3), cvalue (m, 3), frames (m, 3, 3) or
+    (0, 3, 3) for identity frames) among N nodes, into frame_of (N,) (a node's row in frames, -1 for the identity:
+    also where its frame is the identity), mask (N, 3) and value (N, 3) (zero where not held). Returns how many
+    nodes turn."""
+    frame_of[:] = -1
+    mask[:] = False
+    value[:] = 0.0
+    turned = 0
+    for k in range(nodes.shape[0]):
+        n = nodes[k]
+        for a in range(3):
+            mask[n, a] = cmask[k, a]
+            value[n, a] = cvalue[k, a] if cmask[k, a] else 0.0
+        if frames.shape[0]:
+            for i in range(3):
+                for j in range(3):
+                    if frames[k, i, j] != (1.0 if i == j else 0.0):
+                        if frame_of[n] < 0:
+                            turned += 1
+                        frame_of[n] = k
+    return turned
+
+
+@_jit
+def frames_apply(frame_of: np.ndarray, R: np.ndarray, x: np.ndarray, transpose: bool, out: np.ndarray) -> None:
+    """out (N, 3) = R_f^T x (transpose) or R_f x per node, f = frame_of[node] (-1: the identity, out = x)."""
+    for n in range(x.shape[0]):
+        f = frame_of[n]
+        x0, x1, x2 = x[n, 0], x[n, 1], x[n, 2]
+        if f < 0:
+            out[n, 0], out[n, 1], out[n, 2] = x0, x1, x2
+        elif transpose:
+            for i in range(3):
+                out[n, i] = R[f, 0, i] * x0 + R[f, 1, i] * x1 + R[f, 2, i] * x2
+        else:
+            for i in range(3):
+                out[n, i] = R[f, i, 0] * x0 + R[f, i, 1] * x1 + R[f, i, 2] * x2
+
+
+@_jit
+def constrained_rhs(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, mask: np.ndarray, value: np.ndarray,
+                    b: np.ndarray, scale: float, held: np.ndarray, rhs: np.ndarray) -> None:
+    """The right-hand side (N, 3) of the eliminated system: b - A value over the blocks of the held nodes' columns
+    (held (N,) bool, set here from mask (N, 3)), and scale * value on the held components (DirectSystem.solve)."""
+    N = mask.shape[0]
+    for n in range(N):
+        held[n] = mask[n, 0] or mask[n, 1] or mask[n, 2]
+    for i in range(N):
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            if held[j]:
+                x0, x1, x2 = value[j, 0], value[j, 1], value[j, 2]
+                s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
+                s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
+                s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        rhs[i, 0], rhs[i, 1], rhs[i, 2] = b[i, 0] - s0, b[i, 1] - s1, b[i, 2] - s2
+        for a in range(3):
+            if mask[i, a]:
+                rhs[i, a] = scale * value[i, a]
+
+
+@_jit
+def constrained_finish(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, mask: np.ndarray, value: np.ndarray,
+                       held: np.ndarray, b: np.ndarray, y: np.ndarray, reaction: np.ndarray) -> None:
+    """After the eliminated solve: the held components of y (N, 3, local) set to their values exactly, and the
+    reactions (N, 3) = A y - b on them (zero elsewhere), summed over every block of the held nodes' rows."""
+    N = mask.shape[0]
+    for n in range(N):
+        for a in range(3):
+            if mask[n, a]:
+                y[n, a] = value[n, a]
+    for i in range(N):
+        reaction[i, 0], reaction[i, 1], reaction[i, 2] = 0.0, 0.0, 0.0
+        if not held[i]:
+            continue
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            x0, x1, x2 = y[j, 0], y[j, 1], y[j, 2]
+            s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
+            s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
+            s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        if mask[i, 0]:
+            reaction[i, 0] = s0 - b[i, 0]
+        if mask[i, 1]:
+            reaction[i, 1] = s1 - b[i, 1]
+        if mask[i, 2]:
+            reaction[i, 2] = s2 - b[i, 2]

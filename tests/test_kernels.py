@@ -418,9 +418,11 @@ def test_constrained_factorisation_data_equals_numpys(monkeypatch):
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_direct_solve_with_constrained_products_equals_numpys(monkeypatch):
-    """DirectSystem.solve with some nodes turned into frames and some of their components held at values: the
-    compiled products over the constrained nodes' blocks (kernels.block_product_at) give numpy's velocities and
-    reactions (whole sparse products); the held components take their values, and only they have reactions."""
+    """DirectSystem.solve with some nodes turned into frames (one of them the identity) and some of their
+    components held at values, with an extra load, and its homogeneous form: the compiled passes
+    (kernels.local_constraints, frames_apply, constrained_rhs, constrained_finish: products over the held nodes'
+    blocks) give numpy's velocities and reactions (whole sparse products); the held components take their values,
+    and only they have reactions."""
     from softbody import FemBody, LinearElastic, box_mesh
     from softbody.integrator import Constraints, DirectSystem
     from softbody.linsolve import SpdSolver
@@ -432,21 +434,27 @@ def test_direct_solve_with_constrained_products_equals_numpys(monkeypatch):
     nodes = rng.choice(body.n_nodes, 10, replace=False)
     mask = rng.random((10, 3)) < 0.5
     mask[0] = True
-    cons = Constraints(nodes, mask, rng.standard_normal((10, 3)), np.linalg.qr(rng.standard_normal((10, 3, 3)))[0])
+    frames = np.linalg.qr(rng.standard_normal((10, 3, 3)))[0]
+    frames[1] = np.eye(3)
+    cons = Constraints(nodes, mask, rng.standard_normal((10, 3)), frames)
+    extra = rng.standard_normal((body.n_nodes, 3))
     pat = body.pattern
-    out = []
-    for compiled in (True, False):
-        with monkeypatch.context() as m:
-            if not compiled:
-                _numpy_path(m)
-            system = DirectSystem(body, A, b, SpdSolver(pat.up_indptr, pat.up_indices, 3 * body.n_nodes))
-            out.append(system.solve(cons))
-    (y, r), (y0, r0) = out
-    np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12 * np.abs(y0).max())
-    np.testing.assert_allclose(r, r0, rtol=0, atol=1e-12 * np.abs(r0).max())
-    local = np.einsum("mji,mj->mi", cons.frames, y[nodes])  # the held components took their values
-    np.testing.assert_allclose(local[mask], cons.value[mask], atol=1e-12)
-    assert np.abs(r[nodes][mask]).max() > 0 and not r[np.setdiff1d(np.arange(body.n_nodes), nodes)].any()
+    for c, kwargs in ((cons, {}), (cons, dict(extra_rhs=extra)), (cons, dict(extra_rhs=extra, homogeneous=True)),
+                      (Constraints(nodes, mask, cons.value), {})):
+        out = []
+        for compiled in (True, False):
+            with monkeypatch.context() as m:
+                if not compiled:
+                    _numpy_path(m)
+                system = DirectSystem(body, A, b, SpdSolver(pat.up_indptr, pat.up_indices, 3 * body.n_nodes))
+                out.append(system.solve(c, **kwargs))
+        (y, r), (y0, r0) = out
+        np.testing.assert_allclose(y, y0, rtol=0, atol=1e-12 * np.abs(y0).max())
+        np.testing.assert_allclose(r, r0, rtol=0, atol=1e-12 * np.abs(r0).max())
+        turn = c.frames if c.frames is not None else np.broadcast_to(np.eye(3), (10, 3, 3))
+        local = np.einsum("mji,mj->mi", turn, y[nodes])  # the held components took their values
+        np.testing.assert_allclose(local[mask], c.value[mask], atol=1e-12)
+        assert np.abs(r[nodes][mask]).max() > 0 and not r[np.setdiff1d(np.arange(body.n_nodes), nodes)].any()
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
