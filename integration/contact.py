@@ -721,6 +721,8 @@ class ContactSolver:
             nodes.append(self._set("node", body, c, lambda prev: _NodeSet(self, c, prev, h, body.n_nodes)))
             faces.append(self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h, body.positions)))
         pset = self._pair_set(pairs, steps, h)
+        if pset is None and all(f is None for f in faces):
+            return self._solve_nodes(steps, prepared, nodes, index, results)
         it = 0
         for it in range(1, self.max_iterations + 1):
             row_parts, extras, cons_of, reuse_of = [], [None] * len(steps), [], []
@@ -772,6 +774,33 @@ class ContactSolver:
             pair_result, state = pset.result(it)
             self._keep_pair_state(state)
         return None, it, pair_result
+
+    def _solve_nodes(self, steps, prepared, nodes: list, index, results) -> tuple[None, int, None]:
+        """_solve_sparse when every contact is a node contact (no rows, no rigid body moved): each body's active set
+        on its own, a body solved again only while its set changes (as the coupled solve's cache of unchanged
+        solves would). Returns (None, iterations, None)."""
+        out: list = [None] * len(steps)
+        stale = [True] * len(steps)
+        no_du = np.zeros(0)
+        it = 0
+        for it in range(1, self.max_iterations + 1):
+            for i, (st, (b_cons, _, _, _), nset) in enumerate(zip(steps, prepared, nodes)):
+                if not stale[i]:
+                    continue
+                if nset is None:
+                    out[i], stale[i] = st.system.solve(b_cons, None, reuse=it > 1), False
+                    continue
+                c_cons, _, extra = nset.constraints()
+                out[i] = st.system.solve(_stack([b_cons, c_cons]), extra, reuse=nset.reuse)
+                stale[i] = nset.read(out[i][0], out[i][1], no_du, it)
+            if not any(stale):
+                break
+        for j, st, nset, (v, r) in zip(index, steps, nodes, out):
+            node_result = None
+            if nset is not None:
+                node_result, self.previous[("node", id(st.system.body))] = nset.result(it)
+            results[j] = (v, r, node_result, None)
+        return None, it, None
 
     def _solve_components(self, D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, state: ContactState,
                           eligible) -> tuple[np.ndarray, ContactState, int]:
