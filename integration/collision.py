@@ -148,6 +148,7 @@ def _length(v: np.ndarray) -> float:
 
 
 _NO_ROWS, _ZERO3 = np.zeros((0, 3)), np.zeros(3)  # the prefilter's sweep arguments when there is no sweep
+_NO_ROUND = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))  # no round parts
 
 
 def _face_contacts_possible(positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink, margin: float,
@@ -186,10 +187,25 @@ class CollisionDetector:
         node_incidence, if at hand (for the surface normals)."""
         if not len(surface):
             return Contacts.empty(), FaceHits.empty()
-        lo0, hi0 = box_of(positions.take(surface, axis=0))
+        lo0 = hi0 = None  # the surface's box, made when first needed
         parts, faces = [], []
         boxes = touching = touch_normal = None  # made when first needed
         for rb, sweep in zip(links, sweeps):
+            if kernels.ENABLED and incidence is not None and rb.primitive_parts() is not None:
+                if touching is None:
+                    touching, touch_normal = np.zeros(len(positions), dtype=bool), np.zeros((len(positions), 3))
+                status, margin, found = self._primitive_link(body_index, positions, surface, triangles, supported,
+                                                             rb, sweep, touch, incidence, touching, touch_normal)
+                if len(found):
+                    parts.append(found)
+                if status == 2:  # face contacts possible: the numpy search decides
+                    if boxes is None:
+                        boxes = triangle_boxes(positions, triangles)
+                    faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching,
+                                                    touch_normal, boxes, sweep))
+                continue
+            if lo0 is None:
+                lo0, hi0 = box_of(positions.take(surface, axis=0))
             margin = sweep.bound(surface)
             rlo, rhi = rb.aabb()
             if np.any(rlo > hi0 + margin) or np.any(rhi < lo0 - margin):
@@ -226,6 +242,36 @@ class CollisionDetector:
             order = np.lexsort((found.distance, found.node))  # one contact per node: the deepest
             found = found.select(order[run_starts(found.node[order])])
         return found, FaceHits.concat(faces)
+
+    def _primitive_link(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
+                        supported: np.ndarray, rigid: RigidLink, sweep: Sweep, touch: float, incidence: sp.csr_matrix,
+                        touching: np.ndarray, touch_normal: np.ndarray) -> tuple[int, float, "Contacts"]:
+        """:meth:`detect`'s work for one link of primitive parts up to the face search, in one compiled call
+        (kernels.primitive_link_contacts): (0 far apart / 1 no face search / 2 face search needed, the reach [m],
+        the node contacts); touching and touch_normal filled as detect fills them for the face search."""
+        c, q = rigid.pose()
+        Rl = quat_matrix(q)
+        kinds, sizes, R, pos = rigid.primitive_arrays()
+        lo, hi = rigid.aabb()
+        smooth = rigid.round_parts()
+        corners, corner_centres = rigid.corner_points()
+        faces = bool(len(smooth) or len(corners))
+        if faces:
+            round_kinds, round_sizes, round_R, round_pos = rigid.round_part_arrays((c, Rl))
+        else:
+            round_kinds, round_sizes, round_R, round_pos = _NO_ROUND
+        status, count, margin, node, point, normal, dist = kernels.primitive_link_contacts(
+            np.ascontiguousarray(positions, dtype=float), np.asarray(surface, dtype=np.int64),
+            np.ascontiguousarray(triangles, dtype=np.int64), incidence.indptr, incidence.indices, supported,
+            np.asarray(lo, dtype=float), np.asarray(hi, dtype=float), sweep.margin, sweep.h, RIGID_SLACK, SOFT_SLACK,
+            sweep.velocities, sweep.speeds, sweep.v, sweep.w, sweep.centre, sweep.radius, kinds, sizes, Rl @ R,
+            c + pos @ Rl.T, FACING, touch, faces, round_kinds, round_sizes, round_R, round_pos, smooth,
+            np.ascontiguousarray(corners, dtype=float).reshape(-1, 3),
+            np.ascontiguousarray(corner_centres, dtype=float).reshape(-1, 3), touching, touch_normal)
+        self.last_candidates += count
+        n = len(node)
+        return status, margin, Contacts(np.full(n, body_index), node, np.full(n, rigid.id), point, normal, dist,
+                                        np.full(n, rigid.link))
 
     def node_contacts(self, body_index: int, positions: np.ndarray, surface_nodes: np.ndarray,
                       rigid: RigidLink, margin: float, sweep: Sweep | None = None) -> Contacts:

@@ -6,7 +6,9 @@ for the contact search, where numpy would spread a little arithmetic over dozens
   skip what that code would drop (their thresholds are wider by a relative 1e-9), so the contacts found are the
   same with them and without them;
 - ``primitive_node_contacts`` (and ``primitive_distances``): node contacts against links of primitive parts, the
-  closed-form distances of distance.py point by point;
+  closed-form distances of distance.py point by point; ``primitive_link_contacts``: all of the contact search's
+  work for such a link before the face search (broad phase, node contacts, facing test, resting nodes, the face
+  search's early-out) in one call;
 - ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere);
 - ``tangent_frames``, ``contact_start``, ``friction_update``, ``contact_finish``: the contact set's arithmetic in
   the active-set loop (contact.py), contact by contact, bit for bit numpy's;
@@ -22,8 +24,8 @@ import numpy as np
 from softbody.kernels import ENABLED, _jit
 
 __all__ = ["ENABLED", "KINDS", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
-           "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_node_contacts",
-           "round_face_prefilter", "tangent_frames"]
+           "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
+           "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -807,3 +809,70 @@ def friction_subproblem(D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.
     for a in range(count):
         out[idx[a]] = x[a]
     return out.reshape(m, 3), steps
+
+
+@_jit
+def primitive_link_contacts(positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray, inc_indptr: np.ndarray,
+                            inc_indices: np.ndarray, supported: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                            margin: float, h: float, rigid_slack: float, soft_slack: float, velocities: np.ndarray,
+                            speeds: np.ndarray, v: np.ndarray, w: np.ndarray, centre: np.ndarray, radius: float,
+                            kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins: np.ndarray,
+                            facing: float, touch: float, faces: bool, round_kinds: np.ndarray,
+                            round_sizes: np.ndarray, round_R: np.ndarray, round_pos: np.ndarray, smooth: np.ndarray,
+                            corners: np.ndarray, corner_centres: np.ndarray, touching: np.ndarray,
+                            touch_normal: np.ndarray):
+    """One link of primitive parts in collision.CollisionDetector.detect, in one call: the broad phase on boxes
+    (the surface nodes' box (s,) against the link's lo, hi (3,), grown by Sweep.bound), the node contacts
+    (primitive_node_contacts), those whose rigid face does not face the surface at the node dropped (the dot of the
+    contact normal with the surface normal node_normals_at, over the node-triangle incidence inc_indptr/inc_indices,
+    not below ``facing``, unless the node is inside), and, for a link with face candidates (``faces``: round parts
+    or corners), the nodes resting on it (within ``touch``, or ``supported`` (N,)) into touching (N,) and
+    touch_normal (N, 3) and face_contacts_possible. Returns (status: 0 far apart, 1 no face search needed, 2 face
+    search needed; the candidates, the bound [m], the contacts' nodes, points, normals and distances)."""
+    s = surface.shape[0]
+    top = 0.0  # the fastest surface node's speed (Sweep.soft_travel)
+    for k in range(s):
+        top = max(top, speeds[surface[k]])
+    lo0, hi0 = np.empty(3), np.empty(3)  # the surface's box (collision.box_of)
+    for j in range(3):
+        a = b = positions[surface[0], j]
+        for k in range(1, s):
+            x = positions[surface[k], j]
+            a, b = min(a, x), max(b, x)
+        lo0[j], hi0[j] = a, b
+    spin = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) * radius if math.isfinite(radius) else 0.0
+    bound = margin + soft_slack * h * top + rigid_slack * h * (math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+                                                              + spin)
+    for j in range(3):
+        if lo[j] > hi0[j] + bound or hi[j] < lo0[j] - bound:
+            return 0, 0, bound, np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty((0, 3)), np.empty(0)
+    count, node, point, normal, dist = primitive_node_contacts(
+        positions, surface, lo, hi, bound, margin, h, rigid_slack, soft_slack, velocities, speeds, v, w, centre,
+        radius, kinds, sizes, Rw, origins)
+    m = node.shape[0]
+    if m:
+        nn = np.empty((m, 3))
+        node_normals_at(positions, triangles, inc_indptr, inc_indices, node, nn)
+        keep = np.empty(m, dtype=np.bool_)
+        for k in range(m):
+            keep[k] = (normal[k, 0] * nn[k, 0] + normal[k, 1] * nn[k, 1] + normal[k, 2] * nn[k, 2] < facing
+                       or dist[k] <= 0.0)
+        if not keep.all():
+            node, point, normal, dist = node[keep], point[keep], normal[keep], dist[keep]
+            m = node.shape[0]
+    if not faces:
+        return 1, count, bound, node, point, normal, dist
+    touching[:] = False
+    touch_normal[:] = 0.0
+    for k in range(m):
+        if dist[k] <= touch:
+            touching[node[k]] = True
+            touch_normal[node[k], 0], touch_normal[node[k], 1], touch_normal[node[k], 2] = (normal[k, 0], normal[k, 1],
+                                                                                             normal[k, 2])
+    for i in range(supported.shape[0]):
+        if supported[i]:
+            touching[i] = True
+    possible = face_contacts_possible(positions, triangles, touching, lo, hi, bound, round_kinds, round_sizes, round_R,
+                                      round_pos, smooth, corners, corner_centres, True, h, rigid_slack, soft_slack,
+                                      velocities, v, w, centre)
+    return 2 if possible else 1, count, bound, node, point, normal, dist

@@ -196,16 +196,20 @@ class RigidLink:
             self._round = np.array(flags, dtype=bool)
         return self._round
 
-    def round_part_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def round_part_arrays(self, pose: tuple[np.ndarray, np.ndarray] | None = None
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The round parts (those of :meth:`support_points`) in the world, for kernels.face_contacts_possible:
         kinds (P,) as kernels.KINDS, sizes (P, 3) (radius, length, 0; a sphere's length 0), part-to-world rotations
-        (P, 3, 3) and centres (P, 3) [m] at the link's current pose."""
+        (P, 3, 3) and centres (P, 3) [m] at the link's current pose; ``pose``: that pose as (centre (3,), rotation
+        matrix (3, 3)), if at hand."""
         if "_round_local" not in self.__dict__:  # the parts in the link's frame (kernels.part_arrays), made once
             self._round_local = kernels.part_arrays([prt[:4] for prt in self.convex_parts()
                                                      if prt[0] in ("sphere", "capsule", "cylinder")])
         kinds, sizes, R, pos = self._round_local
-        c, q = self.pose()
-        Rl = quat_matrix(q)
+        if pose is None:
+            c, q = self.pose()
+            pose = (c, quat_matrix(q))
+        c, Rl = pose
         return kinds, sizes, Rl @ R, c + pos @ Rl.T
 
     def support_points(self, directions: np.ndarray) -> np.ndarray:

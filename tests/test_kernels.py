@@ -316,6 +316,66 @@ def test_compiled_node_contacts_equal_numpys(monkeypatch):
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+def test_one_call_per_primitive_link_detects_as_numpy(monkeypatch):
+    """CollisionDetector.detect on a bumpy soft surface with some nodes supported, against a compound link of four
+    primitives, a box, a sphere and a plane, far off, near and overlapping, at rest and moving: the one compiled call
+    per link (kernels.primitive_link_contacts: broad phase, node contacts, facing test, resting nodes, face-search
+    early-out) gives numpy's node contacts and face contacts, field by field, and counts the same candidates."""
+    import pybullet as p
+
+    from integration import World
+    from integration import kernels as contact_kernels
+    from integration.collision import CollisionDetector, Sweep, node_incidence
+    from softbody import FemBody, LinearElastic, box_mesh
+
+    world = World()
+    cid = world.client
+    rng = np.random.default_rng(37)
+    shapes = [_four_primitives(cid, rng, 0.5), p.createCollisionShape(p.GEOM_BOX, halfExtents=[0.06, 0.04, 0.03],
+                                                                      physicsClientId=cid),
+              p.createCollisionShape(p.GEOM_SPHERE, radius=0.05, physicsClientId=cid)]
+    soft = FemBody(box_mesh((0.5, 0.5, 0.1), (8, 8, 2), "tet4"), LinearElastic(1e6, 0.3, 1000.0))
+    x = soft.positions + 0.004 * rng.standard_normal(soft.positions.shape)
+    tris = soft.mesh.surface_triangles()
+    incidence = node_incidence(tris, soft.n_nodes)
+    surface = np.unique(tris)
+    supported = np.zeros(soft.n_nodes, dtype=bool)
+    supported[rng.choice(soft.n_nodes, 6, replace=False)] = True
+    plane = world.add_plane(normal=(0.1, -0.2, 1.0), point=(0, 0, -0.04))
+    detector = CollisionDetector(cid)
+    nodes = faces = far = 0
+    for trial in range(48):
+        if trial % 6 == 5:
+            rb = plane
+        else:
+            lift = 0.5 if trial % 6 == 4 else rng.uniform(-0.04, 0.03)  # now and then far above the sheet
+            pos = [rng.uniform(-0.15, 0.15), rng.uniform(-0.15, 0.15), 0.05 + lift]
+            orn = p.getQuaternionFromEuler(rng.uniform(-np.pi, np.pi, 3).tolist())
+            rb = world.rigid(p.createMultiBody(0, shapes[trial % 3], basePosition=pos, baseOrientation=orn,
+                                               physicsClientId=cid))
+        vel = 0.5 * rng.standard_normal(x.shape)
+        motion = (rng.standard_normal(3), 3 * rng.standard_normal(3)) if trial % 2 else (np.zeros(3), np.zeros(3))
+        sweep = Sweep(0.01, 0.01, vel, np.linalg.norm(vel, axis=1), *motion, rb.pose()[0], rb.bounding_radius())
+        args = (0, x, surface, tris, supported, [rb], [sweep], 0.001, incidence)
+        before = detector.last_candidates
+        got, got_faces = detector.detect(*args)
+        between = detector.last_candidates
+        with monkeypatch.context() as m:
+            m.setattr(contact_kernels, "ENABLED", False)
+            want, want_faces = detector.detect(*args)
+        assert between - before == detector.last_candidates - between
+        for f in ("body", "node", "rigid", "link"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+        for f in ("point", "normal", "distance"):
+            np.testing.assert_allclose(getattr(got, f), getattr(want, f), rtol=0, atol=1e-12, err_msg=f)
+        for f in got_faces.__dataclass_fields__:
+            np.testing.assert_allclose(getattr(got_faces, f), getattr(want_faces, f), rtol=0, atol=1e-12, err_msg=f)
+        nodes, faces, far = nodes + len(got), faces + len(got_faces), far + (between == before)
+    assert nodes > 100 and faces > 10 and far >= 8  # contacts of both kinds to compare, and links far off
+    world.close()
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_a_zero_normal_gives_the_numpy_paths_nan_frame_not_an_error(monkeypatch):
     """The kernels divide as numpy does (error_model "numpy"): a zero-length contact normal (a degenerate query)
     gives the same NaN frame as the numpy path instead of raising ZeroDivisionError."""
