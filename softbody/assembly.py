@@ -118,6 +118,16 @@ class BlockPattern:
         matrix.data = data
         return matrix
 
+    def product(self, block_data: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """A y (N, 3) for the matrix of block data (nnzb, 3, 3) on this pattern and y (N, 3): compiled
+        (kernels.block_product, summed as scipy's BSR product sums) or through :meth:`to_bsr`."""
+        if kernels.ENABLED:
+            out = np.empty((self.n_nodes, 3))
+            kernels.block_product(np.ascontiguousarray(block_data, dtype=float), self.indptr, self.indices,
+                                  np.ascontiguousarray(y, dtype=float), out)
+            return out
+        return (self.to_bsr(block_data) @ np.reshape(y, -1)).reshape(-1, 3)
+
     def to_csr(self, block_data: np.ndarray) -> sp.csr_matrix:
         return self.to_bsr(block_data).tocsr()
 

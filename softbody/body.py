@@ -154,6 +154,7 @@ class FemBody:
         self._char_F = deformation_gradient_operator(mesh.elements[:, ct.reshape(-1)], gc.reshape(E, -1, 3),
                                                      mesh.n_nodes)
         self._char_grads = gc.reshape(E, -1, 3)  # (E, 4c, 3), on the element's local nodes ct.reshape(-1)
+        self._char_nodes = np.ascontiguousarray(mesh.elements[:, ct.reshape(-1)], dtype=np.int64)  # (E, 4c) global
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
@@ -302,6 +303,10 @@ class FemBody:
         of its two) at positions x (N, 3), component-major (9, E): row 3 i + j holds F_ij. (Taken of
         x minus its mean: each tet's gradients sum to zero, and so an offset adds no round-off.)"""
         x = np.asarray(x, dtype=float)
+        if kernels.ENABLED:  # element by element, the mean in the same call (softbody.kernels)
+            out = np.empty((9, self.mesh.n_elements))
+            kernels.characteristic_gradients(self._char_nodes, self._char_grads, np.ascontiguousarray(x), out)
+            return out
         return (self._char_F @ (x - x.mean(axis=0)).reshape(-1)).reshape(9, -1)
 
     def local_displacements(self, x: np.ndarray, R: np.ndarray) -> np.ndarray:

@@ -670,15 +670,15 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         with timed(timings, "assembly"):
             K, load = body.warped_stiffness_upper(R)
             A = body.system_blocks(K, c_m, c_k)
-            A_op = body.pattern.to_bsr(A)
+            A_op = body.pattern.to_bsr(A) if pre is not None else None  # the iterative path's operator
         with timed(timings, "forces"):
             # K' u from the system matrix, (A u - c_m M u) / c_k, so that K' is never formed whole: its
             # round-off relative to K' u is about eps * (c_m M / c_k K'); where that exceeds 1e-12 (very
             # soft bodies or tiny steps: c_m M over 1e4 x c_k K'), K' u comes from K' itself
             if c_m * body.mass_scale <= 1e4 * c_k * float(np.abs(K[body.diagonal_upper, ::4]).max()):
-                Ku = ((A_op @ u.reshape(-1)).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
+                Ku = (body.pattern.product(A, u) - c_m * body.mass_product(u)) / c_k
             else:
-                Ku = (body.pattern.to_bsr(body.stiffness_blocks(K)) @ u.reshape(-1)).reshape(-1, 3)
+                Ku = body.pattern.product(body.stiffness_blocks(K), u)
     with timed(timings, "forces"):
         terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
         b = terms[0] + terms[1] + terms[2]

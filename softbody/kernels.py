@@ -385,3 +385,50 @@ def constrained_finish(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, m
             reaction[i, 1] = s1 - b[i, 1]
         if mask[i, 2]:
             reaction[i, 2] = s2 - b[i, 2]
+
+
+@_jit
+def block_product(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
+    """out (N, 3) = A x for a block matrix (BSR: blocks A (nnzb, 3, 3), indptr, indices) and x (N, 3), each entry
+    summed term by term in scipy's BSR order (BlockPattern.product)."""
+    for i in range(indptr.shape[0] - 1):
+        s0, s1, s2 = 0.0, 0.0, 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
+            s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
+            s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
+            s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        out[i, 0], out[i, 1], out[i, 2] = s0, s1, s2
+
+
+@_jit
+def characteristic_gradients(nodes: np.ndarray, grads: np.ndarray, x: np.ndarray, out: np.ndarray) -> None:
+    """The deformation gradients F_e = sum_a (x_a - mean x) g_a^T (component-major out (9, E), row 3 i + j: F_ij) of
+    the characteristic tetrahedra: nodes (E, m) and gradients (E, m, 3) of their m node slots, positions x (N, 3).
+    FemBody.characteristic_gradient's sparse product, element by element (a node's position read once per slot)."""
+    N = x.shape[0]
+    m0 = m1 = m2 = 0.0
+    for i in range(N):
+        m0 += x[i, 0]
+        m1 += x[i, 1]
+        m2 += x[i, 2]
+    m0, m1, m2 = m0 / N, m1 / N, m2 / N
+    for e in range(nodes.shape[0]):
+        f0 = f1 = f2 = f3 = f4 = f5 = f6 = f7 = f8 = 0.0
+        for a in range(nodes.shape[1]):
+            n = nodes[e, a]
+            x0, x1, x2 = x[n, 0] - m0, x[n, 1] - m1, x[n, 2] - m2
+            g0, g1, g2 = grads[e, a, 0], grads[e, a, 1], grads[e, a, 2]
+            f0 += x0 * g0
+            f1 += x0 * g1
+            f2 += x0 * g2
+            f3 += x1 * g0
+            f4 += x1 * g1
+            f5 += x1 * g2
+            f6 += x2 * g0
+            f7 += x2 * g1
+            f8 += x2 * g2
+        out[0, e], out[1, e], out[2, e] = f0, f1, f2
+        out[3, e], out[4, e], out[5, e] = f3, f4, f5
+        out[6, e], out[7, e], out[8, e] = f6, f7, f8

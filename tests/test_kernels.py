@@ -688,3 +688,29 @@ def test_compiled_friction_subproblems_solve_contacts_as_numpy(monkeypatch):
         sliding += int((state.active & ~state.stick & (mu > 0)).sum())
         sticking += int((state.active & state.stick).sum())
     assert sliding > 10 and sticking > 10  # both friction states were compared
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+@pytest.mark.parametrize("kind", ["tet4", "tet10", "hex8"])
+def test_block_product_and_characteristic_gradient_kernels_equal_numpy(kind, monkeypatch):
+    """BlockPattern.product (kernels.block_product) equals scipy's BSR product bit for bit; the characteristic
+    gradients of displaced positions far from the origin (kernels.characteristic_gradients, element by element)
+    equal numpy's to round-off, and those of a rigid rotation are that rotation."""
+    from softbody import FemBody, LinearElastic, box_mesh
+
+    rng = np.random.default_rng(47)
+    body = FemBody(box_mesh((0.5, 0.3, 0.2), (3, 2, 2), kind), LinearElastic(1e6, 0.3, 1000.0))
+    A = body.system_blocks(body.warped_stiffness_upper(body.rotations())[0], 1.0, 1e-4)
+    y = rng.standard_normal((body.n_nodes, 3))
+    np.testing.assert_array_equal(body.pattern.product(A, y),
+                                  (body.pattern.to_bsr(A) @ y.reshape(-1)).reshape(-1, 3))
+    x = body.positions + 0.01 * rng.standard_normal(body.positions.shape) + [100.0, -50.0, 20.0]
+    got = body.characteristic_gradient(x)
+    with monkeypatch.context() as m:
+        _numpy_path(m)
+        want = body.characteristic_gradient(x)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * np.abs(want).max())
+    Q = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    Q *= np.sign(np.linalg.det(Q))
+    F = body.characteristic_gradient(body.positions @ Q.T + [3.0, 1.0, -2.0])
+    np.testing.assert_allclose(F.T.reshape(-1, 3, 3), np.broadcast_to(Q, (body.mesh.n_elements, 3, 3)), atol=1e-12)
