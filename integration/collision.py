@@ -63,8 +63,8 @@ class Contacts:
 
     @classmethod
     def empty(cls) -> "Contacts":
-        z = np.zeros(0, dtype=np.int64)
-        return cls(z, z.copy(), z.copy(), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), z.copy())
+        """No contacts (a fresh object over shared read-only empty arrays)."""
+        return cls(*_EMPTY_CONTACT_FIELDS)
 
     def __len__(self) -> int:
         return len(self.node)
@@ -147,6 +147,15 @@ def _length(v: np.ndarray) -> float:
     return math.sqrt(float(v @ v))
 
 
+def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+_I0, _I03, _F0, _F03 = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0), np.zeros((0, 3))
+_EMPTY_CONTACT_FIELDS = _read_only(_I0, _I0, _I0, _F03, _F03, _F0, _I0)
+_EMPTY_FACE_FIELDS = _read_only(_I0, _I0, _I03, _F03, _F03, _F03, _F0, _I0, _I0, _I0, np.zeros(0, bool), _I0)
 _NO_ROWS, _ZERO3 = np.zeros((0, 3)), np.zeros(3)  # the prefilter's sweep arguments when there is no sweep
 _NO_ROUND = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))  # no round parts
 
@@ -726,9 +735,8 @@ class FaceHits:
 
     @classmethod
     def empty(cls) -> "FaceHits":
-        z = np.zeros(0, dtype=np.int64)
-        return cls(z, z.copy(), np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)),
-                   np.zeros(0), z.copy(), z.copy(), z.copy(), np.zeros(0, bool), z.copy())
+        """No hits (a fresh object over shared read-only empty arrays: made every step for every link)."""
+        return cls(*_EMPTY_FACE_FIELDS)
 
     def __len__(self) -> int:
         return len(self.triangle)

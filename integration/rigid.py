@@ -81,7 +81,9 @@ class RigidLink:
         c, _, v, w = self.adapter.state(self.id, self.link)
         points = np.asarray(points, dtype=float)
         if not w.any():  # not spinning (most obstacles): the same velocity everywhere
-            return np.broadcast_to(v, points.shape).copy()
+            out = np.empty(points.shape)
+            out[...] = v
+            return out
         return v + cross(w, points - c)
 
     def to_world(self, local: np.ndarray) -> np.ndarray:

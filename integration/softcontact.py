@@ -62,6 +62,12 @@ class SoftSurface:
         return vertex_normals(x, self.triangles, self.incidence)
 
 
+_EMPTY_FIELDS = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                 np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+for _a in _EMPTY_FIELDS:  # shared by every empty SoftHits: read-only, so that an in-place change fails loudly
+    _a.flags.writeable = False
+
+
 @dataclass
 class SoftHits:
     """Node-against-triangle contacts between soft bodies (m entries): node (m,) of body a (m,) against the point
@@ -81,9 +87,8 @@ class SoftHits:
 
     @classmethod
     def empty(cls) -> "SoftHits":
-        z = np.zeros(0, np.int64)
-        return cls(z, z.copy(), z.copy(), z.copy(), np.zeros((0, 3), np.int64), np.zeros((0, 3)),
-                   np.zeros((0, 3)), np.zeros(0), z.copy())
+        """No hits (a fresh object over shared read-only empty arrays: made every step)."""
+        return cls(*_EMPTY_FIELDS)
 
     def __len__(self) -> int:
         return len(self.node)

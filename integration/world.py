@@ -695,8 +695,9 @@ class World:
         bodies filled in after pybullet's step) and the Jacobians (m, 3, n) of the coupled ones."""
         mu = np.full(len(found), self.friction[id(body)])
         vr = np.zeros((len(found), 3))
-        for key in set(zip(found.rigid.tolist(), found.link.tolist())):
-            sel = (found.rigid == key[0]) & (found.link == key[1])
+        keys = set(zip(found.rigid.tolist(), found.link.tolist()))
+        for key in keys:
+            sel = slice(None) if len(keys) == 1 else (found.rigid == key[0]) & (found.link == key[1])
             rb = self.rigids[key]
             if rb.friction is not None:  # a rigid body's own coefficient overrides the soft body's
                 mu[sel] = rb.friction
@@ -901,7 +902,7 @@ class World:
         self.timings["collision"] = time.perf_counter() - tic
         tic = time.perf_counter()
         # the movable bodies in play, at the start configuration (before pybullet moves them)
-        in_play = ({int(b) for b in np.unique(self.contacts.rigid)} | {int(b) for b in np.unique(self.face_hits.rigid)}
+        in_play = (set(self.contacts.rigid.tolist()) | set(self.face_hits.rigid.tolist())
                    | {a.rigid.id for a in self.attachments if a.coupled})
         dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
                     if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
