@@ -161,7 +161,7 @@ class UpperAssembly:
     pattern: BlockPattern
     layout: str
     pairs: np.ndarray  # (P, 2) local nodes a < b ("pairs") or a <= b ("matrices")
-    scatter: np.ndarray | None  # "pairs": target in (n_upper, 9).ravel() of each contribution
+    scatter: np.ndarray  # target in (n_upper, 9).ravel() of each pair's block entries (P, 3, 3, E)
     summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2)
     n_upper: int
     upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
@@ -189,20 +189,20 @@ class UpperAssembly:
         target = (9 * blk.astype(itype))[:, None, None, :] + (3 * i + j).astype(itype)[None, :, :, None]
         target += np.where(swap[:, None, None, :], (2 * (j - i)).astype(itype)[None, :, :, None], itype(0))  # 3j+i
         del blk, swap, key, a, b
-        scatter = summation = sums = None
+        scatter = target.reshape(-1)  # both layouts (the compiled passes of "matrices" take it too)
+        summation = sums = None
         if layout == "pairs":
-            scatter = target.reshape(-1)
             rows, cols = pattern.block_row[upper], pattern.indices[upper]
             sums = sp.csr_matrix((np.ones(2 * n_upper), (np.r_[rows, N + cols], np.tile(np.arange(n_upper), 2))),
                                  shape=(2 * N, n_upper))
         else:  # entry (e, 3 a + i, 3 b + j) of the element matrices; the CSR built directly, rows sorted
             within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).astype(itype)
-            target = target.reshape(-1)
+            target = scatter
             order = np.argsort(target, kind="stable")
             cols = (within.reshape(-1, 1) + (9 * k * k) * np.arange(E, dtype=itype)).reshape(-1)[order]
             indptr = np.zeros(9 * n_upper + 1, dtype=itype)
             np.cumsum(np.bincount(target, minlength=9 * n_upper), out=indptr[1:])
-            del target, order
+            del order
             summation = sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(9 * n_upper, 9 * k * k * E))
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
         entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
@@ -232,8 +232,8 @@ class UpperAssembly:
         return U
 
     def element_scatter(self) -> np.ndarray:
-        """"pairs" layout: the scatter as (E, P, 3, 3), element-major (made at first use; for a pass over the
-        elements, softbody.kernels.warped_pairs, whose reads of it then run along memory)."""
+        """The scatter as (E, P, 3, 3), element-major (made at first use; for a pass over the elements,
+        softbody.kernels.warped_pairs or warped_gram, whose reads of it then run along memory)."""
         if "_element_scatter" not in self.__dict__:
             P = len(self.pairs)
             self._element_scatter = np.ascontiguousarray(self.scatter.reshape(P, 3, 3, -1).transpose(3, 0, 1, 2))

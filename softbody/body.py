@@ -127,7 +127,7 @@ class FemBody:
         self._lame = (lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
-        self._rest_P = np.ascontiguousarray(P) if self._rotate_grads is not None else None  # for kernels.warped_pairs
+        self._rest_P = np.ascontiguousarray(P)  # for kernels.warped_pairs and warped_gram
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
@@ -484,6 +484,10 @@ class FemBody:
             kernels.warped_pairs(R9, self._Gw[:, 0], self._rest_P, self.mesh.elements, ua.pairs, ua.element_scatter(),
                                  U, load)
             S = ua.with_diagonal(U.reshape(-1, 9))
+        elif kernels.ENABLED:  # the Gram matrices' pairs and the rest loads, element by element
+            U, load = np.zeros(9 * ua.n_upper), np.zeros((self.n_nodes, 3))
+            kernels.warped_gram(R9, self._Gw, self._rest_P, self._elements_c, ua.pairs, ua.element_scatter(), U, load)
+            S = U.reshape(-1, 9)
         elif self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
             g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
             S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])

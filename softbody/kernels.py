@@ -105,6 +105,40 @@ def warped_pairs(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndar
 
 
 @_jit
+def warped_gram(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndarray, pairs: np.ndarray,
+                target: np.ndarray, out: np.ndarray, loads: np.ndarray) -> None:
+    """warped_pairs for elements with q quadrature points (tet10, hex8): the rotated weighted gradients
+    g_qa = R_e G_eqa (G (E, q, k, 3)), the Gram blocks sum_q g_qa g_qb^T of the node pairs a <= b (P, 2) added into
+    out[target[e, p, i, j]] (UpperAssembly.element_scatter of the "matrices" layout), and the warped rest loads
+    R_e P_ea (P (E, k, 3)) into loads (N, 3). FemBody.warped_stiffness_upper's batched Gram matrices, their
+    summation product and the rest loads' sparse product, element by element: equal to round-off."""
+    E, q, k = G.shape[0], G.shape[1], G.shape[2]
+    g = np.empty((k, 3, q))  # quadrature points innermost: the pair sums run along memory
+    for e in range(E):
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = (R9[0, e], R9[1, e], R9[2, e], R9[3, e], R9[4, e], R9[5, e], R9[6, e],
+                                              R9[7, e], R9[8, e])
+        for a in range(k):
+            for p_ in range(q):
+                x0, x1, x2 = G[e, p_, a, 0], G[e, p_, a, 1], G[e, p_, a, 2]
+                g[a, 0, p_] = r0 * x0 + r1 * x1 + r2 * x2
+                g[a, 1, p_] = r3 * x0 + r4 * x1 + r5 * x2
+                g[a, 2, p_] = r6 * x0 + r7 * x1 + r8 * x2
+            node = elements[e, a]
+            x0, x1, x2 = P[e, a, 0], P[e, a, 1], P[e, a, 2]
+            loads[node, 0] += r0 * x0 + r1 * x1 + r2 * x2
+            loads[node, 1] += r3 * x0 + r4 * x1 + r5 * x2
+            loads[node, 2] += r6 * x0 + r7 * x1 + r8 * x2
+        for p in range(pairs.shape[0]):
+            a, b = pairs[p, 0], pairs[p, 1]
+            for i in range(3):
+                for j in range(3):
+                    s = 0.0
+                    for p_ in range(q):
+                        s += g[a, i, p_] * g[b, j, p_]
+                    out[target[e, p, i, j]] += s
+
+
+@_jit
 def node_frames(S9: np.ndarray, Q: np.ndarray, bad: np.ndarray) -> None:
     """Per-node frames Q (N, 3, 3) from the sums S (component-major (9, N)) of the adjacent elements' rotations:
     Gram-Schmidt of S's first two columns a, b, and a x b; bad (N,) True where a or b is shorter than 1e-3 |S|
