@@ -446,6 +446,11 @@ class _NodeSet(_ContactSet):
     def read(self, v: np.ndarray, r: np.ndarray, du: np.ndarray, it: int) -> bool:
         """Update from the body's solve: v (N, 3), reactions r (N, 3) in the contact frames."""
         nodes = self.c.node
+        if kernels.ENABLED and (self.G is None or not len(du)):  # no rigid motion to add: one compiled pass
+            rl, vrel = np.empty((len(nodes), 3)), np.empty((len(nodes), 3))
+            kernels.node_read(np.ascontiguousarray(v, dtype=float), np.ascontiguousarray(r, dtype=float), nodes,
+                              self.frames, self.h, self.vr_free, rl, vrel)
+            return self._update_compiled(rl, vrel, it, None)
         return self.update(r[nodes] / self.h, np.einsum("mji,mj->mi", self.frames, v[nodes]), du, it)
 
 

@@ -876,3 +876,17 @@ def primitive_link_contacts(positions: np.ndarray, surface: np.ndarray, triangle
                                       round_pos, smooth, corners, corner_centres, True, h, rigid_slack, soft_slack,
                                       velocities, v, w, centre)
     return 2 if possible else 1, count, bound, node, point, normal, dist
+
+
+@_jit
+def node_read(v: np.ndarray, r: np.ndarray, nodes: np.ndarray, frames: np.ndarray, h: float, vr_free: np.ndarray,
+              rl: np.ndarray, vrel: np.ndarray) -> None:
+    """A body's solve read at its node contacts (contact._NodeSet.read, no rigid body moved): the contact forces
+    rl (m, 3) = r[nodes] / h [N] (reactions r (N, 3) already in the contact frames) and the relative velocities
+    vrel (m, 3) = frames^T v[nodes] - vr_free in the contact frames (frames (m, 3, 3), axes as columns)."""
+    for k in range(nodes.shape[0]):
+        n = nodes[k]
+        v0, v1, v2 = v[n, 0], v[n, 1], v[n, 2]
+        for i in range(3):
+            rl[k, i] = r[n, i] / h
+            vrel[k, i] = (frames[k, 0, i] * v0 + frames[k, 1, i] * v1 + frames[k, 2, i] * v2) - vr_free[k, i]

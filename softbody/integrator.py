@@ -657,7 +657,8 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     matrix_free = pre is not None and operator == "matrix-free"
     if pre is not None:
         pre.products = 1  # K' u for the forces; IterativeSystem.solve counts the rest
-    u = x - x.mean(axis=0)  # any point works (K' annihilates translations); the mean limits round-off
+    u = x - np.add.reduce(x, axis=0) / len(x)  # any point works (K' annihilates translations); the mean limits
+    # round-off (np.mean's arithmetic, without its wrapper)
     if matrix_free:  # K' y element by element; A assembled only if a refactorisation asks for it
         with timed(timings, "assembly"):
             g = body.rotated_gradients(R)
