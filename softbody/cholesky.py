@@ -10,7 +10,7 @@ compiled call. softbody.linsolve uses it (backend "blocks") for systems whose fa
 
 The pieces: :func:`minimum_degree` orders the node graph (an exact elimination graph: fine for the few
 hundred nodes this path serves), :class:`BlockSymbolic` holds the factor's block pattern and where each
-scalar entry of the matrix's upper triangle lands in it, :func:`factorize_blocks` and :func:`solve_blocks`
+scalar entry of the matrix's upper triangle lands in it, :func:`factorize_blocks` and :func:`solve_blocks` (:func:`solve_block` for one right-hand side)
 are the numeric kernels.
 """
 from __future__ import annotations
@@ -184,34 +184,73 @@ def factorize_blocks(data: np.ndarray, dest: np.ndarray, mirror: np.ndarray, col
 @_jit
 def solve_blocks(L: np.ndarray, col_ptr: np.ndarray, row: np.ndarray, perm: np.ndarray, b: np.ndarray,
                  x: np.ndarray) -> None:
-    """x = A^-1 b for the factor L of :func:`factorize_blocks`; b, x (N, 3, m): m right-hand sides."""
+    """x = A^-1 b for the factor L of :func:`factorize_blocks`; b, x (N, 3, m): m right-hand sides, the loops over
+    them innermost (along memory)."""
     N, m = len(col_ptr) - 1, b.shape[2]
     y = np.empty((N, 3, m))
     for j in range(N):
         y[j] = b[perm[j]]
-    for c in range(m):
-        for j in range(N):  # forward: L y = b, by columns
-            d = col_ptr[j]
-            y0 = y[j, 0, c] / L[d, 0, 0]
-            y1 = (y[j, 1, c] - L[d, 1, 0] * y0) / L[d, 1, 1]
-            y2 = (y[j, 2, c] - L[d, 2, 0] * y0 - L[d, 2, 1] * y1) / L[d, 2, 2]
-            y[j, 0, c], y[j, 1, c], y[j, 2, c] = y0, y1, y2
-            for p in range(d + 1, col_ptr[j + 1]):
-                i = row[p]
-                for a in range(3):
-                    y[i, a, c] -= L[p, a, 0] * y0 + L[p, a, 1] * y1 + L[p, a, 2] * y2
-        for j in range(N - 1, -1, -1):  # backward: L^T x = y
-            d = col_ptr[j]
-            s0, s1, s2 = y[j, 0, c], y[j, 1, c], y[j, 2, c]
-            for p in range(d + 1, col_ptr[j + 1]):
-                i = row[p]
-                z0, z1, z2 = y[i, 0, c], y[i, 1, c], y[i, 2, c]
-                s0 -= L[p, 0, 0] * z0 + L[p, 1, 0] * z1 + L[p, 2, 0] * z2
-                s1 -= L[p, 0, 1] * z0 + L[p, 1, 1] * z1 + L[p, 2, 1] * z2
-                s2 -= L[p, 0, 2] * z0 + L[p, 1, 2] * z1 + L[p, 2, 2] * z2
-            x2 = s2 / L[d, 2, 2]
-            x1 = (s1 - L[d, 2, 1] * x2) / L[d, 1, 1]
-            x0 = (s0 - L[d, 1, 0] * x1 - L[d, 2, 0] * x2) / L[d, 0, 0]
-            y[j, 0, c], y[j, 1, c], y[j, 2, c] = x0, x1, x2
+    for j in range(N):  # forward: L y = b, by columns
+        d = col_ptr[j]
+        c00, c10, c11, c20, c21, c22 = L[d, 0, 0], L[d, 1, 0], L[d, 1, 1], L[d, 2, 0], L[d, 2, 1], L[d, 2, 2]
+        for c in range(m):
+            y0 = y[j, 0, c] / c00
+            y1 = (y[j, 1, c] - c10 * y0) / c11
+            y[j, 0, c], y[j, 1, c], y[j, 2, c] = y0, y1, (y[j, 2, c] - c20 * y0 - c21 * y1) / c22
+        for p in range(d + 1, col_ptr[j + 1]):
+            i = row[p]
+            for a in range(3):
+                l0, l1, l2 = L[p, a, 0], L[p, a, 1], L[p, a, 2]
+                for c in range(m):
+                    y[i, a, c] -= l0 * y[j, 0, c] + l1 * y[j, 1, c] + l2 * y[j, 2, c]
+    for j in range(N - 1, -1, -1):  # backward: L^T x = y
+        d = col_ptr[j]
+        for p in range(d + 1, col_ptr[j + 1]):
+            i = row[p]
+            for a in range(3):
+                l0, l1, l2 = L[p, 0, a], L[p, 1, a], L[p, 2, a]
+                for c in range(m):
+                    y[j, a, c] -= l0 * y[i, 0, c] + l1 * y[i, 1, c] + l2 * y[i, 2, c]
+        c00, c10, c11, c20, c21, c22 = L[d, 0, 0], L[d, 1, 0], L[d, 1, 1], L[d, 2, 0], L[d, 2, 1], L[d, 2, 2]
+        for c in range(m):
+            x2 = y[j, 2, c] / c22
+            x1 = (y[j, 1, c] - c21 * x2) / c11
+            y[j, 0, c], y[j, 1, c], y[j, 2, c] = (y[j, 0, c] - c10 * x1 - c20 * x2) / c00, x1, x2
     for j in range(N):
         x[perm[j]] = y[j]
+
+
+@_jit
+def solve_block(L: np.ndarray, col_ptr: np.ndarray, row: np.ndarray, perm: np.ndarray, b: np.ndarray,
+                x: np.ndarray) -> None:
+    """:func:`solve_blocks` for one right-hand side b, x (N, 3) (without the loops over right-hand sides: half the
+    time at one)."""
+    N = len(col_ptr) - 1
+    y = np.empty((N, 3))
+    for j in range(N):
+        y[j, 0], y[j, 1], y[j, 2] = b[perm[j], 0], b[perm[j], 1], b[perm[j], 2]
+    for j in range(N):  # forward: L y = b, by columns
+        d = col_ptr[j]
+        y0 = y[j, 0] / L[d, 0, 0]
+        y1 = (y[j, 1] - L[d, 1, 0] * y0) / L[d, 1, 1]
+        y2 = (y[j, 2] - L[d, 2, 0] * y0 - L[d, 2, 1] * y1) / L[d, 2, 2]
+        y[j, 0], y[j, 1], y[j, 2] = y0, y1, y2
+        for p in range(d + 1, col_ptr[j + 1]):
+            i = row[p]
+            for a in range(3):
+                y[i, a] -= L[p, a, 0] * y0 + L[p, a, 1] * y1 + L[p, a, 2] * y2
+    for j in range(N - 1, -1, -1):  # backward: L^T x = y
+        d = col_ptr[j]
+        s0, s1, s2 = y[j, 0], y[j, 1], y[j, 2]
+        for p in range(d + 1, col_ptr[j + 1]):
+            i = row[p]
+            z0, z1, z2 = y[i, 0], y[i, 1], y[i, 2]
+            s0 -= L[p, 0, 0] * z0 + L[p, 1, 0] * z1 + L[p, 2, 0] * z2
+            s1 -= L[p, 0, 1] * z0 + L[p, 1, 1] * z1 + L[p, 2, 1] * z2
+            s2 -= L[p, 0, 2] * z0 + L[p, 1, 2] * z1 + L[p, 2, 2] * z2
+        x2 = s2 / L[d, 2, 2]
+        x1 = (s1 - L[d, 2, 1] * x2) / L[d, 1, 1]
+        x0 = (s0 - L[d, 1, 0] * x1 - L[d, 2, 0] * x2) / L[d, 0, 0]
+        y[j, 0], y[j, 1], y[j, 2] = x0, x1, x2
+    for j in range(N):
+        x[perm[j], 0], x[perm[j], 1], x[perm[j], 2] = y[j, 0], y[j, 1], y[j, 2]

@@ -207,9 +207,13 @@ class SpdSolver:
             if self._factor is None:
                 raise SolverError("solve before a successful factorisation")
             S, N = self._blocks, self.n // 3
-            B = np.ascontiguousarray(b.reshape(N, 3, -1))
-            x = np.empty(B.shape)
-            cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, B, x)
+            if b.ndim == 1 or b.shape[1] == 1:
+                x = np.empty((N, 3))
+                cholesky.solve_block(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3)), x)
+            else:
+                x = np.empty((N, 3, b.shape[1]))
+                cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3, -1)),
+                                      x)
             return x.reshape(b.shape)
         return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
 
