@@ -211,7 +211,7 @@ class CollisionDetector:
                     if boxes is None:
                         boxes = triangle_boxes(positions, triangles)
                     faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching,
-                                                    touch_normal, boxes, sweep))
+                                                    touch_normal, boxes, sweep, possible=True))
                 continue
             if lo0 is None:
                 lo0, hi0 = box_of(positions.take(surface, axis=0))
@@ -346,7 +346,8 @@ class CollisionDetector:
     def face_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray, rigid: RigidLink,
                       margin: float, touching: np.ndarray | None = None,
                       touch_normal: np.ndarray | None = None,
-                      boxes: tuple[np.ndarray, np.ndarray] | None = None, sweep: Sweep | None = None) -> "FaceHits":
+                      boxes: tuple[np.ndarray, np.ndarray] | None = None, sweep: Sweep | None = None,
+                      possible: bool = False) -> "FaceHits":
         """Points of a rigid link inside (or within ``margin`` of) soft surface triangles, between their nodes.
 
         The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
@@ -366,10 +367,13 @@ class CollisionDetector:
         count on partly touching triangles too: they poke between nodes that rest on the part's faces.
         ``boxes``: the triangles' bounds (triangle_boxes), if already at hand. ``sweep``: a point outside a
         triangle's plane counts only within its reach (what it closes along the normal within the step).
+        ``possible``: the compiled early-out (kernels.face_contacts_possible) has said already that contacts may
+        be found (not asked again).
         """
         if not len(rigid.round_parts()) and not len(rigid.corner_points()[0]):
             return FaceHits.empty()  # a plane: no point of it lies between the nodes of a triangle outside it
-        if kernels.ENABLED and not _face_contacts_possible(positions, triangles, rigid, margin, touching, sweep):
+        if kernels.ENABLED and not possible and not _face_contacts_possible(positions, triangles, rigid, margin,
+                                                                              touching, sweep):
             return FaceHits.empty()  # most calls: nothing comes near, said by one compiled pass
         if boxes is None:
             boxes = triangle_boxes(positions, triangles)
