@@ -229,7 +229,7 @@ class _ContactSet:
         was_active = _in_set(keys, prev_active)
         if kernels.ENABLED:  # the lines below, contact by contact (integration.kernels)
             self.vr_free, self.gap, self.target = np.empty((m, 3)), np.empty(m), np.empty((m, 3))
-            self.active, self.friction, self.stick = (np.empty(m, dtype=bool) for _ in range(3))
+            self.active, self.friction, self.stick = np.empty((3, m), dtype=bool)  # three rows (views)
             kernels.contact_start(self.frames, np.ascontiguousarray(c.rigid_velocity, dtype=float), c.distance,
                                   np.ones(m, dtype=bool) if may_start is None else may_start,
                                   np.zeros(m, dtype=bool) if c.carried is None else c.carried, -solver.push_speed * h,
@@ -375,7 +375,7 @@ class _ContactSet:
         """:meth:`update` by kernels.friction_update, from the relative velocities vrel (m, 3)."""
         s, m = self.solver, len(self.c)
         gap_rate, mag, d_stick, new_slip = np.empty(m), np.empty(m), np.empty((m, 2)), np.empty((m, 2))
-        want_slip, want_stick, new_active, new_stick = (np.empty(m, dtype=bool) for _ in range(4))
+        want_slip, want_stick, new_active, new_stick = np.empty((4, m), dtype=bool)  # four rows (views)
         changed = kernels.friction_update(
             rl, vrel, self.gap, self.h, self.active, self.stick, self.released, self.friction, self.c.mu,
             self.slip_force, np.ones(m, dtype=bool) if eligible is None else eligible, it, self.lock_after,
