@@ -155,14 +155,16 @@ class UpperAssembly:
     - "matrices": whole element matrices (E, 3k, 3k) (interleaved dofs), of which the pairs a <= b are
       picked and summed by one product with a 0/1 summation matrix (CSR, a row per upper entry): its
       gathers run along the element matrices' rows, measured 1.5-2x faster than a gather and a bincount.
-      Their diagonal pairs are computed anyway, so they are summed rather than rebuilt from the rows.
+      Their diagonal pairs are computed anyway, so they are summed rather than rebuilt from the rows. (With
+      numba, softbody.kernels.warped_gram adds each pair's blocks through ``scatter`` element by element instead,
+      and the summation matrix is never made.)
     """
 
     pattern: BlockPattern
     layout: str
     pairs: np.ndarray  # (P, 2) local nodes a < b ("pairs") or a <= b ("matrices")
     scatter: np.ndarray  # target in (n_upper, 9).ravel() of each pair's block entries (P, 3, 3, E)
-    summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2)
+    summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2), made at first use (_summation)
     n_upper: int
     upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
     diag: np.ndarray  # (N,) upper-block number of each node's diagonal block
@@ -189,34 +191,42 @@ class UpperAssembly:
         target = (9 * blk.astype(itype))[:, None, None, :] + (3 * i + j).astype(itype)[None, :, :, None]
         target += np.where(swap[:, None, None, :], (2 * (j - i)).astype(itype)[None, :, :, None], itype(0))  # 3j+i
         del blk, swap, key, a, b
-        scatter = target.reshape(-1)  # both layouts (the compiled passes of "matrices" take it too)
-        summation = sums = None
+        scatter = target.reshape(-1)  # both layouts ("matrices": for the compiled pass and the summation matrix)
+        del target
+        sums = None
         if layout == "pairs":
             rows, cols = pattern.block_row[upper], pattern.indices[upper]
             sums = sp.csr_matrix((np.ones(2 * n_upper), (np.r_[rows, N + cols], np.tile(np.arange(n_upper), 2))),
                                  shape=(2 * N, n_upper))
-        else:  # entry (e, 3 a + i, 3 b + j) of the element matrices; the CSR built directly, rows sorted
-            within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).astype(itype)
-            target = scatter
-            order = np.argsort(target, kind="stable")
-            cols = (within.reshape(-1, 1) + (9 * k * k) * np.arange(E, dtype=itype)).reshape(-1)[order]
-            indptr = np.zeros(9 * n_upper + 1, dtype=itype)
-            np.cumsum(np.bincount(target, minlength=9 * n_upper), out=indptr[1:])
-            del order
-            summation = sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(9 * n_upper, 9 * k * k * E))
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
         entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
         full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
-        return cls(pattern, layout, pairs, scatter, summation, n_upper, upper, ub[pattern.diag], sums,
-                   full_from_upper)
+        return cls(pattern, layout, pairs, scatter, None, n_upper, upper, ub[pattern.diag], sums, full_from_upper)
 
     def assemble(self, contributions: np.ndarray) -> np.ndarray:
         """Upper block data (n_upper, 9) from pair blocks (P, 3, 3, E) ("pairs") or element matrices
         (E, 3k, 3k) ("matrices")."""
         w = contributions.reshape(-1)
-        if self.summation is not None:
-            return (self.summation @ w).reshape(-1, 9)
+        if self.layout == "matrices":
+            return (self._summation() @ w).reshape(-1, 9)
         return self.with_diagonal(np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(-1, 9))
+
+    def _summation(self) -> sp.csr_matrix:
+        """"matrices" layout: the 0/1 summation matrix (9 n_upper, E (3k)^2), a row per upper entry, made at first
+        use (the compiled pass, kernels.warped_gram, sums through the scatter instead): entry (e, 3 a + i, 3 b + j) of
+        the element matrices, the CSR built directly, rows sorted."""
+        if self.summation is None:
+            E, k = self.scatter.size // (9 * len(self.pairs)), int(self.pairs.max()) + 1
+            i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+            itype = self.scatter.dtype
+            pairs = self.pairs
+            within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).astype(itype)
+            order = np.argsort(self.scatter, kind="stable")
+            cols = (within.reshape(-1, 1) + (9 * k * k) * np.arange(E, dtype=itype)).reshape(-1)[order]
+            indptr = np.zeros(9 * self.n_upper + 1, dtype=itype)
+            np.cumsum(np.bincount(self.scatter, minlength=9 * self.n_upper), out=indptr[1:])
+            self.summation = sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(9 * self.n_upper, 9 * k * k * E))
+        return self.summation
 
     def with_diagonal(self, U: np.ndarray) -> np.ndarray:
         """U (n_upper, 9) with its diagonal blocks (still zero) set: minus the sums of the other blocks of their

@@ -6,7 +6,6 @@ K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of
 from __future__ import annotations
 
 import math
-
 from typing import Callable
 
 import numpy as np
