@@ -149,8 +149,8 @@ def _per_node(T: Frames, x: np.ndarray, spec: str) -> np.ndarray:
         return y
     if kernels.ENABLED and x.ndim == 2:  # one vector per node: a compiled loop (einsum costs 8x at 1445 nodes)
         out = np.empty(x.shape)
-        kernels.apply_frames(np.ascontiguousarray(T, dtype=float), np.ascontiguousarray(x, dtype=float),
-                             spec == _TO_LOCAL, out)
+        kernels.frames_apply(np.arange(len(x)), np.ascontiguousarray(T, dtype=float),
+                             np.ascontiguousarray(x, dtype=float), spec == _TO_LOCAL, out)
         return out
     return np.einsum(spec, T, x)
 

@@ -23,6 +23,7 @@ except ImportError:  # pragma: no cover - numba is installed with the package
     numba = None
 
 ENABLED = numba is not None and os.environ.get("SOFTBODY_NO_NUMBA", "") not in ("1", "true", "yes")
+_NO_FLAGS = np.zeros(0, dtype=np.bool_)  # _row_product's flags when every block counts
 
 
 def _jit(f):
@@ -31,6 +32,12 @@ def _jit(f):
     ``kernels.*.nbi``/``.nbc`` files in softbody/__pycache__ and integration/__pycache__."""
     # error_model "numpy": a division by zero gives inf or NaN, as in the numpy code the kernels mirror, not an error
     return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(f) if ENABLED else f
+
+
+def _inline(f):
+    """numba.njit with the kernels' options, inlined into its callers in numba's own IR (``inline="always"``): a
+    small helper shared by kernels, whose constant arguments then fold away as if written out in each."""
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")(f) if ENABLED else f
 
 
 @_jit
@@ -177,20 +184,6 @@ def isotropic_blocks(S: np.ndarray, lam: float, mu: float, K: np.ndarray) -> Non
 
 
 @_jit
-def apply_frames(T: np.ndarray, x: np.ndarray, transpose: bool, out: np.ndarray) -> None:
-    """Per-node frames T (N, 3, 3) applied to x (N, 3) into out (N, 3): T_n^T x_n (``transpose``) or T_n x_n
-    (softbody.integrator.to_local and to_global with dense frames)."""
-    for n in range(T.shape[0]):
-        x0, x1, x2 = x[n, 0], x[n, 1], x[n, 2]
-        if transpose:
-            for i in range(3):
-                out[n, i] = T[n, 0, i] * x0 + T[n, 1, i] * x1 + T[n, 2, i] * x2
-        else:
-            for i in range(3):
-                out[n, i] = T[n, i, 0] * x0 + T[n, i, 1] * x1 + T[n, i, 2] * x2
-
-
-@_jit
 def frame_products(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
     """A_n B_n^T for stacks of 3x3 matrices A, B (N, 3, 3) into out (N, 3, 3) (numpy's stacked matmul of small
     matrices costs about ten times this)."""
@@ -198,6 +191,27 @@ def frame_products(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
         for i in range(3):
             for j in range(3):
                 out[n, i, j] = A[n, i, 0] * B[n, j, 0] + A[n, i, 1] * B[n, j, 1] + A[n, i, 2] * B[n, j, 2]
+
+
+@_inline
+def _gradient(nodes: np.ndarray, g: np.ndarray, e: int, c: int, y: np.ndarray, m0: float, m1: float, m2: float):
+    """sum_a (y_a - m) g_a^T over the slots a of element e: nodes (E, k) and gradients g (E, k, >= c + 3), the three
+    from column c; y (N, 3), m (3,) subtracted from each y_a. Its nine entries, row-major (H_ij = sum y_a,i g_a,j)."""
+    h00 = h01 = h02 = h10 = h11 = h12 = h20 = h21 = h22 = 0.0
+    for a in range(nodes.shape[1]):
+        n = nodes[e, a]
+        y0, y1, y2 = y[n, 0] - m0, y[n, 1] - m1, y[n, 2] - m2
+        g0, g1, g2 = g[e, a, c], g[e, a, c + 1], g[e, a, c + 2]
+        h00 += y0 * g0
+        h01 += y0 * g1
+        h02 += y0 * g2
+        h10 += y1 * g0
+        h11 += y1 * g1
+        h12 += y1 * g2
+        h20 += y2 * g0
+        h21 += y2 * g1
+        h22 += y2 * g2
+    return h00, h01, h02, h10, h11, h12, h20, h21, h22
 
 
 @_jit
@@ -211,20 +225,7 @@ def warped_product(g: np.ndarray, elements: np.ndarray, lam: float, mu: float, y
     out[:] = 0.0
     for e in range(E):
         for p in range(q3 // 3):
-            h00 = h01 = h02 = h10 = h11 = h12 = h20 = h21 = h22 = 0.0
-            for a in range(k):
-                node = elements[e, a]
-                y0, y1, y2 = y[node, 0], y[node, 1], y[node, 2]
-                g0, g1, g2 = g[e, a, 3 * p], g[e, a, 3 * p + 1], g[e, a, 3 * p + 2]
-                h00 += y0 * g0
-                h01 += y0 * g1
-                h02 += y0 * g2
-                h10 += y1 * g0
-                h11 += y1 * g1
-                h12 += y1 * g2
-                h20 += y2 * g0
-                h21 += y2 * g1
-                h22 += y2 * g2
+            h00, h01, h02, h10, h11, h12, h20, h21, h22 = _gradient(elements, g, e, 3 * p, y, 0.0, 0.0, 0.0)
             tr = lam * (h00 + h11 + h22)
             s00, s11, s22 = tr + 2.0 * mu * h00, tr + 2.0 * mu * h11, tr + 2.0 * mu * h22
             s01, s02, s12 = mu * (h01 + h10), mu * (h02 + h20), mu * (h12 + h21)
@@ -355,7 +356,8 @@ def local_constraints(nodes: np.ndarray, cmask: np.ndarray, cvalue: np.ndarray, 
 
 @_jit
 def frames_apply(frame_of: np.ndarray, R: np.ndarray, x: np.ndarray, transpose: bool, out: np.ndarray) -> None:
-    """out (N, 3) = R_f^T x (transpose) or R_f x per node, f = frame_of[node] (-1: the identity, out = x)."""
+    """out (N, 3) = R_f^T x (transpose) or R_f x per node, f = frame_of[node] (-1: the identity, out = x); per-node
+    frames T (N, 3, 3) with frame_of = arange(N) (softbody.integrator.to_local and to_global)."""
     for n in range(x.shape[0]):
         f = frame_of[n]
         x0, x1, x2 = x[n, 0], x[n, 1], x[n, 2]
@@ -369,6 +371,23 @@ def frames_apply(frame_of: np.ndarray, R: np.ndarray, x: np.ndarray, transpose: 
                 out[n, i] = R[f, i, 0] * x0 + R[f, i, 1] * x1 + R[f, i, 2] * x2
 
 
+@_inline
+def _row_product(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, i: int, x: np.ndarray, only: np.ndarray,
+                 every: bool):
+    """Block row i of A x for a block matrix (BSR: blocks A (nnzb, 3, 3), indptr, indices) and x (N, 3), over every
+    block or (``every`` False) those whose column node is flagged in ``only`` (N,): its three sums, each summed term
+    by term in scipy's BSR order."""
+    s0, s1, s2 = 0.0, 0.0, 0.0
+    for k in range(indptr[i], indptr[i + 1]):
+        j = indices[k]
+        if every or only[j]:
+            x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
+            s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
+            s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
+            s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+    return s0, s1, s2
+
+
 @_jit
 def constrained_rhs(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, mask: np.ndarray, value: np.ndarray,
                     b: np.ndarray, scale: float, held: np.ndarray, rhs: np.ndarray) -> None:
@@ -378,14 +397,7 @@ def constrained_rhs(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, mask
     for n in range(N):
         held[n] = mask[n, 0] or mask[n, 1] or mask[n, 2]
     for i in range(N):
-        s0, s1, s2 = 0.0, 0.0, 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            if held[j]:
-                x0, x1, x2 = value[j, 0], value[j, 1], value[j, 2]
-                s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
-                s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
-                s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        s0, s1, s2 = _row_product(A, indptr, indices, i, value, held, False)
         rhs[i, 0], rhs[i, 1], rhs[i, 2] = b[i, 0] - s0, b[i, 1] - s1, b[i, 2] - s2
         for a in range(3):
             if mask[i, a]:
@@ -406,13 +418,7 @@ def constrained_finish(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, m
         reaction[i, 0], reaction[i, 1], reaction[i, 2] = 0.0, 0.0, 0.0
         if not held[i]:
             continue
-        s0, s1, s2 = 0.0, 0.0, 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            x0, x1, x2 = y[j, 0], y[j, 1], y[j, 2]
-            s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
-            s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
-            s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
+        s0, s1, s2 = _row_product(A, indptr, indices, i, y, held, True)
         if mask[i, 0]:
             reaction[i, 0] = s0 - b[i, 0]
         if mask[i, 1]:
@@ -426,14 +432,7 @@ def block_product(A: np.ndarray, indptr: np.ndarray, indices: np.ndarray, x: np.
     """out (N, 3) = A x for a block matrix (BSR: blocks A (nnzb, 3, 3), indptr, indices) and x (N, 3), each entry
     summed term by term in scipy's BSR order (BlockPattern.product)."""
     for i in range(indptr.shape[0] - 1):
-        s0, s1, s2 = 0.0, 0.0, 0.0
-        for k in range(indptr[i], indptr[i + 1]):
-            j = indices[k]
-            x0, x1, x2 = x[j, 0], x[j, 1], x[j, 2]
-            s0 = s0 + A[k, 0, 0] * x0 + A[k, 0, 1] * x1 + A[k, 0, 2] * x2
-            s1 = s1 + A[k, 1, 0] * x0 + A[k, 1, 1] * x1 + A[k, 1, 2] * x2
-            s2 = s2 + A[k, 2, 0] * x0 + A[k, 2, 1] * x1 + A[k, 2, 2] * x2
-        out[i, 0], out[i, 1], out[i, 2] = s0, s1, s2
+        out[i, 0], out[i, 1], out[i, 2] = _row_product(A, indptr, indices, i, x, _NO_FLAGS, True)
 
 
 @_jit
@@ -449,20 +448,7 @@ def characteristic_gradients(nodes: np.ndarray, grads: np.ndarray, x: np.ndarray
         m2 += x[i, 2]
     m0, m1, m2 = m0 / N, m1 / N, m2 / N
     for e in range(nodes.shape[0]):
-        f0 = f1 = f2 = f3 = f4 = f5 = f6 = f7 = f8 = 0.0
-        for a in range(nodes.shape[1]):
-            n = nodes[e, a]
-            x0, x1, x2 = x[n, 0] - m0, x[n, 1] - m1, x[n, 2] - m2
-            g0, g1, g2 = grads[e, a, 0], grads[e, a, 1], grads[e, a, 2]
-            f0 += x0 * g0
-            f1 += x0 * g1
-            f2 += x0 * g2
-            f3 += x1 * g0
-            f4 += x1 * g1
-            f5 += x1 * g2
-            f6 += x2 * g0
-            f7 += x2 * g1
-            f8 += x2 * g2
+        f0, f1, f2, f3, f4, f5, f6, f7, f8 = _gradient(nodes, grads, e, 0, x, m0, m1, m2)
         out[0, e], out[1, e], out[2, e] = f0, f1, f2
         out[3, e], out[4, e], out[5, e] = f3, f4, f5
         out[6, e], out[7, e], out[8, e] = f6, f7, f8
