@@ -719,7 +719,6 @@ class ContactSolver:
         """Bodies touching no movable rigid body: node contacts eliminated in their frames, face contacts and
         soft contacts (``pairs``, parts local to ``steps``) as rows, an active set that solves the sparse
         systems anew when the set changes. Returns (None, iterations, the soft contacts' result)."""
-        coupled = CoupledSolver(None)
         nodes, faces = [], []
         for i, (st, (b_cons, _, c, f)) in enumerate(zip(steps, prepared)):
             body = st.system.body
@@ -728,6 +727,14 @@ class ContactSolver:
         pset = self._pair_set(pairs, steps, h)
         if pset is None and all(f is None for f in faces):
             return self._solve_nodes(steps, prepared, nodes, index, results)
+        return self._solve_rows(steps, prepared, index, results, nodes, faces, pset)
+
+    def _solve_rows(self, steps, prepared, index, results, nodes: list, faces: list, pset
+                    ) -> tuple[None, int, ContactResult | None]:
+        """_solve_sparse's active set with rows (face and soft contacts) through the coupled solver, every body
+        together: the node sets ``nodes`` and face sets ``faces`` per body (None: none), the soft contacts' ``pset``
+        (or None)."""
+        coupled = CoupledSolver(None)
         it = 0
         for it in range(1, self.max_iterations + 1):
             row_parts, extras, cons_of, reuse_of = [], [None] * len(steps), [], []

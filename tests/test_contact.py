@@ -270,3 +270,48 @@ def test_rolling_contacts_hold_no_more_friction_than_coulomb():
     assert m["friction_ratio"] == pytest.approx(mu, rel=0.03)
     # (the first 20 ms, a 2 mm fall onto the incline, are frictionless: +0.5% of the end speed)
     assert m["speed_end_m_s"] == pytest.approx(v0 + 9.81 * (math.sin(theta) - mu * math.cos(theta)) * t_end, rel=0.01)
+
+
+def test_node_contacts_alone_step_as_the_coupled_active_set(monkeypatch):
+    """ContactSolver._solve_nodes (node contacts only, no rows: each body's active set on its own, a body solved
+    again only while its set changes) against the general loop through the coupled solver (_solve_rows) on the
+    same problems: the sheet-on-sphere scene (contacts added and released) and three cubes stepped alone on a
+    plane with friction (several bodies, their sets settling at different iterations) give the same trajectories,
+    contact forces and active-set iterations."""
+    from experiments.scenes import sheet_on_sphere
+    from integration import World, contact
+    from softbody import FemBody, LinearElastic, box_mesh
+
+    def sheet():
+        return sheet_on_sphere("tet4", (4, 4, 2)).world
+
+    def cubes():
+        world = World(dt=0.01, stack=False)
+        world.add_plane()
+        for k in range(3):
+            mesh = box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=(0.15 * k, 0.0, 0.06 + 0.01 * k))
+            world.add_soft(FemBody(mesh, LinearElastic(5e5, 0.33, 1000.0), damping=(0.1, 0.001)), friction=0.5)
+        return world
+
+    def general(self, steps, prepared, nodes, index, results):
+        return self._solve_rows(steps, prepared, index, results, nodes, [None] * len(steps), None)
+
+    for build, steps in ((sheet, 45), (cubes, 30)):
+        runs = []
+        for fast in (True, False):
+            with monkeypatch.context() as m:
+                if not fast:
+                    m.setattr(contact.ContactSolver, "_solve_nodes", general)
+                world = build()
+                forces, iterations = [], []
+                for _ in range(steps):
+                    world.step()
+                    forces += [res.force for _, res in world.contact_results.values()]
+                    iterations.append(world._solution.iterations)
+                runs.append(([b.positions.copy() for b in world.bodies], np.concatenate(forces), iterations))
+                world.close()
+        (x1, f1, i1), (x2, f2, i2) = runs
+        assert len(f1) > 10 and i1 == i2
+        for a, b in zip(x1, x2):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(f1, f2, rtol=0, atol=1e-9 * np.abs(f2).max())
