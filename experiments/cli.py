@@ -340,6 +340,20 @@ def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) ->
     return 0
 
 
+def compile_command() -> None:
+    """softbody compile: the warm-up scenes of integration.warmup in the foreground (numba's cache filled)."""
+    import integration.kernels  # noqa: F401  (registers integration's kernels and their warm-up)
+    from softbody import compilation
+    from softbody.kernels import AVAILABLE
+
+    if not AVAILABLE:
+        print("numba is not installed or SOFTBODY_NO_NUMBA is set: nothing to compile")
+        return
+    print("compiling softbody's kernels into numba's cache (about 40 s on 2 cores) ...", flush=True)
+    seconds = compilation.compile_now()
+    print(f"done in {seconds:.0f} s; later runs load them from the cache")
+
+
 def scene_main(scene: str, description: str | None = None, argv: Sequence[str] | None = None) -> int:
     """The command line of an example script running one scene (the flags of ``softbody run``)."""
     parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -397,6 +411,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     bench = sub.add_parser("bench", help="benchmark: ms per step with its breakdown, the solver floor, pybullet's "
                                          "soft body, memory and scaling; JSON + markdown + plot")
     add_bench_arguments(bench)
+    sub.add_parser("compile", help="compile the kernels into numba's disk cache now (a first run otherwise does it in "
+                                   "a background process while the numpy code runs)")
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
 
     def command() -> None:
@@ -408,6 +424,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             recommend_command(args)
         elif args.command == "sweep":
             sweep_command(args)
+        elif args.command == "compile":
+            compile_command()
         elif args.command == "bench":
             from .bench import bench_command
 

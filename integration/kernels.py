@@ -18,10 +18,12 @@ Each is compared with its numpy reference in tests/test_kernels.py."""
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 
-from softbody.kernels import ENABLED, _jit
+from softbody import compilation
+from softbody.kernels import AVAILABLE, ENABLED, _jit
 
 __all__ = ["ENABLED", "KINDS", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
            "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
@@ -890,3 +892,6 @@ def node_read(v: np.ndarray, r: np.ndarray, nodes: np.ndarray, frames: np.ndarra
         for i in range(3):
             rl[k, i] = r[n, i] / h
             vrel[k, i] = (frames[k, 0, i] * v0 + frames[k, 1, i] * v1 + frames[k, 2, i] * v2) - vr_free[k, i]
+
+
+ENABLED = compilation.register(sys.modules[__name__], AVAILABLE, warmup="integration.warmup")

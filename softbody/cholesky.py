@@ -16,11 +16,13 @@ are the numeric kernels.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import ENABLED, _jit
+from . import compilation
+from .kernels import AVAILABLE, ENABLED, _jit
 
 # factor size (BlockSymbolic.multiply_adds: block products, 27 multiply-adds each) up to which the compiled factorisation beats
 # PARDISO's on this machine: factorise and solve 42 against 158 us at 2.7e3 (the 75-node sheet), 676 against
@@ -255,3 +257,6 @@ def solve_block(L: np.ndarray, col_ptr: np.ndarray, row: np.ndarray, perm: np.nd
         y[j, 0], y[j, 1], y[j, 2] = x0, x1, x2
     for j in range(N):
         x[perm[j], 0], x[perm[j], 1], x[perm[j], 2] = y[j, 0], y[j, 1], y[j, 2]
+
+
+ENABLED = compilation.register(sys.modules[__name__], AVAILABLE)

@@ -3,26 +3,31 @@
 On a small mesh a step's numpy work is dominated by the cost of each call (1-5 us), not by the arithmetic:
 the polar decomposition of the warping rotations, for instance, is about fifty numpy calls per Newton
 iteration whatever the number of elements. These kernels do the same arithmetic in one compiled loop.
-They are compiled on first use and cached on disk (numba's ``cache=True``, next to this file in
-``__pycache__``), so only the first run after an install pays the compilation (about 10 s for the
-sheet-on-sphere scene's kernels, both modules, once).
+They are compiled once and cached on disk (numba's ``cache=True``, next to this file in ``__pycache__``); a
+first run after an install compiles them in a background process while the numpy code runs
+(softbody.compilation).
 
 Every kernel has a numpy reference in the module that uses it; the tests compare the two.
-``ENABLED`` is False when numba is missing or ``SOFTBODY_NO_NUMBA=1`` is set: then the numpy code runs.
+``AVAILABLE`` is False when numba is missing or ``SOFTBODY_NO_NUMBA=1`` is set; ``ENABLED`` (read at each call
+site) is whether the kernels run now: AVAILABLE, and in background mode the cache warm (softbody.compilation).
 """
 from __future__ import annotations
 
 import math
 import os
+import sys
 
 import numpy as np
+
+from . import compilation as _compilation
 
 try:  # a dependency (pyproject.toml); the numpy paths remain for environments without it
     import numba
 except ImportError:  # pragma: no cover - numba is installed with the package
     numba = None
 
-ENABLED = numba is not None and os.environ.get("SOFTBODY_NO_NUMBA", "") not in ("1", "true", "yes")
+AVAILABLE = numba is not None and os.environ.get("SOFTBODY_NO_NUMBA", "") not in ("1", "true", "yes")
+ENABLED = AVAILABLE  # decided at the end of this module (softbody.compilation.register)
 _NO_FLAGS = np.zeros(0, dtype=np.bool_)  # _row_product's flags when every block counts
 
 
@@ -31,13 +36,13 @@ def _jit(f):
     change of the module file that holds a kernel, not of these options: after changing them, delete the
     ``kernels.*.nbi``/``.nbc`` files in softbody/__pycache__ and integration/__pycache__."""
     # error_model "numpy": a division by zero gives inf or NaN, as in the numpy code the kernels mirror, not an error
-    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(f) if ENABLED else f
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(f) if AVAILABLE else f
 
 
 def _inline(f):
     """numba.njit with the kernels' options, inlined into its callers in numba's own IR (``inline="always"``): a
     small helper shared by kernels, whose constant arguments then fold away as if written out in each."""
-    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")(f) if ENABLED else f
+    return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy", inline="always")(f) if AVAILABLE else f
 
 
 @_jit
@@ -452,3 +457,6 @@ def characteristic_gradients(nodes: np.ndarray, grads: np.ndarray, x: np.ndarray
         out[0, e], out[1, e], out[2, e] = f0, f1, f2
         out[3, e], out[4, e], out[5, e] = f3, f4, f5
         out[6, e], out[7, e], out[8, e] = f6, f7, f8
+
+
+ENABLED = _compilation.register(sys.modules[__name__], AVAILABLE, warmup="softbody.warmup")

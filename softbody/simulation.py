@@ -6,6 +6,7 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
+from . import compilation
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
@@ -126,6 +127,8 @@ class Simulation:
     def solve_step(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """The new (positions, velocities) of every body after one step, checked (SimulationDiverged) but not
         yet applied: :meth:`commit` applies them. :meth:`step` is both."""
+        if compilation.pending:  # a first run: switch to the compiled kernels once they are ready
+            compilation.poll()
         t_next = self.t + self.dt
         self.timings = {}
         for b in self.bodies:

@@ -5,7 +5,12 @@ modes, own Voigt convention), so that tests compare the library against an outsi
 """
 from __future__ import annotations
 
+import os
 import re
+
+# the kernels compile in this process at first use (softbody.compilation): a test comparing a kernel with its numpy
+# code must know which one runs, whatever the state of numba's cache (tests/test_compilation.py tests the default)
+os.environ["SOFTBODY_COMPILE"] = "now"
 
 import numpy as np
 import pytest

@@ -1,0 +1,53 @@
+"""The integration layer's warm-up: small scenes through every compiled kernel (``python -m integration.warmup``
+fills numba's cache for softbody's and integration's kernels; softbody.compilation starts it in the background on
+a first run, ``softbody compile`` in the foreground).
+
+The scenes: softbody.warmup's bars; a sheet of each element type dropped on a sphere (node contacts, the
+active set body by body); soft cubes on a plane, one under a dynamic box (the coupled solve of a movable body), one
+under a dynamic convex mesh (the mesh links of a user's robot), a third stacked on the first (soft-soft contacts)."""
+from __future__ import annotations
+
+import trimesh
+
+from softbody import FemBody, LinearElastic, box_mesh, compilation
+from softbody import warmup as fem_warmup
+
+from .world import World
+
+
+def _soft(kind: str, size, cells, center, E: float = 5e5) -> FemBody:
+    return FemBody(box_mesh(size, cells, kind, center=center), LinearElastic(E, 0.33, 1000.0), damping=(0.1, 0.001))
+
+
+def sheets(steps: int = 12) -> None:
+    """A small sheet of every element type landing on a fixed sphere (node contacts, friction)."""
+    for kind in fem_warmup.KINDS:
+        world = World(dt=0.01)
+        world.add_sphere(0.3)
+        world.add_soft(_soft(kind, (0.6, 0.6, 0.15), (2, 2, 1), (0.0, 0.0, 0.31 + 0.075)), friction=1.0)
+        for _ in range(steps):
+            world.step()
+
+
+def cubes(steps: int = 12) -> None:
+    """Soft cubes on a plane: one under a dynamic box, one under a dynamic convex mesh, one stacked on the first
+    (every contact kind)."""
+    world = World(dt=0.01)
+    world.add_plane()
+    for kind, x in (("tet10", 0.0), ("tet4", 0.3), ("tet10", 0.6)):
+        world.add_soft(_soft(kind, (0.1, 0.1, 0.1), (2, 2, 2), (x, 0.0, 0.051)), friction=0.5)
+    world.add_box((0.03, 0.03, 0.02), position=(0.3, 0.0, 0.123), mass=0.2)
+    world.add_mesh(trimesh.creation.icosphere(1, 0.03), position=(0.6, 0.0, 0.133), mass=0.2)
+    world.add_soft(_soft("tet10", (0.1, 0.1, 0.1), (2, 2, 2), (0.0, 0.0, 0.153)), friction=0.5)
+    for _ in range(steps):
+        world.step()
+
+
+def run() -> None:
+    fem_warmup.run()
+    sheets()
+    cubes()
+
+
+if __name__ == "__main__":
+    compilation.warm_up(run)

@@ -1,0 +1,256 @@
+"""When the compiled kernels are used: at once from numba's disk cache, or after a background compilation.
+
+numba compiles a kernel at its first call and caches it on disk. Compiling everything one scene uses takes
+10-15 s of CPU (the sheet-on-sphere scene's kernels: about 36 functions at 0.1-1.5 s each), which a fresh
+install's first run would otherwise wait for at its first steps. Instead, when the cache does not hold this
+version of the kernels, the first step starts one background process (``python -m <warm-up module>``, e.g.
+``integration.warmup``) that runs small scenes through every kernel and so fills the cache, and the numpy code
+(the kernels' reference, the same arithmetic to round-off) runs meanwhile. The step after that process ends
+switches to the kernels, loading them from the cache (a few tenths of a second). Later runs find the cache
+filled and use the kernels from their first step.
+
+Whether the cache holds this version is a stamp per kernel module (source file mtime and size, numba's
+version), written by the warm-up process next to numba's own cache files once its scenes ran through. A lock
+file there keeps concurrent first runs (a sweep's workers) to one warm-up process.
+
+``SOFTBODY_COMPILE=now`` compiles in-process at first use instead (the tests do: a test that compares a
+kernel with its numpy code must know which one runs); ``softbody compile`` (experiments.cli) fills the cache
+in the foreground, e.g. when building an image.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+import warnings
+from types import ModuleType
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is installed with the package
+    numba = None
+
+#: "background" (default) or "now", from SOFTBODY_COMPILE
+MODE = os.environ.get("SOFTBODY_COMPILE", "background").strip().lower() or "background"
+if MODE not in ("background", "now"):
+    raise ValueError(f"SOFTBODY_COMPILE={MODE!r}: expected 'background' or 'now'")
+#: seconds between two looks at another process's warm-up
+CHECK_EVERY = 1.0
+
+#: True while the kernels wait for a warm-up (softbody.simulation polls then, once per step)
+pending = False
+_modules: list[tuple[ModuleType, str]] = []  # (module with an ENABLED flag, its source file)
+_warmup_module = "softbody.warmup"
+_process: subprocess.Popen | None = None
+_next_check = 0.0
+
+
+def _cache_dir(module: ModuleType) -> str | None:
+    """The directory numba caches ``module``'s kernels in (None: no compiled kernel in it)."""
+    for value in vars(module).values():
+        cache = getattr(value, "_cache", None)
+        if cache is not None and hasattr(cache, "_cache_path"):
+            return cache._cache_path
+    return None
+
+
+def _stamp_path(source: str, module: ModuleType) -> str | None:
+    directory = _cache_dir(module)
+    if directory is None:
+        return None
+    return os.path.join(directory, os.path.basename(source) + ".softbody-warm")
+
+
+def _identity(source: str) -> dict:
+    st = os.stat(source)
+    return {"numba": getattr(numba, "__version__", ""), "python": sys.version.split()[0],
+            "mtime": st.st_mtime, "size": st.st_size}
+
+
+def _is_warm(source: str, module: ModuleType) -> bool:
+    path = _stamp_path(source, module)
+    try:
+        with open(path) as f:
+            return json.load(f) == _identity(source)
+    except (OSError, TypeError, ValueError):
+        return False
+
+
+def cache_is_warm() -> bool:
+    """Whether numba's cache holds every registered kernel module as it is now (stamped by a warm-up)."""
+    return all(_is_warm(source, module) for module, source in _modules)
+
+
+def stamp() -> None:
+    """Mark every registered kernel module as compiled into the cache (the warm-up's last act)."""
+    for module, source in _modules:
+        path = _stamp_path(source, module)
+        if path is None:
+            continue
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        tmp = f"{path}.{os.getpid()}"
+        with open(tmp, "w") as f:
+            json.dump(_identity(source), f)
+        os.replace(tmp, path)
+
+
+def _set_enabled(flag: bool) -> None:
+    for module, _ in _modules:
+        module.ENABLED = flag
+
+
+def register(module: ModuleType, available: bool, warmup: str | None = None) -> bool:
+    """Register a module of kernels (its ``ENABLED`` flag follows this module's decision) and, optionally, the
+    warm-up module that compiles it (the last registered runs: it must cover the earlier ones). Returns the
+    module's starting ENABLED: available and, in background mode, the cache warm."""
+    global pending, _warmup_module
+    _modules.append((module, module.__file__))
+    if warmup is not None:
+        _warmup_module = warmup
+    if not available or MODE == "now":
+        return available
+    if not pending and cache_is_warm():
+        return True
+    pending = True
+    _set_enabled(False)
+    return False
+
+
+def _lock_path() -> str | None:
+    for module, source in _modules:
+        directory = _cache_dir(module)
+        if directory is not None:
+            return os.path.join(directory, "softbody-warmup.lock")
+    return None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _take_lock(path: str) -> int | None:
+    """Create the lock file (None if another live process holds it)."""
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    for _ in range(2):
+        try:
+            return os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                with open(path) as f:
+                    holder = int(f.read().strip() or 0)
+            except (OSError, ValueError):
+                holder = 0
+            if holder and _alive(holder):
+                return None
+            if not holder and time.time() - os.path.getmtime(path) < 5.0:
+                return None  # just created, its pid not written yet
+            try:
+                os.remove(path)  # left by a warm-up that died
+            except FileNotFoundError:
+                pass
+    return None
+
+
+def _start() -> None:
+    """Start the warm-up process unless another process runs one."""
+    global _process
+    lock = _lock_path()
+    if lock is None:
+        return
+    fd = _take_lock(lock)
+    if fd is None:
+        return
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, SOFTBODY_COMPILE="now", SOFTBODY_WARMUP_LOCK=lock,
+               PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p))
+    log = open(os.path.join(os.path.dirname(lock), "softbody-warmup.log"), "w")
+    try:
+        _process = subprocess.Popen([sys.executable, "-m", _warmup_module], stdin=subprocess.DEVNULL, stdout=log,
+                                    stderr=subprocess.STDOUT, env=env, cwd=root, start_new_session=True)
+    except OSError as error:
+        os.close(fd)
+        os.remove(lock)
+        _give_up(f"could not start the background compilation ({error})")
+        return
+    finally:
+        log.close()
+    os.write(fd, str(_process.pid).encode())
+    os.close(fd)
+
+
+def _give_up(why: str) -> None:
+    global pending
+    pending = False
+    warnings.warn(f"softbody: {why}; the numpy code runs (SOFTBODY_COMPILE=now compiles in-process)", RuntimeWarning,
+                  stacklevel=3)
+
+
+def poll() -> None:
+    """Called once per step while :data:`pending`: start the warm-up if nobody runs one, switch to the kernels once
+    the cache is warm."""
+    global pending, _process, _next_check
+    if not pending:
+        return
+    if _process is None:
+        now = time.monotonic()
+        if now < _next_check:
+            return
+        _next_check = now + CHECK_EVERY
+        if not cache_is_warm():
+            _start()
+            return
+    else:
+        code = _process.poll()
+        if code is None:
+            return
+        _process = None
+        if code != 0 or not cache_is_warm():
+            _give_up(f"the background compilation ended with code {code} (log: "
+                     f"{os.path.join(os.path.dirname(_lock_path() or ''), 'softbody-warmup.log')})")
+            return
+    pending = False
+    _set_enabled(True)
+
+
+def compile_now() -> float:
+    """Fill the cache in the foreground: the warm-up module in a child process, waited for. Returns its seconds;
+    raises RuntimeError with the child's output if it fails."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, SOFTBODY_COMPILE="now",
+               PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p))
+    tic = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", _warmup_module], stdin=subprocess.DEVNULL, capture_output=True,
+                          text=True, env=env, cwd=root)
+    if done.returncode != 0:
+        raise RuntimeError(f"python -m {_warmup_module} failed (code {done.returncode}):\n{done.stdout}{done.stderr}")
+    global pending
+    if pending and cache_is_warm():
+        pending = False
+        _set_enabled(True)
+    return time.perf_counter() - tic
+
+
+def warm_up(run) -> None:
+    """The warm-up process's body: ``run()`` (scenes through every kernel, compiling in-process), then the stamps;
+    the lock (if this process was started under one) is removed whatever happens."""
+    try:
+        run()
+        stamp()
+    finally:
+        lock = os.environ.get("SOFTBODY_WARMUP_LOCK")
+        if lock and os.path.exists(lock):
+            try:
+                with open(lock) as f:
+                    mine = f.read().strip() in ("", str(os.getpid()))
+            except OSError:
+                mine = False
+            if mine:
+                os.remove(lock)

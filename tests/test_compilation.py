@@ -1,0 +1,160 @@
+"""softbody.compilation: a first run compiles the kernels in a background process while the numpy code runs, and
+switches to the kernels without compiling any itself; a warm cache serves them from the first step; the stamps,
+the lock and a failed warm-up behave."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import types
+import warnings
+from pathlib import Path
+
+import pytest
+
+from softbody import compilation, kernels
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+
+# a scene in a child process under the default mode, counting numba's compilations in that process
+CHILD = textwrap.dedent("""
+    import json, sys, time
+    from numba.core import event
+    compiled = []
+    class Listener(event.Listener):
+        def on_start(self, e): pass
+        def on_end(self, e): compiled.append(e.data["dispatcher"].py_func.__name__)
+    event.register("numba:compile", Listener())
+    from softbody import compilation, kernels
+    from integration import kernels as contact_kernels
+    from experiments.scenes import cubes_on_plane, sheet_on_sphere
+    scenes = [sheet_on_sphere("tet10", (6, 6, 2)), cubes_on_plane("tet10", (2, 2, 2), count=2)]
+    start = [kernels.ENABLED, contact_kernels.ENABLED, compilation.pending]
+    reference = sheet_on_sphere("tet4", (4, 4, 2))  # 40 steps as the run starts: numpy's on a first run
+    for _ in range(40):
+        reference.world.step()
+    numpy_steps, tic = 0, time.monotonic()
+    while compilation.pending and time.monotonic() - tic < float(sys.argv[1]):
+        scenes[0].world.step()  # the numpy code, while the warm-up compiles on the other core
+        numpy_steps += 1
+        time.sleep(0.02)
+    switched = [kernels.ENABLED, contact_kernels.ENABLED, compilation.pending]
+    for scene in scenes:
+        for _ in range(30):
+            scene.world.step()
+    print(json.dumps({"start": start, "switched": switched, "numpy_steps": numpy_steps, "compiled": compiled,
+                      "z": reference.monitored()}))
+""")
+
+
+def _child(cache: Path, wait: float = 0.0) -> dict:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), SOFTBODY_COMPILE="background", OMP_NUM_THREADS="1",
+               MKL_NUM_THREADS="1")
+    done = subprocess.run([sys.executable, "-c", CHILD, str(wait)], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=900)
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def first_run(tmp_path_factory) -> tuple[Path, dict]:
+    """A first run on an empty cache, stepping the numpy code until the background warm-up ends."""
+    cache = tmp_path_factory.mktemp("numba-cache")
+    return cache, _child(cache, wait=600.0)
+
+
+def test_a_first_run_steps_the_numpy_code_while_a_background_process_compiles(first_run):
+    cache, out = first_run
+    assert out["start"] == [False, False, True]  # empty cache: the numpy code, a warm-up pending
+    assert out["numpy_steps"] >= 1
+    assert out["switched"] == [True, True, False]  # the warm-up ended: the kernels, from the cache
+    assert out["compiled"] == []  # this process compiled nothing, before the switch or after it
+    assert not list(cache.rglob("softbody-warmup.lock"))
+    stamps = sorted(p.name for p in cache.rglob("*.softbody-warm"))
+    assert stamps == ["cholesky.py.softbody-warm", "kernels.py.softbody-warm", "kernels.py.softbody-warm"]
+
+
+def test_a_warm_cache_serves_the_kernels_from_the_first_step(first_run):
+    cache, first = first_run
+    out = _child(cache)
+    assert out["start"] == [True, True, False]
+    assert out["numpy_steps"] == 0
+    assert out["compiled"] == []  # the warm-up covered both scenes: every kernel came from the cache
+    assert out["z"] == pytest.approx(first["z"], abs=1e-9)  # the same 40 steps by the numpy code and by the kernels
+
+
+@pytest.fixture
+def fake(tmp_path, monkeypatch):
+    """compilation's registry holding one fake kernel module: its source a temporary file, its cache directory
+    another (as a numba dispatcher's ``_cache._cache_path``)."""
+    source = tmp_path / "fake_kernels.py"
+    source.write_text("x = 1\n")
+    cache = tmp_path / "cache"
+    module = types.ModuleType("fake_kernels")
+    module.__file__ = str(source)
+    module.kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_path=str(cache)))
+    module.ENABLED = True
+    monkeypatch.setattr(compilation, "_modules", [])
+    monkeypatch.setattr(compilation, "MODE", "background")
+    monkeypatch.setattr(compilation, "pending", False)
+    monkeypatch.setattr(compilation, "_process", None)
+    monkeypatch.setattr(compilation, "_next_check", 0.0)
+    return module, source, cache
+
+
+def test_a_stamp_holds_until_the_source_changes(fake):
+    module, source, cache = fake
+    assert compilation.register(module, True) is False  # no stamp yet: cold
+    assert compilation.pending and module.ENABLED is False
+    compilation.stamp()
+    assert compilation.cache_is_warm()
+    source.write_text("x = 22\n")  # an edited kernel module: numba recompiles it, so the stamp no longer holds
+    assert not compilation.cache_is_warm()
+
+
+def test_the_lock_keeps_one_warm_up_and_outlives_no_dead_holder(fake):
+    _, _, cache = fake
+    compilation.register(fake[0], True)
+    lock = compilation._lock_path()
+    assert Path(lock).parent == cache
+    fd = compilation._take_lock(lock)
+    assert fd is not None
+    os.write(fd, str(os.getpid()).encode())  # held by a live process (this one)
+    os.close(fd)
+    assert compilation._take_lock(lock) is None
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    Path(lock).write_text(dead.stdout.strip())  # held by a process that has ended: taken over
+    fd = compilation._take_lock(lock)
+    assert fd is not None
+    os.close(fd)
+
+
+def test_a_failed_warm_up_warns_and_leaves_the_numpy_code_running(fake, monkeypatch):
+    module, _, cache = fake
+    compilation.register(module, True, warmup="softbody.no_such_warm_up")
+    monkeypatch.setattr(compilation, "_warmup_module", "softbody.no_such_warm_up")
+    compilation.poll()  # starts the warm-up, which fails at once
+    assert compilation._process is not None
+    compilation._process.wait(timeout=60)
+    with pytest.warns(RuntimeWarning, match="background compilation ended with code 1"):
+        compilation.poll()
+    assert compilation.pending is False and module.ENABLED is False
+    assert "no_such_warm_up" in (cache / "softbody-warmup.log").read_text()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        compilation.poll()  # said once
+
+
+def test_softbody_compile_fills_the_cache(tmp_path):
+    """The command line's foreground warm-up (tested on the FEM core's: the same path, fewer kernels)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path), SOFTBODY_COMPILE="background")
+    code = ("from softbody import compilation, kernels; assert compilation.pending; "
+            "compilation.compile_now(); assert kernels.ENABLED and not compilation.pending")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in tmp_path.rglob("*.softbody-warm")) == ["cholesky.py.softbody-warm",
+                                                                        "kernels.py.softbody-warm"]
