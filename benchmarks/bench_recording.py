@@ -16,6 +16,9 @@ CPU-heavy: a few tens of seconds at the defaults.
 """
 from __future__ import annotations
 
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
+
 import argparse
 import statistics
 import sys

@@ -5,6 +5,9 @@
 Prints a markdown table: element, cells, nodes, tip deflection [mm] and its ratio to Timoshenko's
 beam value q L^4 / (8 E I) + q L^2 / (2 kappa G A) (kappa = 5/6), which the FEM approaches from below.
 """
+
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
 import numpy as np
 
 import softbody as sb

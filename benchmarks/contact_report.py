@@ -7,6 +7,9 @@ at the end (at rest), the deepest penetration of any surface node over the whole
 share of the step time in collision detection (pybullet queries + broad phase), in the contact
 loop's own work, and in the linear solves (which the contact loop drives), medians over the run.
 """
+
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
 import argparse
 
 import numpy as np

@@ -5,6 +5,9 @@ solution, a hinged rod with a soft block against the compound pendulum and stati
 
 The scenes and the static reference are those of tests/test_plugin.py (imported from there).
 """
+
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
 import argparse
 import math
 import sys

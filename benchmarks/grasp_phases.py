@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
+
 PHASES = ["approach", "descend", "close", "lift", "hold", "set down", "release"]
 
 RUN = r"""

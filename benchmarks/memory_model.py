@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
+
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = {
     "tet4": [(8, 8, 3), (16, 16, 4), (24, 24, 6), (32, 32, 8), (44, 44, 11), (56, 56, 14)],

@@ -29,6 +29,9 @@ The case functions are imported by tests/test_stability.py, which runs a small s
 """
 from __future__ import annotations
 
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
+
 import argparse
 import math
 import sys

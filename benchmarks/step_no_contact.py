@@ -5,6 +5,9 @@
 Both solver paths are timed (direct: assemble + factorise every step; iterative: PCG with a reused
 factorisation), after 5 warm-up steps; the median over the timed steps is printed.
 """
+
+import os
+os.environ.setdefault("SOFTBODY_COMPILE", "now")  # timed runs: kernels compiled in-process (softbody.compilation)
 import argparse
 import time
 

@@ -416,6 +416,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
 
     def command() -> None:
+        if args.command in ("study", "recommend", "sweep", "bench"):  # timed: never the numpy code of a first run
+            import integration.kernels  # noqa: F401  (registered before the question)
+            from softbody import compilation
+
+            compilation.ensure_ready(lambda text: print(text, file=sys.stderr, flush=True))
         if args.command == "run":
             run_scene(args, args.scene)
         elif args.command == "study":

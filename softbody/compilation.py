@@ -238,6 +238,14 @@ def compile_now() -> float:
     return time.perf_counter() - tic
 
 
+def ensure_ready(say=print) -> None:
+    """Before timed runs (bench, studies, sweeps): if the kernels wait for a warm-up, fill the cache in the foreground
+    now (saying so through ``say``), so that no timing is the numpy code's."""
+    if pending:
+        say("# compiling softbody's kernels into numba's cache first (once after an install, about 40 s) ...")
+        compile_now()
+
+
 def warm_up(run) -> None:
     """The warm-up process's body: ``run()`` (scenes through every kernel, compiling in-process), then the stamps;
     the lock (if this process was started under one) is removed whatever happens."""
