@@ -462,21 +462,23 @@ def profile_steps(world, body, steps: int, out_dir, slug: str) -> dict:
     pstats.Stats(prof, stream=text).strip_dirs().sort_stats("tottime").print_stats(20)
     text.write("\n# the same, by cumulative time\n")
     pstats.Stats(prof, stream=text).strip_dirs().sort_stats("cumulative").print_stats(20)
-    worst_calls, worst_name, total_calls = 0, "", 0
+    worst_calls, worst_name, total_calls, python_calls = 0, "", 0, 0
     for (fname, line, func), (cc, nc, tt, ct, callers) in stats.stats.items():
         total_calls += nc
+        python_calls += nc if fname != "~" else 0  # "~": C functions and methods (len, np.empty, ...)
         if nc > worst_calls:
             worst_calls, worst_name = nc, f"{Path(fname).name}:{line}({func})"
     res = {"steps": steps, "max_calls_per_step": worst_calls / steps, "max_calls_function": worst_name,
-           "function_calls_per_step": total_calls / steps,
+           "function_calls_per_step": total_calls / steps, "python_calls_per_step": python_calls / steps,
            "elements": int(body.mesh.n_elements), "nodes": int(body.n_nodes)}
     if out_dir is not None:
         d = Path(out_dir) / "profiles"
         d.mkdir(parents=True, exist_ok=True)
         path = d / f"{slug}.txt"
         path.write_text(f"# cProfile of {steps} steps of {slug} ({body.mesh.n_elements} elements, {body.n_nodes} nodes)\n"
-                        f"# most calls per step: {worst_calls / steps:.0f} ({worst_name}); all Python calls per step: "
-                        f"{total_calls / steps:.0f}\n# top 20 by own time\n" + text.getvalue())
+                        f"# most calls per step: {worst_calls / steps:.0f} ({worst_name}); all calls per step: "
+                        f"{total_calls / steps:.0f}, of functions written in Python: {python_calls / steps:.0f}\n"
+                        "# top 20 by own time\n" + text.getvalue())
         res["file"] = str(path)
     return res
 
@@ -856,12 +858,16 @@ def markdown(doc: dict) -> str:
     prof = [r for r in ok if r.get("profile")]
     if prof:
         lines += ["", "Python calls per step on the step path (cProfile): a loop per element or node would show "
-                      "as calls per step of the order of the element or node count:", "",
-                  "| config | elements | nodes | all calls per step | most calls per step (function) | profile |",
-                  "|---|---:|---:|---:|---|---|"]
+                      "as calls per step of the order of the element or node count. All calls count C functions and "
+                      "methods too (len, np.empty, ...); Python-level calls only those of functions written in Python:",
+                  "", "| config | elements | nodes | all calls per step | Python-level calls per step | most calls per "
+                      "step (function) | profile |",
+                  "|---|---:|---:|---:|---:|---|---|"]
         for r in prof:
             p_ = r["profile"]
+            py = p_.get("python_calls_per_step")
             lines.append(f"| {r['label']} | {p_['elements']} | {p_['nodes']} | {p_['function_calls_per_step']:.0f} | "
+                         f"{'-' if py is None else f'{py:.0f}'} | "
                          f"{p_['max_calls_per_step']:.0f} ({p_['max_calls_function']}) | "
                          f"{Path(p_['file']).name if p_.get('file') else '-'} |")
     fits = fit_scaling(ok)

@@ -126,7 +126,10 @@ def _lock_path() -> str | None:
     return None
 
 
-def _alive(pid: int) -> bool:
+def _alive(pid: int, path: str) -> bool:
+    """Whether the warm-up process ``pid`` (holding the lock file ``path``) still runs."""
+    if os.name == "nt":  # os.kill(pid, 0) would end the process there: a lock younger than an hour counts as held
+        return time.time() - os.path.getmtime(path) < 3600.0
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -148,7 +151,7 @@ def _take_lock(path: str) -> int | None:
                     holder = int(f.read().strip() or 0)
             except (OSError, ValueError):
                 holder = 0
-            if holder and _alive(holder):
+            if holder and _alive(holder, path):
                 return None
             if not holder and time.time() - os.path.getmtime(path) < 5.0:
                 return None  # just created, its pid not written yet
@@ -249,6 +252,9 @@ def ensure_ready(say=print) -> None:
 def warm_up(run) -> None:
     """The warm-up process's body: ``run()`` (scenes through every kernel, compiling in-process), then the stamps;
     the lock (if this process was started under one) is removed whatever happens."""
+    background = bool(os.environ.get("SOFTBODY_WARMUP_LOCK"))
+    if background and hasattr(os, "nice"):
+        os.nice(10)  # behind the run that started it, which steps meanwhile
     try:
         run()
         stamp()

@@ -49,6 +49,7 @@ def test_run_bench_tiny_writes_json_markdown_plot_profile_and_pybullet(tmp_path)
     prof = r["profile"]
     assert (tmp_path / "profiles" / "sheet-on-sphere_tet4_4x4x2.txt").read_text().count("ncalls") >= 2
     assert _number(prof["max_calls_per_step"]) and prof["function_calls_per_step"] > 0
+    assert 0 < prof["python_calls_per_step"] < prof["function_calls_per_step"]  # C functions counted apart
     # pybullet: the identical mesh was loaded (checked inside), k = 1 and 2 tried
     pb = r["pybullet"]
     assert "error" not in pb, pb.get("traceback")
