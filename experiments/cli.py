@@ -82,6 +82,9 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         duration = args.duration if args.duration is not None else layout.duration
         check_run_size(scene_name, element, cells, max(1, round(duration / dt)), layout.periodic_first)
     scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt, scheme=args.scheme)
+    from softbody import compilation
+
+    started_pending = compilation.pending  # an empty numba cache (softbody.compilation)
     duration = args.duration if args.duration is not None else scene.duration
     axis = "xyz"[scene.axis]
     body = scene.body
@@ -126,6 +129,10 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     if step_times:
         print(f"# {len(step_times)} steps, median {1e3 * float(np.median(step_times)):.1f} ms/step, "
               f"max active contacts {max_contacts}, max penetration {1e3 * scene.world.max_penetration():.3f} mm")
+    if started_pending:
+        print("# a first run after an install: the numpy code stepped " + (
+            "until the compiled kernels were ready" if not compilation.pending else
+            "while a background process compiles the kernels (later runs step faster; softbody compile waits for it)"))
     return scene
 
 

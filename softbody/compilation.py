@@ -45,6 +45,7 @@ _modules: list[tuple[ModuleType, str]] = []  # (module with an ENABLED flag, its
 _warmup_module = "softbody.warmup"
 _process: subprocess.Popen | None = None
 _next_check = 0.0
+_rounds = 0  # warm-up processes this process started
 
 
 def _cache_dir(module: ModuleType) -> str | None:
@@ -164,7 +165,7 @@ def _take_lock(path: str) -> int | None:
 
 def _start() -> None:
     """Start the warm-up process unless another process runs one."""
-    global _process
+    global _process, _rounds
     lock = _lock_path()
     if lock is None:
         return
@@ -187,6 +188,7 @@ def _start() -> None:
         log.close()
     os.write(fd, str(_process.pid).encode())
     os.close(fd)
+    _rounds += 1
 
 
 def _give_up(why: str) -> None:
@@ -198,29 +200,31 @@ def _give_up(why: str) -> None:
 
 def poll() -> None:
     """Called once per step while :data:`pending`: start the warm-up if nobody runs one, switch to the kernels once
-    the cache is warm."""
+    the cache is warm (looking at another process's warm-up every CHECK_EVERY seconds)."""
     global pending, _process, _next_check
     if not pending:
         return
-    if _process is None:
-        now = time.monotonic()
-        if now < _next_check:
-            return
-        _next_check = now + CHECK_EVERY
-        if not cache_is_warm():
-            _start()
-            return
-    else:
+    if _process is not None:
         code = _process.poll()
         if code is None:
             return
         _process = None
-        if code != 0 or not cache_is_warm():
+        if code != 0:
             _give_up(f"the background compilation ended with code {code} (log: "
                      f"{os.path.join(os.path.dirname(_lock_path() or ''), 'softbody-warmup.log')})")
             return
-    pending = False
-    _set_enabled(True)
+        _next_check = 0.0  # look now
+    now = time.monotonic()
+    if now < _next_check:
+        return
+    _next_check = now + CHECK_EVERY
+    if cache_is_warm():
+        pending = False
+        _set_enabled(True)
+    elif _rounds >= 2:  # warm-ups ended well twice and left kernel modules unstamped (one imported after them?)
+        _give_up("the background compilation did not cover every kernel module")
+    else:
+        _start()
 
 
 def compile_now() -> float:

@@ -103,6 +103,7 @@ def fake(tmp_path, monkeypatch):
     monkeypatch.setattr(compilation, "pending", False)
     monkeypatch.setattr(compilation, "_process", None)
     monkeypatch.setattr(compilation, "_next_check", 0.0)
+    monkeypatch.setattr(compilation, "_rounds", 0)
     return module, source, cache
 
 
@@ -147,6 +148,20 @@ def test_a_failed_warm_up_warns_and_leaves_the_numpy_code_running(fake, monkeypa
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         compilation.poll()  # said once
+
+
+def test_a_warm_up_that_stamps_nothing_is_tried_twice_then_given_up(fake, monkeypatch):
+    module, _, _ = fake
+    compilation.register(module, True)
+    monkeypatch.setattr(compilation, "_warmup_module", "this")  # python -m this: exits 0, compiles nothing
+    compilation.poll()  # the first warm-up
+    compilation._process.wait(timeout=60)
+    compilation.poll()  # it ended well, the cache still cold: a second
+    assert compilation._rounds == 2
+    compilation._process.wait(timeout=60)
+    with pytest.warns(RuntimeWarning, match="did not cover every kernel module"):
+        compilation.poll()
+    assert compilation._rounds == 2 and compilation.pending is False and module.ENABLED is False
 
 
 def test_softbody_compile_fills_the_cache(tmp_path):
