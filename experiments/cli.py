@@ -132,7 +132,7 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     if started_pending:
         print("# a first run after an install: the numpy code stepped " + (
             "until the compiled kernels were ready" if not compilation.pending else
-            "while a background process compiles the kernels (later runs step faster; softbody compile waits for it)"))
+            "while a background process compiles the kernels (later runs step faster)"))
     return scene
 
 
