@@ -130,9 +130,12 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         print(f"# {len(step_times)} steps, median {1e3 * float(np.median(step_times)):.1f} ms/step, "
               f"max active contacts {max_contacts}, max penetration {1e3 * scene.world.max_penetration():.3f} mm")
     if started_pending:
+        from softbody import kernels
+
         print("# a first run after an install: the numpy code stepped " + (
-            "until the compiled kernels were ready" if not compilation.pending else
-            "while a background process compiles the kernels (later runs step faster)"))
+            "until the compiled kernels were ready" if kernels.ENABLED else
+            "while a background process compiles the kernels (later runs step faster)" if compilation.pending else
+            "throughout: the background compilation failed (see the warning above)"))
     return scene
 
 
@@ -356,7 +359,7 @@ def compile_command() -> None:
     if not AVAILABLE:
         print("numba is not installed or SOFTBODY_NO_NUMBA is set: nothing to compile")
         return
-    print("compiling softbody's kernels into numba's cache (about 40 s on 2 cores) ...", flush=True)
+    print("compiling softbody's kernels into numba's cache (about 40 s) ...", flush=True)
     seconds = compilation.compile_now()
     print(f"done in {seconds:.0f} s; later runs load them from the cache")
 

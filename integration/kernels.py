@@ -23,7 +23,7 @@ import sys
 import numpy as np
 
 from softbody import compilation
-from softbody.kernels import AVAILABLE, ENABLED, _jit
+from softbody.kernels import AVAILABLE, _jit
 
 __all__ = ["ENABLED", "KINDS", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
            "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import compilation
-from .kernels import AVAILABLE, ENABLED, _jit
+from .kernels import AVAILABLE, _jit
 
 # factor size (BlockSymbolic.multiply_adds: block products, 27 multiply-adds each) up to which the compiled factorisation beats
 # PARDISO's on this machine: factorise and solve 42 against 158 us at 2.7e3 (the 75-node sheet), 676 against

@@ -34,7 +34,8 @@ _NO_FLAGS = np.zeros(0, dtype=np.bool_)  # _row_product's flags when every block
 def _jit(f):
     """numba.njit with the kernels' options (also for integration/kernels.py). numba's disk cache is invalidated by a
     change of the module file that holds a kernel, not of these options: after changing them, delete the
-    ``kernels.*.nbi``/``.nbc`` files in softbody/__pycache__ and integration/__pycache__."""
+    ``kernels.*.nbi``/``.nbc`` files and the ``*.softbody-warm`` stamps (softbody.compilation) in softbody/__pycache__
+    and integration/__pycache__."""
     # error_model "numpy": a division by zero gives inf or NaN, as in the numpy code the kernels mirror, not an error
     return numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(f) if AVAILABLE else f
 

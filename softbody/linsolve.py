@@ -87,8 +87,10 @@ class SpdSolver:
             raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
         if backend == "pardiso" and not HAVE_PARDISO:
             raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
-        if backend == "blocks" and (n % 3 or not kernels.ENABLED):
-            raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks (n a multiple of 3, got {n}) and numba")
+        if backend == "blocks" and n % 3:
+            raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks: n a multiple of 3, got {n}")
+        if backend == "blocks" and not kernels.AVAILABLE:  # (named: compiled at first use, even on a first run)
+            raise InvalidInputError("backend 'blocks' is compiled: it needs numba, and SOFTBODY_NO_NUMBA unset")
         self._blocks = prefers_blocks(indptr, indices, n) if backend == "auto" else None
         if backend == "blocks":
             self._blocks = cholesky.BlockSymbolic.of(indptr, indices, n)

@@ -4,6 +4,7 @@ single-precision factorisation of its own, refreshed when stale). Owned by whoev
 not stored on the bodies."""
 from __future__ import annotations
 
+from . import compilation
 from .body import FemBody
 from .linsolve import SpdSolver
 from .preconditioner import Preconditioner
@@ -13,15 +14,16 @@ class BodySolvers:
     """Per body (by identity) and backend: ``solver(body, backend)`` and ``preconditioner(body, solver)``."""
 
     def __init__(self):
-        self._solvers: dict[tuple[int, str], tuple[FemBody, SpdSolver]] = {}
+        self._solvers: dict[tuple[int, str], tuple[FemBody, SpdSolver, int]] = {}
         self._preconditioners: dict[tuple[int, str], tuple[FemBody, Preconditioner]] = {}
 
     def solver(self, body: FemBody, backend: str = "auto") -> SpdSolver:
-        """The body's SPD solver for ``backend`` (made on first use: one symbolic analysis per body)."""
+        """The body's SPD solver for ``backend`` (made on first use: one symbolic analysis per body; "auto" chooses
+        again once the compiled kernels become ready, see softbody.compilation: the block Cholesky needs them)."""
         key = (id(body), backend)
         held = self._solvers.get(key)
-        if held is None or held[0] is not body:
-            held = self._solvers[key] = (body, new_solver(body, backend))
+        if held is None or held[0] is not body or (backend == "auto" and held[2] != compilation.switches):
+            held = self._solvers[key] = (body, new_solver(body, backend), compilation.switches)
         return held[1]
 
     def preconditioner(self, body: FemBody, solver: SpdSolver) -> Preconditioner:
@@ -37,7 +39,7 @@ class BodySolvers:
         """Drop the solvers and preconditioners of every body not in ``bodies`` (released with them)."""
         keep = {id(b) for b in bodies}
         for held in (self._solvers, self._preconditioners):
-            for key in [k for k, (b, _) in held.items() if id(b) not in keep]:
+            for key in [k for k, (b, *_) in held.items() if id(b) not in keep]:
                 del held[key]
 
     def held_preconditioner(self, body: FemBody, backend: str) -> Preconditioner | None:

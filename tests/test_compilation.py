@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 import types
 import warnings
 from pathlib import Path
@@ -96,7 +97,11 @@ def fake(tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     module = types.ModuleType("fake_kernels")
     module.__file__ = str(source)
-    module.kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_path=str(cache)))
+    def kernel():
+        pass
+
+    kernel.__module__ = module.__name__  # a kernel defined in the module, cached in ``cache``
+    module.kernel = types.SimpleNamespace(_cache=types.SimpleNamespace(_cache_path=str(cache)), py_func=kernel)
     module.ENABLED = True
     monkeypatch.setattr(compilation, "_modules", [])
     monkeypatch.setattr(compilation, "MODE", "background")
@@ -117,6 +122,7 @@ def test_a_stamp_holds_until_the_source_changes(fake):
     assert not compilation.cache_is_warm()
 
 
+@pytest.mark.skipif(os.name == "nt", reason="no pid probe on Windows: a lock's age decides there")
 def test_the_lock_keeps_one_warm_up_and_outlives_no_dead_holder(fake):
     _, _, cache = fake
     compilation.register(fake[0], True)
@@ -129,6 +135,12 @@ def test_the_lock_keeps_one_warm_up_and_outlives_no_dead_holder(fake):
     assert compilation._take_lock(lock) is None
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     Path(lock).write_text(dead.stdout.strip())  # held by a process that has ended: taken over
+    fd = compilation._take_lock(lock)
+    assert fd is not None
+    os.close(fd)
+    Path(lock).write_text(str(os.getpid()))  # a live holder, but an abandoned lock: older than LOCK_MAX_AGE
+    old = time.time() - compilation.LOCK_MAX_AGE - 1
+    os.utime(lock, (old, old))
     fd = compilation._take_lock(lock)
     assert fd is not None
     os.close(fd)
@@ -173,3 +185,41 @@ def test_softbody_compile_fills_the_cache(tmp_path):
     assert done.returncode == 0, done.stderr
     assert sorted(p.name for p in tmp_path.rglob("*.softbody-warm")) == ["cholesky.py.softbody-warm",
                                                                         "kernels.py.softbody-warm"]
+
+
+def test_the_auto_solver_backend_is_chosen_again_when_the_kernels_switch_on(monkeypatch):
+    """A first run makes its solvers before the kernels are ready: "auto" then takes PARDISO (or SuperLU) where the
+    small systems' block Cholesky (compiled) would serve; at the switch it chooses again."""
+    from softbody import FemBody, LinearElastic, box_mesh
+    from softbody.solvers import BodySolvers
+
+    body = FemBody(box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4"), LinearElastic(1e5, 0.3, 1000.0))
+    solvers = BodySolvers()
+    monkeypatch.setattr(kernels, "ENABLED", False)
+    first = solvers.solver(body, "auto")
+    pinned = solvers.solver(body, "superlu")
+    assert first.backend in ("pardiso", "superlu") and solvers.solver(body, "auto") is first
+    monkeypatch.setattr(kernels, "ENABLED", True)
+    monkeypatch.setattr(compilation, "switches", compilation.switches + 1)  # as compilation.poll does
+    again = solvers.solver(body, "auto")
+    assert again is not first and again.backend == "blocks"
+    assert solvers.solver(body, "superlu") is pinned  # a backend the user named stays
+
+
+def test_an_unwritable_cache_warns_and_leaves_the_numpy_code_running(fake, tmp_path):
+    module, _, _ = fake
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    module.kernel._cache._cache_path = str(blocker / "cache")  # a directory that cannot be made
+    assert compilation.register(module, True) is False
+    with pytest.warns(RuntimeWarning, match="cannot write numba's cache directory"):
+        compilation.poll()
+    assert compilation.pending is False and compilation._process is None and module.ENABLED is False
+
+
+def test_kernels_without_a_disk_cache_wait_for_nothing(fake):
+    """E.g. NUMBA_DISABLE_JIT: the kernels are plain functions, nothing to compile, no cache to fill."""
+    module, _, _ = fake
+    del module.kernel
+    assert compilation.register(module, True) is True
+    assert compilation.pending is False
