@@ -1,4 +1,4 @@
-"""The integration layer's warm-up: small scenes through every compiled kernel (``python -m integration.warmup``
+"""The integration layer's warm-up: small scenes through the compiled kernels (``python -m integration.warmup``
 fills numba's cache for softbody's and integration's kernels; softbody.compilation starts it in the background on
 a first run, ``softbody compile`` in the foreground).
 
@@ -15,7 +15,9 @@ from softbody import warmup as fem_warmup
 from .world import World
 
 
-def _soft(kind: str, size, cells, center, E: float = 5e5) -> FemBody:
+def _soft(kind: str, size: tuple[float, float, float], cells: tuple[int, int, int],
+          center: tuple[float, float, float], E: float = 5e5) -> FemBody:
+    """A soft box of ``kind`` elements, ``size`` [m] in ``cells``, centred at ``center`` [m], Young's modulus E [Pa]."""
     return FemBody(box_mesh(size, cells, kind, center=center), LinearElastic(E, 0.33, 1000.0), damping=(0.1, 0.001))
 
 
@@ -44,6 +46,7 @@ def cubes(steps: int = 12) -> None:
 
 
 def run() -> None:
+    """Every warm-up scene: the FEM core's, then the World's."""
     fem_warmup.run()
     sheets()
     cubes()

@@ -89,7 +89,7 @@ class SpdSolver:
             raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
         if backend == "blocks" and n % 3:
             raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks: n a multiple of 3, got {n}")
-        if backend == "blocks" and not kernels.AVAILABLE:  # (named: compiled at first use, even on a first run)
+        if backend == "blocks" and not kernels.AVAILABLE:  # named by the user: compiled at first use, warm-up or not
             raise InvalidInputError("backend 'blocks' is compiled: it needs numba, and SOFTBODY_NO_NUMBA unset")
         self._blocks = prefers_blocks(indptr, indices, n) if backend == "auto" else None
         if backend == "blocks":

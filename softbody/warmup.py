@@ -1,4 +1,4 @@
-"""The FEM core's warm-up: small simulations through every compiled kernel of softbody (``python -m softbody.warmup``
+"""The FEM core's warm-up: small simulations through the compiled kernels of softbody (``python -m softbody.warmup``
 fills numba's cache; softbody.compilation starts it in the background on a first run).
 
 Each element type steps a cantilever with the warped stiffness, by the direct solver (the small systems' block
