@@ -23,6 +23,7 @@ in the foreground, e.g. when building an image.
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
@@ -234,6 +235,14 @@ def _start() -> None:
     finally:
         os.close(fd)
     _rounds += 1
+    atexit.register(_leave_running)
+
+
+def _leave_running() -> None:
+    """At exit: a warm-up still running is left to finish (it outlives this run on purpose, in its own session),
+    without Popen's ResourceWarning about it."""
+    if _process is not None and _process.poll() is None:
+        _process.returncode = 0
 
 
 def _release_lock(holder: str) -> None:
