@@ -107,7 +107,7 @@ def _is_warm(source: str, module: ModuleType) -> bool:
 
 def cache_is_warm() -> bool:
     """Whether numba's cache holds every registered kernel module as it is now (stamped by a warm-up)."""
-    return all(_is_warm(source, module) for module, source in _modules)
+    return all(_is_warm(source, module) for module, source in _modules if _stamp_path(source, module) is not None)
 
 
 def stamp(identities: dict[str, dict] | None = None) -> None:
@@ -128,6 +128,7 @@ def stamp(identities: dict[str, dict] | None = None) -> None:
 
 
 def _set_enabled(flag: bool) -> None:
+    """Set the ENABLED flag of every registered kernel module (read at each call site)."""
     global switches
     for module, _ in _modules:
         module.ENABLED = flag
