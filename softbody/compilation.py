@@ -153,6 +153,7 @@ def register(module: ModuleType, available: bool, warmup: str | None = None) -> 
 
 
 def _lock_path() -> str | None:
+    """The warm-up's lock file, beside the first registered module's cached kernels (None: no disk cache)."""
     for module, source in _modules:
         directory = _cache_dir(module)
         if directory is not None:
