@@ -147,15 +147,16 @@ def _length(v: np.ndarray) -> float:
     return math.sqrt(float(v @ v))
 
 
-def _read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+def read_only(*arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The arrays, made read-only (shared empty fields: an in-place change fails loudly)."""
     for a in arrays:
         a.flags.writeable = False
     return arrays
 
 
 _I0, _I03, _F0, _F03 = np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0), np.zeros((0, 3))
-_EMPTY_CONTACT_FIELDS = _read_only(_I0, _I0, _I0, _F03, _F03, _F0, _I0)
-_EMPTY_FACE_FIELDS = _read_only(_I0, _I0, _I03, _F03, _F03, _F03, _F0, _I0, _I0, _I0, np.zeros(0, bool), _I0)
+_EMPTY_CONTACT_FIELDS = read_only(_I0, _I0, _I0, _F03, _F03, _F0, _I0)
+_EMPTY_FACE_FIELDS = read_only(_I0, _I0, _I03, _F03, _F03, _F03, _F0, _I0, _I0, _I0, np.zeros(0, bool), _I0)
 _NO_ROWS, _ZERO3 = np.zeros((0, 3)), np.zeros(3)  # the prefilter's sweep arguments when there is no sweep
 _NO_ROUND = (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))  # no round parts
 

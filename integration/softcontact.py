@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, run_starts, vertex_normals
+from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, read_only, run_starts, vertex_normals
 from .distance import cross
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
@@ -62,10 +62,9 @@ class SoftSurface:
         return vertex_normals(x, self.triangles, self.incidence)
 
 
-_EMPTY_FIELDS = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                 np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
-for _a in _EMPTY_FIELDS:  # shared by every empty SoftHits: read-only, so that an in-place change fails loudly
-    _a.flags.writeable = False
+_EMPTY_FIELDS = read_only(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                          np.zeros((0, 3), np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
+                          np.zeros(0, np.int64))  # shared by every empty SoftHits
 
 
 @dataclass

@@ -52,6 +52,7 @@ LOCK_MAX_AGE = 600.0
 pending = False
 _modules: list[tuple[ModuleType, str]] = []  # (module with an ENABLED flag, its source file)
 _warmup_module = "softbody.warmup"
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # the checkout holding softbody/ (warm-up's cwd)
 _process: subprocess.Popen | None = None
 _next_check = 0.0
 _rounds = 0  # warm-up processes this process started
@@ -202,9 +203,8 @@ def _take_lock(path: str) -> int | None:
 
 def _child_env(**extra: str) -> dict[str, str]:
     """The environment of a warm-up child: this one, this checkout first on the path, kernels compiled in-process."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     return dict(os.environ, SOFTBODY_COMPILE="now", **extra,
-                PYTHONPATH=os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p))
+                PYTHONPATH=os.pathsep.join(p for p in (_ROOT, os.environ.get("PYTHONPATH", "")) if p))
 
 
 def _start() -> None:
@@ -227,7 +227,7 @@ def _start() -> None:
         with open(os.path.join(os.path.dirname(lock), "softbody-warmup.log"), "w") as log:
             _process = subprocess.Popen([sys.executable, "-m", _warmup_module], stdin=subprocess.DEVNULL, stdout=log,
                                         stderr=subprocess.STDOUT, env=_child_env(SOFTBODY_WARMUP_LOCK=lock),
-                                        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))), **detach)
+                                        cwd=_ROOT, **detach)
         os.write(fd, str(_process.pid).encode())
     except OSError as error:
         with contextlib.suppress(OSError):
@@ -302,7 +302,7 @@ def compile_now() -> float:
     global pending
     tic = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", _warmup_module], stdin=subprocess.DEVNULL, capture_output=True,
-                          text=True, env=_child_env(), cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+                          text=True, env=_child_env(), cwd=_ROOT)
     if done.returncode != 0:
         raise RuntimeError(f"python -m {_warmup_module} failed (code {done.returncode}):\n{done.stdout}{done.stderr}")
     if not cache_is_warm():
