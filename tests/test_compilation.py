@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -223,3 +224,28 @@ def test_kernels_without_a_disk_cache_wait_for_nothing(fake):
     del module.kernel
     assert compilation.register(module, True) is True
     assert compilation.pending is False
+
+
+@pytest.mark.skipif(os.name == "nt", reason="waitpid and SIGKILL: POSIX")
+def test_a_warm_up_running_at_exit_is_left_to_finish_without_a_resource_warning(monkeypatch):
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        monkeypatch.setattr(compilation, "_process", child)
+        compilation._leave_running()
+        assert child.returncode == 0  # Popen's __del__ then says nothing of it
+        assert child.poll() == 0 and os.waitpid(child.pid, os.WNOHANG) == (0, 0)  # and it still runs
+    finally:
+        os.kill(child.pid, signal.SIGKILL)  # (Popen.kill sends nothing once returncode is set)
+        os.waitpid(child.pid, 0)
+
+
+def test_timed_commands_fill_a_cold_cache_first(fake, monkeypatch):
+    module, _, _ = fake
+    compilation.register(module, True)
+    ran, said = [], []
+    monkeypatch.setattr(compilation, "compile_now", lambda: ran.append(True) or 1.0)
+    compilation.ensure_ready(said.append)
+    assert ran == [True] and "compiling softbody's kernels" in said[0]
+    monkeypatch.setattr(compilation, "pending", False)
+    compilation.ensure_ready(said.append)  # a warm cache: nothing to do
+    assert ran == [True] and len(said) == 1
