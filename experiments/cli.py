@@ -264,7 +264,7 @@ def recommend_command(args: argparse.Namespace) -> None:
 def sweep_command(args: argparse.Namespace) -> None:
     from pathlib import Path
 
-    from experiments.sweep import parse_param, run_sweep
+    from experiments.sweep import parse_param, run_sweep, value_text
 
     params: dict[str, list] = {}
     for text in args.param:
@@ -279,7 +279,8 @@ def sweep_command(args: argparse.Namespace) -> None:
     shown = list(result.grid) + ["status", "steps", "ms_per_step", "max_penetration_mm", "monitor_end", "slip_mm"]
     print("| " + " | ".join(shown) + " |")
     for row in rows:
-        print("| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in (row[c] for c in shown)) + " |")
+        print("| " + " | ".join(value_text(row[c]) if c in result.grid else f"{row[c]:.4g}" if isinstance(row[c], float)
+                                else str(row[c]) for c in shown) + " |")
     failed = sum(r["status"] != "ok" for r in rows)
     print(f"# {len(rows)} runs ({len(result.executed)} made, {len(rows) - len(result.executed)} from the cache"
           f"{f', {failed} failed: see summary.md' if failed else ''}); written to {result.out}/: results.csv, "

@@ -118,6 +118,11 @@ def value_text(v: Any) -> str:
     return str(v)
 
 
+def _from_json(v: Any) -> Any:
+    """A parameter value read back from JSON: its lists as tuples (cells (6, 6, 2) as given)."""
+    return tuple(_from_json(c) for c in v) if isinstance(v, list) else v
+
+
 def _jsonable(v: Any) -> Any:
     if isinstance(v, (np.integer,)):
         return int(v)
@@ -199,8 +204,8 @@ def scene_parameters(spec: SceneSpec) -> tuple[list[str], bool]:
 # ---------------------------------------------------------------------------------------- one run
 @dataclass
 class Point:
-    """One run: ``params`` as given, ``row`` (its parameters and metrics, the CSV row), ``times`` (n,) [s]
-    and ``values`` (n,) of the monitored value (empty without a monitor)."""
+    """One run: ``params`` as given, ``row`` (its parameters, as given, and metrics: the CSV row), ``times``
+    (n,) [s] and ``values`` (n,) of the monitored value (empty without a monitor)."""
 
     params: dict
     row: dict
@@ -210,15 +215,16 @@ class Point:
     def save(self, path: Path) -> None:
         from experiments.study import save_cached_run
 
-        save_cached_run(path, self.times, self.values, {"params": _jsonable(self.params), "row": self.row}, FORMAT)
+        save_cached_run(path, self.times, self.values, {"params": _jsonable(self.params),
+                                                         "row": {**self.row, **_jsonable(self.params)}}, FORMAT)
 
     @classmethod
     def load(cls, path: Path) -> "Point":
         from experiments.study import load_cached_run
 
         times, values, meta = load_cached_run(path, FORMAT)
-        params = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["params"].items()}
-        return cls(params, meta["row"], times, values)
+        params = {k: _from_json(v) for k, v in meta["params"].items()}
+        return cls(params, {**meta["row"], **params}, times, values)  # the row's parameters typed, as given
 
 
 def _rigid_names(world) -> dict[int, str]:
@@ -274,7 +280,7 @@ def run_point(spec: SceneSpec, params: Mapping[str, Any], duration: float | None
         pin_threads(threads)
     wall0 = time.perf_counter()
     params = dict(params)
-    row: dict[str, Any] = {k: value_text(v) for k, v in params.items()}
+    row: dict[str, Any] = dict(params)
     row.update({c: math.nan for c in COLUMNS})
     row.update(status="ok", diverged=0, error="", steps=0)
     times: list[float] = []
@@ -511,8 +517,8 @@ def run_sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], out: str
 
 
 def sweep(scene: str | os.PathLike, params: Mapping[str, Sequence], **options) -> list[dict]:
-    """The rows of :func:`run_sweep` (one dict per run, in grid order: the parameters as text, as in the CSV
-    (cells as 6x6x2), then the metrics as numbers, NaN where a failed run has none). With local workers (the
+    """The rows of :func:`run_sweep` (one dict per run, in grid order: the parameters as given, e.g. E 5e6
+    and cells (6, 6, 2), then the metrics as numbers, NaN where a failed run has none). With local workers (the
     default, one process) a script calling it needs the ``if __name__ == "__main__":`` guard of multiprocessing;
     ``workers=0`` runs in the calling process."""
     return run_sweep(scene, params, **options).rows
@@ -533,12 +539,13 @@ def write_results(result: SweepResult) -> Path:
         w = csv.DictWriter(f, fieldnames=result.columns)
         w.writeheader()
         for row in result.rows:
-            w.writerow({k: _cell(v) for k, v in row.items()})
+            w.writerow({k: value_text(v) if k in result.grid else _cell(v) for k, v in row.items()})
     return path
 
 
 def read_results(path: str | os.PathLike) -> list[dict]:
-    """The rows of a sweep's results.csv (a directory or the file), numbers converted, empty cells NaN."""
+    """The rows of a sweep's results.csv (a directory or the file), numbers converted, empty cells NaN; the
+    parameters parsed as on the command line (:func:`parse_value`: cells 6x6x2 as (6, 6, 2))."""
     path = Path(path)
     path = path / "results.csv" if path.is_dir() else path
     if not path.exists():
@@ -588,17 +595,18 @@ def write_plots(result: SweepResult) -> list[Path]:
         others = [k for k in result.grid if k != param and len(result.grid[k]) > 1]  # (one value: no line of its own)
         groups: dict[tuple, list] = {}
         for r in rows:
-            groups.setdefault(tuple(r[k] for k in others), []).append(r)
+            groups.setdefault(tuple(value_text(r[k]) for k in others), []).append(r)
         ncols = min(4, len(metrics))
         nrows = math.ceil(len(metrics) / ncols)
         fig = _figure(3.4 * ncols, 2.8 * nrows + 0.6)
         axes = np.atleast_1d(fig.subplots(nrows, ncols, squeeze=False)).ravel()
         for ax, metric in zip(axes, metrics):
             for gi, (group, grows) in enumerate(groups.items()):
-                by = {r[param]: r.get(metric) for r in grows}
+                by = {value_text(r[param]): r.get(metric) for r in grows}
                 ys = [by.get(t, math.nan) for t in texts]
                 ys = [float(y) if isinstance(y, (int, float)) and not isinstance(y, bool) else math.nan for y in ys]
-                failed = [x for x, t in zip(xs, texts) if any(r[param] == t and r["status"] != "ok" for r in grows)]
+                failed = [x for x, t in zip(xs, texts)
+                          if any(value_text(r[param]) == t and r["status"] != "ok" for r in grows)]
                 lab = ", ".join(f"{k}={v}" for k, v in zip(others, group)) or None
                 line, = ax.plot(xs, ys, marker="o", ms=4, lw=1.2, label=lab)
                 for x in failed:
@@ -655,11 +663,11 @@ def write_summary(result: SweepResult) -> Path:
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
         lines += ["## Failed runs", ""]
-        lines += [f"- {', '.join(f'{k}={r[k]}' for k in result.grid)}: {r['status']} after {r['steps']} steps: "
+        lines += [f"- {', '.join(f'{k}={value_text(r[k])}' for k in result.grid)}: {r['status']} after {r['steps']} steps: "
                   f"{r['error'][:300]}" for r in failed] + [""]
     shown = [c for c in result.columns if c not in ("error", "diverged", "wall_s", "energy_start_J")]
     lines += ["## Runs", "", "| " + " | ".join(shown) + " |", "|" + "---|" * len(shown)]
-    lines += ["| " + " | ".join(_fmt(r[c]) for c in shown) + " |" for r in rows]
+    lines += ["| " + " | ".join(value_text(r[c]) if c in result.grid else _fmt(r[c]) for c in shown) + " |" for r in rows]
     metrics = plot_metrics(result)
     ok = [r for r in rows if r["status"] == "ok"]
     for param, values in result.grid.items():
@@ -669,7 +677,7 @@ def write_summary(result: SweepResult) -> Path:
                   + (f" (over {', '.join(k for k in result.grid if k != param)})" if len(result.grid) > 1 else "") + ".",
                   "", f"| {param} | runs | " + " | ".join(metrics) + " |", "|---|---:|" + "---:|" * len(metrics)]
         for v in values:
-            sel = [r for r in ok if r[param] == value_text(v)]
+            sel = [r for r in ok if value_text(r[param]) == value_text(v)]
             means = []
             for m in metrics:
                 arr = _numeric(sel, m) if sel else None

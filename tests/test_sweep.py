@@ -7,6 +7,7 @@ Dask cluster (as tests/test_study.py does for studies).
 from __future__ import annotations
 
 import csv
+import itertools
 import math
 import textwrap
 from pathlib import Path
@@ -55,7 +56,7 @@ def test_a_canonical_sweep_has_one_row_per_run_in_grid_order_with_its_metrics(sh
     for r in sheet.rows:
         assert r["status"] == "ok" and r["error"] == "" and r["diverged"] == 0
         assert r["steps"] == 30 and r["t_end_s"] == pytest.approx(DURATION) and r["dt_s"] == 0.01
-        assert r["cells"] == "4x4x2"
+        assert r["cells"] == (4, 4, 2)
         assert 0 < r["ms_per_step"] < 1e3 and r["wall_s"] > 0
         assert 0 <= r["max_penetration_mm"] < 5
         # the monitored corner (rest z = 0.35 m) fell: its end and extremes are consistent
@@ -69,6 +70,18 @@ def test_a_canonical_sweep_has_one_row_per_run_in_grid_order_with_its_metrics(sh
         assert all(a >= b - 1e-9 for a, b in zip(slips, slips[1:])), (element, slips)
     tet10 = [r["slip_mm"] for r in sheet.rows if r["element"] == "tet10"]
     assert tet10[0] > 1.0 and tet10[-1] < 0.1  # frictionless it slides mm, at mu = 0.8 it sticks
+
+
+def test_rows_carry_the_parameters_as_given_fresh_from_the_cache_and_from_the_csv(sheet):
+    grid = [dict(zip(GRID, values)) for values in itertools.product(*GRID.values())]
+    cached = run_sweep("sheet-on-sphere", GRID, sheet.out, duration=DURATION, workers=0, progress=False, plots=False)
+    assert cached.executed == []
+    for how, rows in (("fresh", sheet.rows), ("cache", cached.rows), ("csv", read_results(sheet.out))):
+        params = [{k: r[k] for k in GRID} for r in rows]
+        assert params == grid, how
+        for got, given in zip(params, grid):
+            assert {k: type(v) for k, v in got.items()} == {k: type(v) for k, v in given.items()}, how
+    assert csv_rows(sheet.out)[0]["cells"] == "4x4x2"  # the CSV writes cells as on the command line
 
 
 def test_outputs_plots_summary_and_the_cache(sheet):
@@ -204,6 +217,7 @@ def test_the_command_line(tmp_path, capsys):
     assert "| E | cells | status |" in text and "2 runs (2 made, 0 from the cache)" in text
     rows = csv_rows(out)
     assert [r["E"] for r in rows] == ["5000000.0", "50000000.0"] and all(r["status"] == "ok" for r in rows)
+    assert [(r["E"], r["cells"]) for r in read_results(out)] == [(5e6, (4, 1, 1)), (5e7, (4, 1, 1))]
     # a softer beam sags further at its tip
     assert float(rows[0]["monitor_min"]) < float(rows[1]["monitor_min"])
 
