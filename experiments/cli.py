@@ -261,7 +261,8 @@ def recommend_command(args: argparse.Namespace) -> None:
           f"second, error {1e3 * c['error_m']:.3f} mm)")
 
 
-def sweep_command(args: argparse.Namespace) -> None:
+def sweep_command(args: argparse.Namespace) -> int:
+    """softbody sweep: runs the grid, prints its table; exit status 1 if every run failed (0 otherwise)."""
     from pathlib import Path
 
     from experiments.sweep import parse_param, run_sweep, value_text
@@ -285,6 +286,11 @@ def sweep_command(args: argparse.Namespace) -> None:
     print(f"# {len(rows)} runs ({len(result.executed)} made, {len(rows) - len(result.executed)} from the cache"
           f"{f', {failed} failed: see summary.md' if failed else ''}); written to {result.out}/: results.csv, "
           "summary.md, plots/, trajectories.png" + (", recordings/" if args.record else ""))
+    if rows and failed == len(rows):
+        print(f"softbody sweep: every run failed; the first: {rows[0]['status']}: {rows[0]['error'][:300]}",
+              file=sys.stderr)
+        return 1
+    return 0
 
 
 class Terminated(BaseException):
@@ -331,12 +337,13 @@ def signal_in(exc: BaseException | None) -> BaseException | None:
 
 
 def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) -> int:
-    """Run a command: an InvalidInputError is a one-line usage error (exit 2); Ctrl-C exits 130, SIGTERM and
+    """Run a command: its exit status is what it returns if an int (else 0); an InvalidInputError is a one-line
+    usage error (exit 2); Ctrl-C exits 130, SIGTERM and
     SIGHUP 128 + the signal number, after the command's ``finally`` blocks (e.g. a recording closed), also when
     the signal arrived inside C code that turned it into a SystemError (:func:`signal_in`)."""
     try:
         with signals_as_exceptions():
-            command()
+            status = command()
     except InvalidInputError as exc:
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
     except (KeyboardInterrupt, Terminated, SystemError) as exc:
@@ -348,7 +355,7 @@ def _dispatch(parser: argparse.ArgumentParser, command: Callable[[], object]) ->
             return 130
         print(f"\n# {sig}", file=sys.stderr)
         return 128 + sig.signum
-    return 0
+    return status if isinstance(status, int) else 0
 
 
 def compile_command() -> None:
@@ -426,7 +433,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                    "a background process while the numpy code runs)")
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
 
-    def command() -> None:
+    def command() -> int | None:
         if args.command in ("study", "recommend", "sweep", "bench"):  # timed: never the numpy code of a first run
             import integration.kernels  # noqa: F401  (registered before the question)
             from softbody import compilation
@@ -439,7 +446,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         elif args.command == "recommend":
             recommend_command(args)
         elif args.command == "sweep":
-            sweep_command(args)
+            return sweep_command(args)
         elif args.command == "compile":
             compile_command()
         elif args.command == "bench":

@@ -201,6 +201,69 @@ def scene_parameters(spec: SceneSpec) -> tuple[list[str], bool]:
     return names, any(p.kind == p.VAR_KEYWORD for p in sig.parameters.values())
 
 
+def _choices() -> dict[str, tuple[str, ...]]:
+    """The values the canonical scenes' text parameters take (a user's file may mean anything by its own)."""
+    from softbody.elements import ELEMENT_TYPES
+    from softbody.linsolve import BACKENDS
+    from softbody.simulation import SCHEMES
+
+    return {"element": tuple(sorted(ELEMENT_TYPES)), "scheme": tuple(SCHEMES), "solver": tuple(BACKENDS)}
+
+
+_ANNOTATED = {"float": float, "int": int, "bool": bool, "str": str}
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_number(v: Any) -> bool:
+    return _is_int(v) or isinstance(v, (float, np.floating))
+
+
+def _kind(p: inspect.Parameter) -> tuple[str, Callable[[Any], bool]] | None:
+    """What a builder's parameter takes, from its annotation (float, int, bool, str) or else its default (an
+    integer default takes any number: ``height=0`` may mean a length): a description and a test; None when
+    neither tells (no check)."""
+    ann = p.annotation if isinstance(p.annotation, str) else getattr(p.annotation, "__name__", "")
+    base = _ANNOTATED.get(str(ann).replace(" ", "").removesuffix("|None"))
+    d = p.default
+    if base is bool or (base is None and isinstance(d, (bool, np.bool_))):
+        return "true or false", lambda v: isinstance(v, (bool, np.bool_))
+    if base is int:
+        return "an integer", _is_int
+    if base is float or (base is None and _is_number(d)):
+        return "a number", _is_number
+    if base is str or (base is None and isinstance(d, str)):
+        return "text", lambda v: isinstance(v, str)
+    if isinstance(d, (tuple, list)) and d and all(_is_int(c) for c in d):
+        n = len(d)
+        return (f"{n} integers ({'x'.join(['N'] * n)} on the command line)",
+                lambda v: isinstance(v, (tuple, list)) and len(v) == n and all(_is_int(c) for c in v))
+    return None
+
+
+def check_values(spec: SceneSpec, grid: Mapping[str, Sequence]) -> None:
+    """Refuse, before anything runs, a value of the wrong kind for the scene's builder (text for a number,
+    a number for true/false, cells of the wrong length: from the builder's defaults or annotations) and, for a
+    canonical scene, an element, scheme or solver it does not have. InvalidInputError naming the parameter,
+    the value and what is valid."""
+    params = inspect.signature(_builder(spec)).parameters
+    choices = _choices() if spec.source is None else {}
+    for name, values in grid.items():
+        p = params.get(name)
+        kind = _kind(p) if p is not None else None
+        for v in values:
+            if kind is not None and not kind[1](v):
+                d = p.default
+                default = ("" if d is p.empty or d is None else
+                           f" (its default: {str(d).lower() if isinstance(d, bool) else value_text(d)})")
+                raise InvalidInputError(f"scene {spec.name!r}: parameter {name} takes {kind[0]}{default}, got {v!r}")
+            if name in choices and v not in choices[name]:
+                raise InvalidInputError(f"scene {spec.name!r}: parameter {name} takes one of "
+                                        f"{', '.join(choices[name])}, got {v!r}")
+
+
 # ---------------------------------------------------------------------------------------- one run
 @dataclass
 class Point:
@@ -439,6 +502,7 @@ def _check_grid(spec: SceneSpec, params: Mapping[str, Sequence], dt: float | Non
                                 f"its parameters: {', '.join(names)}")
     if dt is not None and "dt" in grid:
         raise InvalidInputError("dt is both swept (a parameter) and fixed (dt=...): give it once")
+    check_values(spec, grid)
     return grid
 
 

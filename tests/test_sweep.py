@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import itertools
 import math
+import re
 import textwrap
 from pathlib import Path
 
@@ -108,12 +109,12 @@ def test_outputs_plots_summary_and_the_cache(sheet):
 
 
 def test_a_failing_run_is_a_row_with_its_error_not_a_crashed_sweep(tmp_path):
-    rows = sweep("cantilever", {"element": ["tet4", "tet5"], "cells": [(4, 1, 1)]}, out=tmp_path, duration=0.05,
+    rows = sweep("cantilever", {"nu": [0.3, 0.5], "cells": [(4, 1, 1)]}, out=tmp_path, duration=0.05,
                  workers=0, progress=False)
     ok, bad = rows
     assert ok["status"] == "ok" and ok["steps"] == 5
     assert bad["status"] == "error" and bad["diverged"] == 0 and bad["steps"] == 0
-    assert "InvalidInputError" in bad["error"] and "tet5" in bad["error"]
+    assert "InvalidInputError" in bad["error"] and "nu must satisfy" in bad["error"]  # LinearElastic's refusal
     assert math.isnan(bad["ms_per_step"]) and math.isnan(bad["monitor_end"])
     assert "## Failed runs" in (tmp_path / "summary.md").read_text()
     assert csv_rows(tmp_path)[1]["status"] == "error"
@@ -206,6 +207,46 @@ def test_bad_sweeps_are_usage_errors_naming_what_is_valid(tmp_path):
     with pytest.raises(SystemExit) as exc:
         cli.main(["sweep", "cantilever", "--param", "E=1e5", "--param", "E=2e5"])
     assert exc.value.code == 2
+
+
+@pytest.mark.parametrize("scene, grid, message", [
+    ("cantilever", {"E": [5e6, "abc"]}, "parameter E takes a number (its default: 50000000.0), got 'abc'"),
+    ("cantilever", {"cells": [(4, 1)]}, "parameter cells takes 3 integers (NxNxN on the command line)"),
+    ("sheet-on-sphere", {"warping": [1]}, "parameter warping takes true or false"),
+    ("sheet-on-sphere", {"element": ["tet5"]}, "parameter element takes one of hex8, tet10, tet4, got 'tet5'"),
+    ("cantilever", {"scheme": ["implicit"]}, "parameter scheme takes one of warped, newton"),
+    ("cubes-on-plane", {"count": [2.5]}, "parameter count takes an integer"),
+])
+def test_a_value_the_scene_cannot_take_is_refused_before_any_run(scene, grid, message, tmp_path):
+    with pytest.raises(InvalidInputError, match=re.escape(message)):
+        run_sweep(scene, grid, tmp_path, workers=0, progress=False)
+    assert not (tmp_path / "runs").exists()  # nothing ran
+
+
+def test_a_user_files_parameters_are_checked_against_its_defaults(tmp_path):
+    path = tmp_path / "cube_drop.py"
+    path.write_text(USER_SCENE)
+    with pytest.raises(InvalidInputError, match="parameter fail takes true or false"):
+        run_sweep(path, {"fail": ["no"]}, workers=0, progress=False)
+    with pytest.raises(InvalidInputError, match="parameter height takes a number"):
+        run_sweep(path, {"height": ["high"]}, workers=0, progress=False)
+
+
+def test_the_command_line_exits_2_on_a_bad_value_and_1_when_every_run_failed(tmp_path, capsys):
+    base = ["--param", "cells=4x1x1", "--duration", "0.02", "--workers", "0", "--no-progress"]
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["sweep", "cantilever", "--param", "E=abc", "--out", str(tmp_path / "a"), *base])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "parameter E takes a number" in err and "'abc'" in err
+    assert not (tmp_path / "a").exists()
+    # nu = 0.5 is a number, which LinearElastic refuses when the run builds its body: both runs fail
+    assert cli.main(["sweep", "cantilever", "--param", "nu=0.5,0.6", "--out", str(tmp_path / "b"), *base]) == 1
+    err = capsys.readouterr().err
+    assert "every run failed" in err and "nu must satisfy" in err
+    assert [r["status"] for r in read_results(tmp_path / "b")] == ["error", "error"]
+    # one run of two failing is a sweep with a failure, not a failed command
+    assert cli.main(["sweep", "cantilever", "--param", "nu=0.3,0.5", "--out", str(tmp_path / "c"), *base]) == 0
 
 
 def test_the_command_line(tmp_path, capsys):
