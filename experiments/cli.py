@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import re
 import signal
 import sys
 import threading
@@ -17,6 +18,23 @@ from softbody.errors import InvalidInputError
 
 from .scenes import SCENES, Scene, build_scene, scene_grid
 from .sizing import check_run_size
+
+
+_ROLE = re.compile(r":[\w:.-]+:`~?([^`]+)`")  # :func:`run_point`, :class:`~softbody.FemBody`
+_LITERAL = re.compile(r"``([^`]+)``")
+_TICKS = re.compile(r"`([^`]+)`")
+_BOLD = re.compile(r"(?<![\w*])\*\*(\w(?:[^*\n]*\w)?)\*\*(?![\w*])")  # **bold**, not scene(**params)
+_LINK = re.compile(r"\[([^\]\n]+)\]\(([^)\s]+)\)")  # markdown [text](target)
+
+
+def plain_text(text: str | None) -> str | None:
+    """``text`` (a docstring or help) without its reST and markdown markup, for ``--help``: roles, literals and
+    backticks as their text, bold as its text, links as "text (target)", a literal block's "::" as ":"."""
+    if text is None:
+        return None
+    for pattern, repl in ((_ROLE, r"\1"), (_LITERAL, r"\1"), (_TICKS, r"\1"), (_BOLD, r"\1"), (_LINK, r"\1 (\2)")):
+        text = pattern.sub(repl, text)
+    return re.sub(r"(\S)::$", r"\1:", text, flags=re.M)
 
 
 def _positive_float(text: str) -> float:
@@ -374,14 +392,15 @@ def compile_command() -> None:
 
 def scene_main(scene: str, description: str | None = None, argv: Sequence[str] | None = None) -> int:
     """The command line of an example script running one scene (the flags of ``softbody run``)."""
-    parser = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=plain_text(description),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_scene_arguments(parser, scene=scene)
     args = parser.parse_args(argv)
     return _dispatch(parser, lambda: run_scene(args, scene))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="softbody", description=__doc__)
+    parser = argparse.ArgumentParser(prog="softbody", description=plain_text(__doc__))
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run a canonical scene and print the monitored node")
     add_scene_arguments(run)
@@ -405,7 +424,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                      help="time steps [s] to consider (default 0.01 0.02)")
     add_study_arguments(rec)
     sweep = sub.add_parser("sweep", help="a parameter sweep: the full grid over --param NAME=V1,V2,..., one row of "
-                                         "metrics per run: CSV, plots, summary ([docs/sweeps.md])")
+                                         "metrics per run: CSV, plots, summary (docs/sweeps.md)")
     sweep.add_argument("scene", help=f"a scene name ({', '.join(sorted(SCENES))}) or the path of a Python file "
                                      "defining scene(**params) -> World (optionally monitor(world) -> float and "
                                      "metrics(world) -> dict)")

@@ -97,10 +97,18 @@ def test_world_stacks_cubes_on_a_plane_with_the_same_answer():
 @pytest.mark.parametrize("mu", [0.0, 0.3])
 def test_world_stack_keeps_soft_contact_and_attachments(mu):
     """A cube dropped onto another (soft-soft contact inside one stack) and a third held to a fixed box by an
-    attachment: the same motion as the bodies stepped alone, the held one to round-off, the two in soft contact
-    to 0.1 mm. (They agree to round-off until the soft contact starts; from there the active set's discrete
-    decisions, taken at velocity_tol, differ with the round-off of a larger system, and the cubes' sliding
-    carries the difference on: 0.05-0.06 mm after 25 steps, with or without friction.)"""
+    attachment: the same motion as the bodies stepped alone, the held one to round-off, the two in contact to what
+    the contact solver's stated tolerances leave open.
+
+    The active set adds a contact whose gap closes faster than velocity_tol [m/s]: a decision taken at that threshold
+    moves a node by at most velocity_tol * dt per step. Which contacts carry an impact, and with friction which ones
+    stick (a stick/slip change after the step's friction_switches iterations waits for the next step; a contact
+    within cone_tol of the cone's edge goes either way), is decided at those thresholds, so the round-off of a larger
+    system may tip a decision: a node then slides, or does not, for one step, at most its sliding speed times dt,
+    and a frictionless cube keeps the sideways speed its impact gave it (it slides on a cube, with nothing to stop
+    it). The bound sums both over the run, the sliding speed measured (the bodies' largest horizontal node speed of
+    each step, in either run); found (25 steps): 1e-13 m compiled and 2e-5 m on the numpy path frictionless, 1.3e-4 m
+    with friction, within bounds of 6e-4 to 7e-4 m."""
     def build(stack):
         world = World(dt=0.01, stack=stack)
         world.add_plane()
@@ -111,12 +119,22 @@ def test_world_stack_keeps_soft_contact_and_attachments(mu):
         top = np.flatnonzero(held.rest[:, 2] > held.rest[:, 2].max() - 1e-9)
         world.attach(held, top, post)
         return world, [low, high, held]
-    (ws, bs), (wa, ba) = _run(True, 25, build), _run(False, 25, build)
+    (ws, bs), (wa, ba) = build(True), build(False)
+    cs = ws.contact_solver
+    bound = 0.0
+    for _ in range(25):
+        ws.step()
+        wa.step()
+        # one decision per step tipped the other way, at the fastest slide of either run
+        bound += cs.velocity_tol * ws.dt + ws.dt * max(float(np.hypot(*b.velocities[:, :2].T).max())
+                                                         for b in (*bs[:2], *ba[:2]))
     stacked = [s for s in ws.sim.bodies if isinstance(s, BodyStack)]  # the two in soft contact, apart
     assert len(stacked) == 1 and stacked[0].members == bs[:2] and bs[2] in ws.sim.bodies
     assert any(r.active.any() for _, r in ws.pair_results)  # the falling cube rests on the lower one
-    for a, b, tol in zip(ba, bs, (1e-4, 1e-4, 1e-12)):
-        assert np.abs(a.positions - b.positions).max() < tol
+    assert np.abs(ba[2].positions - bs[2].positions).max() < 1e-12  # no contact: the same arithmetic
+    for a, b in zip(ba[:2], bs[:2]):
+        assert np.abs(a.positions - b.positions).max() <= bound
+    assert bound < 2e-3  # far below the cubes' size (0.1 m): a broken stack moves them by centimetres
     assert bs[1].positions[:, 2].min() > bs[0].positions[:, 2].max() - 1e-4  # resting on it, not through it
 
 
