@@ -128,8 +128,9 @@ def figure(result, path: Path) -> Path:
 
 def main(argv=None) -> int:
     from experiments import run_sweep
+    from experiments.cli import plain_text
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="sweeps/friction_sweep", help="sweep directory (cache, CSV, plots)")
     parser.add_argument("--workers", type=int, default=None, help="local worker processes (default 1)")
     parser.add_argument("--figure", default=None, metavar="PNG", help="also copy the figure here (docs/img/...)")

@@ -148,7 +148,9 @@ def run(hold: float = 2.0, E: float = 1e5, dt: float = 0.005, record: str | None
 
 
 if __name__ == "__main__":
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from experiments.cli import plain_text
+
+    ap = argparse.ArgumentParser(description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hold", type=float, default=2.0, help="seconds to hold the cube up (default 2)")
     ap.add_argument("--E", type=float, default=1e5, help="the cube's Young's modulus [Pa] (default 1e5)")
     ap.add_argument("--dt", type=float, default=0.005, help="time step [s] (default 0.005)")

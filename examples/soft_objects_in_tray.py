@@ -43,7 +43,9 @@ def build(count: int, stack: bool):
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from experiments.cli import plain_text
+
+    parser = argparse.ArgumentParser(description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--count", type=int, default=20, help="soft cubes (default 20)")
     parser.add_argument("--duration", type=float, default=1.5, help="simulated time [s]")
     parser.add_argument("--no-stack", action="store_true", help="step every cube alone (World(stack=False))")

@@ -21,9 +21,10 @@ def main(argv=None) -> int:
     import trimesh
 
     import softbody as sb
+    from experiments.cli import plain_text
     from integration import World
 
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=plain_text(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="bunny.obj", help="a file of pybullet_data, or a path")
     parser.add_argument("--scale", type=float, default=0.1, help="model units to metres (bunny.obj: 0.1 -> 20 cm)")
     parser.add_argument("--size", type=float, default=0.02, help="target edge length [m] (0.01: -0.8%% volume, 8533 nodes, 0.24 s per step)")
