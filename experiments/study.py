@@ -19,7 +19,9 @@ Layout of a study directory (every file is rewritten from the cached runs on eac
     DIR/time_vs_nodes.png                           median ms per step against nodes (log-log)
     DIR/pareto.png                                  error against ms per step, with the Pareto front
 
-:func:`recommend` reads a study and returns the cheapest configuration within a tolerance.
+:func:`recommend` reads a study and returns the cheapest configuration within a tolerance;
+:func:`recommend_shipped` does the same from the published studies shipped in ``experiments/data/``
+(no run), and :func:`recommend_steps` weighs the scheme and the time step too (a study per scheme and dt).
 """
 from __future__ import annotations
 
@@ -30,11 +32,14 @@ import gc
 import json
 import math
 import os
+import queue
+import sys
 import threading
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -171,7 +176,9 @@ class RunResult:
     process's resident memory while building and running the scene [MiB]. ``status`` is "ok" or the
     reason the run stopped early (its trajectory is then partial). ``external_load`` is the number of cores
     that processes outside the study kept busy on average while the run stepped (:class:`_ExternalLoad`;
-    NaN where /proc is missing)."""
+    NaN where /proc is missing). ``warnings`` holds the distinct warnings the run raised ("Category: message";
+    recorded, not printed, so that they do not garble progress bars: :func:`warning_summary`), and
+    ``cycled_steps`` the Newton steps accepted on contacts switching between iterates (0 for the warped step)."""
 
     scene: str
     element: str
@@ -193,6 +200,8 @@ class RunResult:
     meta: dict = field(default_factory=dict)
     external_load: float = math.nan
     scheme: str = "warped"
+    warnings: list[str] = field(default_factory=list)
+    cycled_steps: int = 0
 
     @property
     def key(self) -> str:
@@ -390,9 +399,14 @@ def default_method() -> str:
     return "direct" if p is None or p.default is inspect.Parameter.empty else str(p.default)
 
 
+StepReport = Callable[[str, int, int], object]  # (run key, steps done, steps in all)
+STEP_REPORT_S = 0.5  # a run reports its steps at most this often [s] (and at its last step)
+_STEP_SINK: StepReport | None = None  # in a local worker: puts the reports on the study's queue (_init_worker)
+
+
 def run_configuration(scene: str, element: str, cells: Sequence[int], duration: float | None = None,
                       dt: float = 0.01, method: str | None = None, threads: int | None = 1,
-                      scheme: str = "warped") -> RunResult:
+                      scheme: str = "warped", on_step: StepReport | None = None) -> RunResult:
     """Build ``scene`` with ``element`` and ``cells``, run it for ``duration`` [s] (default: the scene's)
     with step ``dt`` [s] and the step's ``scheme`` ("warped" or "newton"), and return its monitored
     trajectory, sizes, cost and peak memory.
@@ -402,7 +416,10 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
     Simulation's default (:func:`default_method`).
     A pure function of its arguments, for worker processes: the same inputs give bit-identical
     trajectories in any process, local or remote (one BLAS / MKL thread; both methods are deterministic).
-    ``threads`` pins BLAS / MKL / OpenMP for the process (None leaves them as they are)."""
+    ``threads`` pins BLAS / MKL / OpenMP for the process (None leaves them as they are).
+    ``on_step(key, done, total)`` hears of the steps made, at most every STEP_REPORT_S seconds (outside the
+    timed part of a step); in a local worker of :func:`open_executor` with a step queue they go to the queue.
+    Warnings raised by the run are recorded in the result (``warnings``), not shown."""
     from .scenes import build_scene
 
     method = default_method() if method is None else method
@@ -411,49 +428,59 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
     if threads is not None:
         pin_threads(threads)
     cells = tuple(int(c) for c in cells)
-    _warm_up(scene)
-    wall = time.perf_counter()
-    steps_ms: list[float] = []
-    cpu_ms: list[float] = []
-    status = "ok"
-    with _PeakRss() as mem:
-        sc = build_scene(scene, element=element, cells=cells, dt=dt, scheme=scheme)
-        try:
-            sim = sc.world.sim
-            if hasattr(sim, "method"):
-                sim.method = method
-            elif method != "direct":
-                raise InvalidInputError(f"this softbody's Simulation has no {method!r} method")
-            body = sc.body
-            duration = float(sc.duration if duration is None else duration)
-            ts, xs = [sc.world.t], [sc.monitored()]
-            tic = [0.0, 0.0]
-
-            def callback(world) -> None:
-                toc, ctoc = time.perf_counter(), time.thread_time()
-                steps_ms.append(1e3 * (toc - tic[0]))
-                cpu_ms.append(1e3 * (ctoc - tic[1]))
-                ts.append(world.t)
-                xs.append(sc.monitored())
-                tic[0], tic[1] = time.perf_counter(), time.thread_time()
-
+    report = on_step if on_step is not None else _STEP_SINK
+    key = f"{element}_{cells_text(cells)}"
+    with warnings.catch_warnings(record=True) as caught:
+        _warm_up(scene)
+        wall = time.perf_counter()
+        steps_ms: list[float] = []
+        cpu_ms: list[float] = []
+        status = "ok"
+        with _PeakRss() as mem:
+            sc = build_scene(scene, element=element, cells=cells, dt=dt, scheme=scheme)
             try:
-                with _ExternalLoad() as load:
+                sim = sc.world.sim
+                if hasattr(sim, "method"):
+                    sim.method = method
+                elif method != "direct":
+                    raise InvalidInputError(f"this softbody's Simulation has no {method!r} method")
+                body = sc.body
+                duration = float(sc.duration if duration is None else duration)
+                ts, xs = [sc.world.t], [sc.monitored()]
+                tic = [0.0, 0.0]
+                total = int(round(duration / sc.world.dt))
+                reported = [time.perf_counter()]
+
+                def callback(world) -> None:
+                    toc, ctoc = time.perf_counter(), time.thread_time()
+                    steps_ms.append(1e3 * (toc - tic[0]))
+                    cpu_ms.append(1e3 * (ctoc - tic[1]))
+                    ts.append(world.t)
+                    xs.append(sc.monitored())
+                    if report is not None and (toc - reported[0] >= STEP_REPORT_S or len(steps_ms) == total):
+                        report(key, len(steps_ms), total)
+                        reported[0] = toc
                     tic[0], tic[1] = time.perf_counter(), time.thread_time()
-                    sc.world.run(duration, callback)
-            except (SimulationDiverged, SolverError) as exc:
-                status = f"{type(exc).__name__}: {exc}"
-            result = RunResult(
-                scene=scene, element=element, cells=cells, duration=duration, dt=float(sc.world.dt), method=method,
-                times=np.array(ts), values=np.array(xs), elements=int(body.mesh.n_elements),
-                nodes=int(body.mesh.n_nodes), dofs=int(3 * (~body.supported()).sum()), steps=len(steps_ms),
-                median_ms_per_step=float(np.median(steps_ms)) if steps_ms else math.nan,
-                median_cpu_ms_per_step=float(np.median(cpu_ms)) if cpu_ms else math.nan,
-                peak_mem_mb=0.0, wall_s=0.0, status=status, external_load=load.cores, scheme=scheme,
-                meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
-                      "monitor_rest": [float(v) for v in body.rest[sc.monitor]]})
-        finally:
-            sc.world.close()
+
+                try:
+                    with _ExternalLoad() as load:
+                        tic[0], tic[1] = time.perf_counter(), time.thread_time()
+                        sc.world.run(duration, callback)
+                except (SimulationDiverged, SolverError) as exc:
+                    status = f"{type(exc).__name__}: {exc}"
+                result = RunResult(
+                    scene=scene, element=element, cells=cells, duration=duration, dt=float(sc.world.dt), method=method,
+                    times=np.array(ts), values=np.array(xs), elements=int(body.mesh.n_elements),
+                    nodes=int(body.mesh.n_nodes), dofs=int(3 * (~body.supported()).sum()), steps=len(steps_ms),
+                    median_ms_per_step=float(np.median(steps_ms)) if steps_ms else math.nan,
+                    median_cpu_ms_per_step=float(np.median(cpu_ms)) if cpu_ms else math.nan,
+                    peak_mem_mb=0.0, wall_s=0.0, status=status, external_load=load.cores, scheme=scheme,
+                    meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
+                          "monitor_rest": [float(v) for v in body.rest[sc.monitor]]},
+                    cycled_steps=int(getattr(getattr(sim, "newton", None), "cycled_steps", 0) or 0))
+            finally:
+                sc.world.close()
+    result.warnings = list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))[:20]
     result.peak_mem_mb = mem.increase / 2**20
     result.wall_s = time.perf_counter() - wall
     return result
@@ -500,10 +527,14 @@ class _InProcessExecutor(cf.Executor):
         return fut
 
 
-def _init_worker() -> None:
-    global _STUDY_ROOT
+def _init_worker(steps=None) -> None:
+    """A local worker's start: one BLAS thread, the study's process noted, run step reports to the queue
+    ``steps`` (a multiprocessing queue, or None)."""
+    global _STUDY_ROOT, _STEP_SINK
     pin_threads(1)
     parent = _STUDY_ROOT = os.getppid()
+    if steps is not None:
+        _STEP_SINK = lambda key, done, total: steps.put((key, done, total))  # noqa: E731
 
     def watch() -> None:  # a killed study must not leave its workers running
         while os.getppid() == parent:
@@ -514,32 +545,41 @@ def _init_worker() -> None:
 
 
 @contextlib.contextmanager
-def open_executor(workers: int | None = None, cluster=None) -> Iterator[cf.Executor]:
+def open_executor(workers: int | None = None, cluster=None, step_queue: bool = False) -> Iterator[cf.Executor]:
     """A ``concurrent.futures.Executor`` running study runs.
 
     cluster None: ``workers`` local processes (default 1: one run at a time, as fast as two on a 2-core machine
     and with timings no other run disturbs), started fresh (spawn) with one BLAS / MKL / OpenMP thread each; a script calling this needs the ``if __name__ == "__main__":``
     guard of multiprocessing. ``workers=0``: run in this process, one run at a time (pins its threads). cluster an address (``tcp://host:8786``) or a
     ``distributed.Client``: the Dask cluster's workers, through ``Client.get_executor``; they need
-    softbody installed. Either way, results come back as futures of :class:`RunResult`."""
+    softbody installed. Either way, results come back as futures of :class:`RunResult`.
+    step_queue: local worker processes report the steps of their runs (:func:`run_configuration`'s
+    ``on_step``) as (key, done, total) on a multiprocessing queue, the executor's ``step_queue`` attribute
+    (None elsewhere: in this process pass ``on_step``; Dask workers report nothing)."""
     if cluster is None and workers == 0:
-        yield _InProcessExecutor()
+        ex = _InProcessExecutor()
+        ex.step_queue = None
+        yield ex
         return
     if cluster is None:
         import multiprocessing
 
         n = workers or 1
+        ctx = multiprocessing.get_context("spawn")
+        steps = ctx.Queue() if step_queue else None
         # (no MALLOC_MMAP_THRESHOLD_ here: mapping every array over 64 KB afresh turned each step's large
         # temporaries into page faults and doubled the time per step; a reused worker's memory is
         # trimmed before each run instead, see _PeakRss)
         env = {var: "1" for var in THREAD_ENV}
         with environ(**env):
-            ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=multiprocessing.get_context("spawn"),
-                                        initializer=_init_worker)
+            ex = cf.ProcessPoolExecutor(max_workers=n, mp_context=ctx, initializer=_init_worker, initargs=(steps,))
+            ex.step_queue = steps
             try:
                 yield ex
             finally:
                 ex.shutdown(wait=True, cancel_futures=True)
+                if steps is not None:
+                    steps.close()
         return
     try:
         from distributed import Client
@@ -548,6 +588,7 @@ def open_executor(workers: int | None = None, cluster=None) -> Iterator[cf.Execu
     client = cluster if isinstance(cluster, Client) else Client(cluster)
     try:
         ex = client.get_executor(pure=False)
+        ex.step_queue = None
         try:
             yield ex
         finally:
@@ -609,14 +650,44 @@ def _expected_cost(spec: tuple[str, Cells]) -> float:
     return nodes ** 1.3
 
 
+NEWTON_CYCLE_WARNING = "RuntimeWarning: Newton's step"  # how softbody.newton's warning on an accepted cycle starts
+
+
+def warning_summary(runs: Sequence[RunResult]) -> list[str]:
+    """Lines ("# ...") saying what ``runs`` warned about, for after a progress bar: the Newton steps accepted on
+    contacts switching between iterates (counted per run), and each other distinct warning with its runs."""
+    lines = []
+    cycled = [r for r in runs if r.cycled_steps]
+    if cycled:
+        n = sum(r.cycled_steps for r in cycled)
+        lines.append(f"# {n} Newton step{'s' if n != 1 else ''} accepted on contacts switching between iterates "
+                     f"(residual above the Newton tolerance, as softbody.newton allows) in {len(cycled)} "
+                     f"run{'s' if len(cycled) != 1 else ''}: "
+                     + ", ".join(f"{r.key} ({r.scheme}, dt {r.dt:g} s): {r.cycled_steps}" for r in cycled)
+                     + "; a smaller dt lets them converge")
+    others: dict[str, list[str]] = {}
+    for r in runs:
+        for w in r.warnings:
+            if not (r.cycled_steps and w.startswith(NEWTON_CYCLE_WARNING)):
+                others.setdefault(w, []).append(f"{r.key} ({r.scheme}, dt {r.dt:g} s)")
+    lines += [f"# warning in {', '.join(keys)}: {w}" for w, keys in others.items()]
+    return lines
+
+
 def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None, ladder: str | Ladder = "full",
               duration: float | None = None, dt: float = 0.01, method: str | None = None,
               workers: int | None = None, cluster=None,
-              force: bool = False, progress: bool = True, plots: bool = True, scheme: str = "warped") -> Study:
+              force: bool = False, progress: bool = True, plots: bool = True, scheme: str = "warped",
+              label: str | None = None) -> Study:
     """Run (or load from ``out``'s cache) the ladder of ``scene`` for ``elements`` and its reference, then
     write results.csv, table.md and the plots to ``out``. ``duration`` overrides the ladder's; ``method``
     is the linear solve, ``scheme`` the step (see :func:`run_configuration`); ``force``
-    reruns cached runs; ``workers`` / ``cluster`` choose where runs go (see :func:`open_executor`)."""
+    reruns cached runs; ``workers`` / ``cluster`` choose where runs go (see :func:`open_executor`).
+
+    progress: a tqdm bar on stderr named ``label`` (default "study SCENE (SCHEME, dt DT s)") counting the runs,
+    with the steps of the runs in flight (local workers and workers=0; a Dask cluster's runs only tick the
+    clock); the warnings the runs raised are summarised after it (:func:`warning_summary`), and emitted as
+    one warning without a bar."""
     from .scenes import SCENES
 
     if scene not in SCENES:
@@ -663,26 +734,62 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
     if pending:
         pending.sort(key=_expected_cost, reverse=True)  # longest first: the pool ends together
         bar = None
+        running: dict[str, tuple[int, int]] = {}  # run key -> (steps done, steps in all), runs in flight
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(pending), desc=f"study {scene}", unit="run")
+            bar = tqdm(total=len(pending), desc=label or f"study {scene} ({scheme}, dt {dt:g} s)", unit="run",
+                       file=sys.stderr)
+
+        def show(*first: str, refresh: bool = True) -> None:
+            if bar is not None:
+                bar.set_postfix_str(", ".join(list(first) + [f"{k} step {d}/{t}" for k, (d, t) in running.items()]),
+                                    refresh=refresh)
+
+        def on_step(key: str, done: int, total: int) -> None:
+            if key not in executed:  # (a report still queued when its run returned)
+                running[key] = (done, total)
+                show()
+
+        def finish(fut: cf.Future, spec: tuple[str, Cells]) -> None:
+            res = fut.result()
+            res.save(out / "trajectories" / f"{res.key}.npz")
+            results[spec] = res
+            executed.append(res.key)
+            running.pop(res.key, None)
+            if bar is not None:
+                show(f"{res.key} {res.median_ms_per_step:.1f} ms/step", refresh=False)
+                bar.update()
+
         try:
-            with open_executor(workers, cluster) as ex:
-                futures = {ex.submit(run_configuration, scene, e, c, duration, dt, method, 1, scheme): (e, c)
-                           for e, c in pending}
-                for fut in cf.as_completed(futures):
-                    spec = futures[fut]
-                    res = fut.result()
-                    res.save(out / "trajectories" / f"{res.key}.npz")
-                    results[spec] = res
-                    executed.append(res.key)
-                    if bar is not None:
-                        bar.set_postfix_str(f"{res.key} {res.median_ms_per_step:.1f} ms/step", refresh=False)
-                        bar.update()
+            with open_executor(workers, cluster, step_queue=bar is not None) as ex:
+                args = (duration, dt, method, 1, scheme)
+                if isinstance(ex, _InProcessExecutor):  # one run at a time, here: finished as it returns
+                    for e, c in pending:
+                        finish(ex.submit(run_configuration, scene, e, c, *args,
+                                         on_step=on_step if bar is not None else None), (e, c))
+                futures = {ex.submit(run_configuration, scene, e, c, *args): (e, c)
+                           for e, c in pending if (e, c) not in results}
+                waiting, steps = set(futures), ex.step_queue
+                while waiting:
+                    done, waiting = cf.wait(waiting, timeout=STEP_REPORT_S, return_when=cf.FIRST_COMPLETED)
+                    while steps is not None:
+                        try:
+                            on_step(*steps.get_nowait())
+                        except queue.Empty:
+                            break
+                    for fut in done:
+                        finish(fut, futures[fut])
+                    if bar is not None and not done:
+                        bar.refresh()  # the clock ticks while a long run has nothing new to say
         finally:
             if bar is not None:
                 bar.close()
+        notes = warning_summary([results[s] for s in pending if s in results])
+        if notes and progress:
+            print("\n".join(notes), file=sys.stderr)
+        elif notes:
+            warnings.warn(" ".join(n.lstrip("# ") for n in notes), RuntimeWarning, stacklevel=2)
 
     reference = results[ref_spec]
     if reference.status != "ok":
@@ -892,8 +999,10 @@ def write_plots(study: Study) -> list[Path]:
 
 # ---------------------------------------------------------------------------------------- reading back
 def read_results(study_dir: str | Path) -> list[dict]:
-    """The rows of DIR/results.csv, numbers converted (error_m is NaN for the reference)."""
-    path = Path(study_dir) / "results.csv"
+    """The rows of DIR/results.csv (or of a results file given by its path, ending in .csv), numbers converted
+    (error_m is NaN for the reference)."""
+    path = Path(study_dir)
+    path = path if path.suffix == ".csv" else path / "results.csv"
     if not path.exists():
         raise InvalidInputError(f"no study at {study_dir}: {path} does not exist (run `softbody study` first)")
     rows = []
@@ -917,12 +1026,18 @@ def load_trajectory(study_dir: str | Path, element: str, cells: Sequence[int]) -
 
 @dataclass
 class Recommendation:
-    """The cheapest ladder configuration within ``tolerance`` [m] and every candidate, cheapest first."""
+    """The cheapest ladder configuration within ``tolerance`` [m] and every candidate, cheapest first;
+    ``reference`` is the row of the run the errors are measured against (None if it is not a row), ``basis``
+    says what the errors are (against what, which discretisation error), ``source`` where rows and costs
+    come from."""
 
     scene: str
     tolerance: float
     candidates: list[dict]
     choice: dict | None
+    reference: dict | None = None
+    basis: str = ""
+    source: str = ""
 
     def table(self) -> str:
         lines = [f"| rank | element | cells | nodes | scheme | dt [s] | ms/step (CPU if it waited) | ms per simulated s "
@@ -945,35 +1060,104 @@ class NoConfigurationWithinTolerance(InvalidInputError):
         self.recommendation = recommendation
 
 
-def recommend(study_dir: str | Path, tolerance: float, scene: str | None = None) -> Recommendation:
-    """The cheapest configuration (lowest :func:`step_cost_ms`: median wall ms per step, CPU ms for a run that
-    waited for a core) of a study whose error is <= ``tolerance``
-    [m]. Raises :class:`NoConfigurationWithinTolerance` (with the table) if none qualifies."""
+def _tolerance(tolerance: float) -> float:
     tolerance = float(tolerance)
     if not (math.isfinite(tolerance) and tolerance > 0):
         raise InvalidInputError(f"tolerance must be a finite length > 0 [m], got {tolerance!r}")
+    return tolerance
+
+
+def spatial_basis(reference: dict, monitored: str | None = None) -> str:
+    """What the errors of a one-scheme, one-dt study are: the RMS against its reference row [m], run at the same
+    scheme and dt as every rung, so the spatial discretisation error alone; ``monitored`` names the coordinate."""
+    what = f"the monitored trajectory ({monitored})" if monitored else "the monitored trajectory"
+    return (f"RMS difference of {what} over {reference['duration_s']:g} s against the reference "
+            f"{reference['element']} {reference['cells']} ({reference['scheme']}, dt {reference['dt_s']:g} s), run at "
+            f"the same scheme and dt as every row: the spatial discretisation error at that scheme and dt (backward "
+            f"Euler's time discretisation error is not in it: --schemes/--dts weigh the time step)")
+
+
+def recommend(study_dir: str | Path, tolerance: float, scene: str | None = None,
+              elements: Sequence[str] | None = None, *, where: str | None = None,
+              monitored: str | None = None) -> Recommendation:
+    """The cheapest configuration (lowest :func:`step_cost_ms`: median wall ms per step, CPU ms for a run that
+    waited for a core) of a study (a directory with results.csv, or a results file) whose error is <=
+    ``tolerance`` [m], among ``elements`` (None: all). Raises :class:`NoConfigurationWithinTolerance` (with the
+    table) if none qualifies. ``where`` names the study in messages and ``source`` (default "the study at
+    DIR"); ``monitored`` names the coordinate in ``basis``."""
+    tolerance = _tolerance(tolerance)
     rows = read_results(study_dir)
     scenes = {r["scene"] for r in rows}
     if scene is not None and scenes != {scene}:
         raise InvalidInputError(f"the study at {study_dir} is of {sorted(scenes)}, not {scene!r}")
-    return _cheapest(rows[0]["scene"], tolerance, [r for r in rows if r["role"] == "ladder"], f"the study at {study_dir}")
+    ladder = [r for r in rows if r["role"] == "ladder"]
+    if elements is not None:
+        bad = sorted(set(elements) - {r["element"] for r in ladder})
+        if bad:
+            raise InvalidInputError(f"elements {bad} are not in the study at {study_dir}; it has "
+                                    f"{sorted({r['element'] for r in ladder})}")
+        ladder = [r for r in ladder if r["element"] in elements]
+    reference = next((r for r in rows if r["role"] == "reference"), None)
+    where = where or f"the study at {study_dir}"
+    return _cheapest(rows[0]["scene"], tolerance, ladder, where, reference=reference,
+                     basis=spatial_basis(reference, monitored) if reference else "", source=where)
 
 
-def _cheapest(scene: str, tolerance: float, rows: list[dict], where: str) -> Recommendation:
+def _cheapest(scene: str, tolerance: float, rows: list[dict], where: str, hint: str | None = None,
+              **about) -> Recommendation:
     """The Recommendation of ``rows`` (ladder runs with error_m, cost_ms_per_step, dt_s): the cheapest per
-    simulated second within ``tolerance`` [m]."""
+    simulated second within ``tolerance`` [m]; ``about``: its reference, basis and source. ``hint`` ends the
+    message when none qualifies (default: refine the ladder or loosen the tolerance)."""
     for r in rows:
         r["cost_ms_per_s"] = r["cost_ms_per_step"] / r["dt_s"]
     candidates = sorted((r for r in rows if r["status"] == "ok"), key=lambda r: (r["cost_ms_per_s"], r["error_m"]))
     within = [r for r in candidates if r["error_m"] <= tolerance]
-    rec = Recommendation(scene, tolerance, candidates, within[0] if within else None)
+    rec = Recommendation(scene, tolerance, candidates, within[0] if within else None, **about)
     if rec.choice is None:
         best = min(candidates, key=lambda r: r["error_m"]) if candidates else None
-        hint = (f"; the most accurate is {best['element']} {best['cells']} at {1e3 * best['error_m']:.3f} mm "
-                f"(refine the ladder or loosen the tolerance)" if best else "")
+        text = (f"; the most accurate is {best['element']} {best['cells']} ({best['scheme']}, dt {best['dt_s']:g} s) at "
+                f"{1e3 * best['error_m']:.3f} mm" if best else "")
+        text += f" ({hint or 'refine the ladder or loosen the tolerance'})"
         raise NoConfigurationWithinTolerance(
-            f"no configuration of {where} is within {1e3 * tolerance:g} mm{hint}\n{rec.table()}", rec)
+            f"no configuration of {where} is within {1e3 * tolerance:g} mm{text}\n{rec.table()}", rec)
     return rec
+
+
+# ---------------------------------------------------------------------------------------- shipped studies
+DATA = Path(__file__).with_name("data")  # package data: the published studies' results.csv, <scene>-results.csv
+
+
+def shipped_results(scene: str) -> Path | None:
+    """The shipped results file of ``scene``'s published study (experiments/data/<scene>-results.csv), or None."""
+    path = DATA / f"{scene}-results.csv"
+    return path if path.is_file() else None
+
+
+def shipped_scenes() -> list[str]:
+    """Scenes with shipped study results."""
+    return sorted(p.name[: -len("-results.csv")] for p in DATA.glob("*-results.csv"))
+
+
+def shipped_source(scene: str) -> dict:
+    """Where ``scene``'s shipped results come from: keys published (the file or table they are), measured (date,
+    git, machine) and monitored (the coordinate), from experiments/data/sources.json; {} if not listed."""
+    path = DATA / "sources.json"
+    return dict(json.loads(path.read_text()).get(scene, {})) if path.is_file() else {}
+
+
+def recommend_shipped(scene: str, tolerance: float, elements: Sequence[str] | None = None) -> Recommendation:
+    """:func:`recommend` from the published study of ``scene`` shipped with the package (no run: an answer in
+    milliseconds). Errors [m] are against the study's reference at the same scheme and dt (the spatial
+    discretisation error); costs are the ms per step of the published run, on the machine that made it."""
+    path = shipped_results(scene)
+    if path is None:
+        raise InvalidInputError(f"no shipped study results for scene {scene!r}; scenes with shipped results: "
+                                f"{shipped_scenes()} (run its study here: softbody recommend {scene} --recompute ...)")
+    src = shipped_source(scene)
+    where = (f"the shipped study results ({src.get('published', f'experiments/data/{path.name}')}; measured "
+             f"{src.get('measured', 'at an unrecorded date')}; costs are that run's ms per step)")
+    return recommend(path, tolerance, scene=scene, elements=elements, where=where,
+                     monitored=src.get("monitored"))
 
 
 def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequence[str] = SCHEMES,
@@ -982,12 +1166,14 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
     ``tolerance`` [m], from one study per scheme and step under ``out``/<scheme>_dt<dt> (run, or loaded from
     their caches, with the options ``study`` of :func:`run_study`). Errors are RMS differences from one
     reference for all: the ladder's reference configuration run with the Newton scheme at half the
-    smallest step; costs are per simulated second (ms per step / dt), since a longer step needs fewer."""
+    smallest step, so they hold backward Euler's time discretisation error as well as the spatial one;
+    costs are per simulated second (ms per step / dt), since a longer step needs fewer.
+
+    With progress (the default) every stage has its named bar: "[i/n] study SCENE (SCHEME, dt DT s)" per
+    study, and the reference run its own, in steps; warnings are summarised after each bar."""
     from .scenes import SCENES
 
-    tolerance = float(tolerance)
-    if not (math.isfinite(tolerance) and tolerance > 0):
-        raise InvalidInputError(f"tolerance must be a finite length > 0 [m], got {tolerance!r}")
+    tolerance = _tolerance(tolerance)
     if scene not in SCENES:
         raise InvalidInputError(f"unknown scene {scene!r}; available: {sorted(SCENES)}")
     bad = [s for s in schemes if s not in SCHEMES]
@@ -996,10 +1182,15 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
     if not dts or not all(isinstance(d, (int, float)) and math.isfinite(d) and d > 0 for d in dts):
         raise InvalidInputError(f"dts must be finite steps > 0 [s], got {list(dts)!r}")
     out = Path(out)
-    studies = [run_study(scene, out / f"{scheme}_dt{dt:g}", dt=float(dt), scheme=scheme, **study)
-               for scheme in schemes for dt in sorted(set(dts))]
+    progress = study.get("progress", True)
+    combos = [(scheme, float(dt)) for scheme in dict.fromkeys(schemes) for dt in sorted(set(dts))]
+    stages = len(combos) + 1
+    studies = [run_study(scene, out / f"{scheme}_dt{dt:g}", dt=dt, scheme=scheme,
+                         label=f"[{i}/{stages}] study {scene} ({scheme}, dt {dt:g} s)", **study)
+               for i, (scheme, dt) in enumerate(combos, 1)]
     lad_ref = studies[0].reference
     ref_dt = min(dts) / 2
+    ref_label = f"[{stages}/{stages}] reference {lad_ref.key} (newton, dt {ref_dt:g} s)"
     path = out / f"reference_newton_dt{ref_dt:g}" / f"{lad_ref.key}.npz"
     reference = None
     if path.exists() and not study.get("force"):
@@ -1008,9 +1199,10 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
         if reference is not None and (reference.duration != lad_ref.duration or reference.scheme != "newton"):
             reference = None
     if reference is None:
-        reference = run_configuration(scene, lad_ref.element, lad_ref.cells, lad_ref.duration, ref_dt,
-                                      lad_ref.method, scheme="newton")
+        reference = _run_reference(scene, lad_ref, ref_dt, ref_label, progress)
         reference.save(path)
+    elif progress:
+        print(f"{ref_label}: from the cache {path}", file=sys.stderr)
     if reference.status != "ok":
         raise SolverError(f"the reference run {reference.key} (newton, dt {ref_dt:g} s) failed: {reference.status}")
     rows = []
@@ -1019,4 +1211,48 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
             row.update(cost_ms_per_step=r.cost_ms, error_m=(rms_error(r.times, r.values, reference.times,
                                                                       reference.values) if r.status == "ok" else math.inf))
             rows.append(row)
-    return _cheapest(scene, tolerance, rows, f"the studies under {out}")
+    # the time discretisation error alone: the reference mesh at each scheme and dt against the reference
+    time_errors = {(st.reference.scheme, st.reference.dt): rms_error(st.reference.times, st.reference.values,
+                                                                     reference.times, reference.values)
+                   for st in studies if st.reference.status == "ok"}
+    hint = None
+    if time_errors:
+        hint = ("backward Euler's time discretisation error against this reference, on the reference mesh "
+                f"{lad_ref.key}: " + ", ".join(f"{s} dt {d:g} s {1e3 * e:.3f} mm" for (s, d), e in time_errors.items())
+                + f"; a tolerance below that needs a smaller dt (--dts {min(dts) / 2:g} ...), or compare meshes "
+                "alone (spatial error, without --schemes/--dts)")
+    basis = (f"RMS difference of the monitored trajectory over {reference.duration:g} s against the "
+             f"reference {reference.element} {cells_text(reference.cells)} (newton, dt {ref_dt:g} s: half the "
+             f"smallest step): each error holds backward Euler's time discretisation error at its dt as well as "
+             f"the spatial one")
+    ref_row = {"element": reference.element, "cells": cells_text(reference.cells), "scheme": "newton",
+               "dt_s": reference.dt, "duration_s": reference.duration}
+    return _cheapest(scene, tolerance, rows, f"the studies under {out}", hint=hint, reference=ref_row, basis=basis,
+                     source=f"the studies under {out} (schemes {', '.join(dict.fromkeys(schemes))}; dt "
+                            f"{', '.join(f'{d:g}' for d in sorted(set(dts)))} s), run on this machine")
+
+
+def _run_reference(scene: str, lad_ref: RunResult, dt: float, label: str, progress: bool) -> RunResult:
+    """The Newton reference of :func:`recommend_steps` (``lad_ref``'s configuration at step ``dt`` [s]), run in
+    this process, with a bar in steps named ``label`` and its warnings summarised after it."""
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=int(round(lad_ref.duration / dt)), desc=label, unit="step", file=sys.stderr)
+
+    def on_step(key: str, done: int, total: int) -> None:
+        bar.update(done - bar.n)
+
+    try:
+        reference = run_configuration(scene, lad_ref.element, lad_ref.cells, lad_ref.duration, dt, lad_ref.method,
+                                      scheme="newton", on_step=on_step if bar is not None else None)
+    finally:
+        if bar is not None:
+            bar.close()
+    notes = warning_summary([reference])
+    if notes and progress:
+        print("\n".join(notes), file=sys.stderr)
+    elif notes:
+        warnings.warn(" ".join(n.lstrip("# ") for n in notes), RuntimeWarning, stacklevel=3)
+    return reference
