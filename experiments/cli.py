@@ -250,29 +250,67 @@ def study_command(args: argparse.Namespace) -> None:
 
 
 def recommend_command(args: argparse.Namespace) -> None:
+    """softbody recommend: the cheapest configuration within --tolerance, from the scene's shipped study results
+    (at once, nothing run), from a study run here (--recompute, --study DIR, or a scene without shipped results),
+    or from one study per scheme and dt against a Newton reference at half the smallest dt (--schemes / --dts)."""
     from pathlib import Path
 
-    from .study import recommend
+    from . import study as studies
 
-    if args.study is not None:  # one study: its element types and resolutions, at its scheme and step
-        out = Path(args.study)
-        if not (out / "results.csv").exists():
-            print(f"# no study at {out}: running it first (softbody study {args.scene} --out {out})", file=sys.stderr)
+    def before_timed_runs() -> None:  # the kernels compiled first: no timing is the numpy code of a first run
+        import integration.kernels  # noqa: F401  (registered before the question)
+        from softbody import compilation
+
+        compilation.ensure_ready(lambda text: print(text, file=sys.stderr, flush=True))
+
+    scene = args.scene
+    compare_steps = args.schemes is not None or args.dts is not None
+    if compare_steps and args.study is not None:
+        raise InvalidInputError("--study DIR is one study (one scheme and dt) and --schemes/--dts compare one study per "
+                                "scheme and dt under studies/SCENE/: give one or the other")
+    shipped = studies.shipped_results(scene)
+    if compare_steps:  # a study per scheme and step, against one Newton reference: the time step weighed too
+        schemes = args.schemes or list(studies.SCHEMES)
+        dts = args.dts or [0.01, 0.02]
+        before_timed_runs()
+        rec = studies.recommend_steps(scene, Path(f"studies/{scene}"), args.tolerance, schemes=schemes, dts=dts,
+                                      elements=args.elements, ladder="small" if args.quick else args.ladder,
+                                      duration=args.duration, method=args.method, workers=args.workers,
+                                      cluster=args.cluster, force=args.force, progress=not args.no_progress)
+    elif args.study is not None or args.recompute or shipped is None:  # one study, run (or cached) here
+        out = Path(args.study or f"studies/{scene}")
+        if args.recompute or args.study is None or not (out / "results.csv").exists():
+            if args.study is not None and not args.recompute:
+                print(f"# no study at {out}: running it first (softbody study {scene} --out {out})", file=sys.stderr)
+            elif shipped is None and not args.recompute:
+                print(f"# no shipped study results for {scene} (shipped: {', '.join(studies.shipped_scenes())}): "
+                      f"running its study here into {out} (runs cached there)", file=sys.stderr)
+            before_timed_runs()
             _study(args, out)
-        rec = recommend(out, args.tolerance, scene=args.scene)
-        where = f"the study at {out}"
-    else:  # a study per scheme and step, against one reference
-        from .study import recommend_steps
-
-        out = Path(f"studies/{args.scene}")
-        rec = recommend_steps(args.scene, out, args.tolerance, schemes=args.schemes, dts=args.dts,
-                              elements=args.elements, ladder="small" if args.quick else args.ladder,
-                              duration=args.duration, method=args.method, workers=args.workers, cluster=args.cluster,
-                              force=args.force, progress=not args.no_progress)
-        where = f"the studies under {out} (schemes {', '.join(args.schemes)}; dt {', '.join(f'{d:g}' for d in args.dts)} s)"
+        rec = studies.recommend(out, args.tolerance, scene=scene, elements=args.elements)
+    else:  # the published study, shipped with the package: nothing runs
+        ref = next(r for r in studies.read_results(shipped) if r["role"] == "reference")
+        run_only = [flag for flag, given in (
+            ("--quick", args.quick), ("--ladder", args.ladder != "full"),
+            ("--duration", args.duration is not None and args.duration != ref["duration_s"]),
+            ("--dt", args.dt != ref["dt_s"]), ("--scheme", args.scheme != ref["scheme"]),
+            ("--method", args.method is not None and args.method != ref["method"]), ("--force", args.force),
+            ("--workers", args.workers is not None), ("--cluster", args.cluster is not None)) if given]
+        if run_only:
+            raise InvalidInputError(
+                f"{', '.join(run_only)} only appl{'ies' if len(run_only) == 1 else 'y'} to a study run on this machine: "
+                f"add --recompute (without it the answer comes from the shipped study results of {scene}: the full "
+                f"ladder, {ref['scheme']}, dt {ref['dt_s']:g} s, {ref['duration_s']:g} s, {ref['method']} solves)")
+        rec = studies.recommend_shipped(scene, args.tolerance, elements=args.elements)
     c = rec.choice
-    print(f"# {args.scene}: cheapest configuration per simulated second within {1e3 * args.tolerance:g} mm of the "
-          f"reference (RMS of the monitored trajectory), from {where}")
+    print(f"# {scene}: the cheapest configuration per simulated second within {1e3 * args.tolerance:g} mm, from "
+          f"{rec.source}")
+    if rec.basis:
+        print(f"# error: {rec.basis}")
+    if shipped is not None and not (compare_steps or args.study is not None or args.recompute):
+        print(f"# nothing was run: --recompute runs this study on this machine (its timings, cached under "
+              f"studies/{scene}); --schemes warped newton --dts 0.01 0.02 weighs the scheme and the time step too "
+              f"(a study per scheme and dt here, against a Newton reference at half the smallest dt: tens of minutes)")
     print(rec.table())
     print(f"\nrecommended: --element {c['element']} --cells {c['cells'].replace('x', ' ')} --scheme {c['scheme']} "
           f"--dt {c['dt_s']:g}  ({c['cost_ms_per_step']:.1f} ms/step, {c['cost_ms_per_s']:.0f} ms per simulated "
@@ -409,19 +447,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     study.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     study.add_argument("--out", default=None, metavar="DIR", help="study directory (default: studies/SCENE)")
     add_study_arguments(study)
-    rec = sub.add_parser("recommend", help="the cheapest element type, resolution, scheme and time step within a "
-                                           "tolerance, from (cached) studies")
+    rec = sub.add_parser("recommend", help="the cheapest element type and resolution within a tolerance, from the "
+                                           "shipped study results (at once; --recompute runs the study here), or "
+                                           "the scheme and time step too (--schemes / --dts: studies run here)")
     rec.add_argument("scene", help=f"scene name: {', '.join(sorted(SCENES))}")
     rec.add_argument("--tolerance", type=_length, required=True, metavar="TOL",
                      help="largest RMS error of the monitored trajectory against the reference, with its unit: "
                           "2mm, 0.5cm, 0.002m")
     rec.add_argument("--study", default=None, metavar="DIR",
-                     help="one study directory to choose from (made first if it has no results.csv); without it, "
-                          "one study per scheme and step under studies/SCENE/, errors against one reference")
-    rec.add_argument("--schemes", nargs="+", choices=("warped", "newton"), default=["warped", "newton"],
-                     help="schemes to consider (default both)")
-    rec.add_argument("--dts", nargs="+", type=_positive_float, default=[0.01, 0.02], metavar="DT",
-                     help="time steps [s] to consider (default 0.01 0.02)")
+                     help="one study directory to choose from (made first if it has no results.csv, or with "
+                          "--recompute); without it and --recompute, the scene's shipped study results")
+    rec.add_argument("--recompute", action="store_true",
+                     help="run the study on this machine (cached under studies/SCENE, or --study DIR; its timings) "
+                          "instead of answering from the shipped results of the published study")
+    rec.add_argument("--schemes", nargs="+", choices=("warped", "newton"), default=None,
+                     help="weigh the scheme and the time step too: one study per scheme and dt run here under "
+                          "studies/SCENE/, errors against the reference mesh with the Newton scheme at half the "
+                          "smallest dt, so they hold the time discretisation error (default with --dts: both)")
+    rec.add_argument("--dts", nargs="+", type=_positive_float, default=None, metavar="DT",
+                     help="time steps [s] to weigh (see --schemes; default with --schemes: 0.01 0.02)")
     add_study_arguments(rec)
     sweep = sub.add_parser("sweep", help="a parameter sweep: the full grid over --param NAME=V1,V2,..., one row of "
                                          "metrics per run: CSV, plots, summary (docs/sweeps.md)")
@@ -453,7 +497,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(_attach_negative_values(sys.argv[1:] if argv is None else argv))
 
     def command() -> int | None:
-        if args.command in ("study", "recommend", "sweep", "bench"):  # timed: never the numpy code of a first run
+        if args.command in ("study", "sweep", "bench"):  # timed: never the numpy code of a first run (recommend:
+            # in recommend_command, where it runs something)
             import integration.kernels  # noqa: F401  (registered before the question)
             from softbody import compilation
 

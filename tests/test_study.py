@@ -296,3 +296,151 @@ def test_recommend_across_schemes_and_steps_picks_the_cheapest_per_simulated_sec
     assert (tmp_path / "reference_newton_dt0.005").is_dir() and (tmp_path / "newton_dt0.02" / "results.csv").exists()
     with pytest.raises(softbody.InvalidInputError, match="schemes"):
         recommend_steps(SCENE, tmp_path, tol, schemes=("implicit",))
+
+
+# ---------------------------------------------------------------------------------------- shipped studies
+DOCS_IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
+
+
+def _shipped_rows(scene: str) -> list[dict]:
+    with open(study_module.shipped_results(scene), newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _cheapest_within(rows: list[dict], tol: float) -> dict:
+    """The published run with the lowest ms per step whose error is <= tol [m] (a brute-force pass over the CSV)."""
+    ok = [r for r in rows if r["role"] == "ladder" and r["error_m"] and float(r["error_m"]) <= tol]
+    return min(ok, key=lambda r: (float(r["median_ms_per_step"]), float(r["error_m"])))
+
+
+def test_published_study_results_are_shipped_with_the_package():
+    """The package carries the results of every published study (experiments/data/, package data): the sheet's and
+    the tube's are docs/img's CSV files byte for byte, the cantilever's is docs/studies.md's table."""
+    assert study_module.shipped_scenes() == ["cantilever", "hanging-tube", "sheet-on-sphere"]
+    for scene in ("sheet-on-sphere", "hanging-tube"):
+        assert study_module.shipped_results(scene).read_bytes() == (DOCS_IMG / f"{scene}-results.csv").read_bytes()
+    doc = (DOCS_IMG.parent / "studies.md").read_text()
+    for r in _shipped_rows("cantilever"):
+        err = "reference" if r["role"] == "reference" else f"{1e3 * float(r['error_m']):.3f}"
+        assert (f"| {r['element']} | {r['cells']} | {r['elements']} | {r['nodes']} | {r['dofs']} | "
+                f"{float(r['median_ms_per_step']):.1f} | {float(r['median_cpu_ms_per_step']):.1f} | "
+                f"{float(r['peak_mem_mb']):.1f} | {err} |") in doc, r
+    for scene in study_module.shipped_scenes():
+        src = study_module.shipped_source(scene)
+        assert src["published"] and src["measured"] and src["monitored"], scene
+    assert study_module.shipped_results("cubes-on-plane") is None
+
+
+@pytest.mark.parametrize("scene, tol", [("sheet-on-sphere", 2e-3), ("sheet-on-sphere", 6e-3), ("hanging-tube", 50e-3),
+                                        ("cantilever", 2e-3)])
+def test_recommend_answers_from_the_shipped_results_without_running_anything(scene, tol, capsys, monkeypatch):
+    def no_run(*a, **kw):
+        raise AssertionError("recommend ran something")
+
+    monkeypatch.setattr(study_module, "run_study", no_run)
+    monkeypatch.setattr(study_module, "run_configuration", no_run)
+    rows = _shipped_rows(scene)
+    assert all(float(r["median_ms_per_step"]) <= 1.3 * float(r["median_cpu_ms_per_step"]) for r in rows)  # no waits
+    expect = _cheapest_within(rows, tol)
+    ref = next(r for r in rows if r["role"] == "reference")
+    t = time.perf_counter()
+    assert cli.main(["recommend", scene, "--tolerance", f"{1e3 * tol:g}mm"]) == 0
+    assert time.perf_counter() - t < 5.0
+    out = capsys.readouterr().out
+    assert f"recommended: --element {expect['element']} --cells {expect['cells'].replace('x', ' ')} " in out
+    assert f"against the reference {ref['element']} {ref['cells']} (warped, dt 0.01 s)" in out
+    assert "spatial discretisation error" in out and "shipped study results" in out and "--recompute" in out
+    assert study_module.shipped_source(scene)["measured"] in out
+
+
+def test_the_readme_recommend_command_answers_in_seconds_from_anywhere(tmp_path):
+    """`softbody recommend sheet-on-sphere --tolerance 2mm` (the README's example): from the shipped results, the
+    run the published table implies (tet10 8x8x2, 1.827 mm), naming its reference; nothing written."""
+    t = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", "import sys; from experiments.cli import main; sys.exit(main())",
+                           "recommend", "sheet-on-sphere", "--tolerance", "2mm"],
+                          cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    wall = time.perf_counter() - t
+    assert proc.returncode == 0, proc.stderr
+    expect = _cheapest_within(_shipped_rows("sheet-on-sphere"), 2e-3)
+    assert (expect["element"], expect["cells"]) == ("tet10", "8x8x2")
+    assert "recommended: --element tet10 --cells 8 8 2 --scheme warped --dt 0.01" in proc.stdout
+    assert "error 1.827 mm" in proc.stdout and "reference tet10 12x12x3 (warped, dt 0.01 s)" in proc.stdout
+    assert wall < 30.0, wall  # about 1.5 s here, most of it importing softbody
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_options_of_a_run_without_recompute_are_refused(capsys):
+    err = _refused_cli(["recommend", "sheet-on-sphere", "--tolerance", "2mm", "--quick", "--dt", "0.02"], capsys)
+    assert "--quick, --dt only apply to a study run on this machine: add --recompute" in err
+    err = _refused_cli(["recommend", "sheet-on-sphere", "--tolerance", "2mm", "--schemes", "warped", "--study", "x"],
+                       capsys)
+    assert "give one or the other" in err
+
+
+def _refused_cli(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as info:
+        cli.main(argv)
+    assert info.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_recompute_runs_the_study_here_with_a_named_bar_and_step_reports(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["recommend", SCENE, "--tolerance", "50mm", "--recompute", "--quick", "--workers", "0",
+                     "--elements", "tet10"]) == 0
+    captured = capsys.readouterr()
+    assert f"study {SCENE} (warped, dt 0.01 s)" in captured.err and " step " in captured.err
+    assert "from the study at studies/cantilever" in captured.out and "reference tet10 16x2x2" in captured.out
+    rows = csv_rows(tmp_path / "studies" / SCENE)
+    expect = _cheapest_within(rows, 50e-3)  # (workers 0: nothing else ran, so no run waited for a core)
+    assert f"recommended: --element tet10 --cells {expect['cells'].replace('x', ' ')} " in captured.out
+
+
+def test_warnings_of_runs_are_summarised_after_the_bar(tmp_path, capsys, monkeypatch):
+    """A warning raised inside a run is recorded with it (RunResult.warnings) and printed once the bar is closed,
+    never in the middle of it."""
+    import warnings
+
+    monkeypatch.setattr(study_module, "_warm_up", lambda scene: warnings.warn("a test warning", RuntimeWarning))
+    st = run_study(SCENE, tmp_path, elements=["tet10"], ladder="small", duration=0.05, workers=0, plots=False)
+    err = capsys.readouterr().err
+    assert all(r.warnings == ["RuntimeWarning: a test warning"] for r in st.runs + [st.reference])
+    bar_end = err.rindex(f"study {SCENE} (warped, dt 0.01 s)")
+    note = err.index("# warning in ")
+    assert note > bar_end and "a test warning" in err[note:] and "tet10_2x1x1 (warped, dt 0.01 s)" in err[note:]
+    assert err.count("a test warning") == 1
+    with pytest.warns(RuntimeWarning, match="a test warning"):  # without a bar: one warning with the summary
+        run_study(SCENE, tmp_path, elements=["tet10"], ladder="small", duration=0.05, workers=0, plots=False,
+                  progress=False, force=True)
+
+
+def test_warning_summary_counts_newton_steps_accepted_on_cycling():
+    runs = [_run("tet10", (4, 1, 1), 1.0, 1.0, 0.0), _run("tet10", (8, 1, 1), 1.0, 1.0, 0.0),
+            _run("tet4", (4, 2, 2), 1.0, 1.0, 0.0)]
+    for r, n in zip(runs, (3, 7, 0)):
+        r.scheme, r.cycled_steps = "newton", n
+        r.warnings = [study_module.NEWTON_CYCLE_WARNING + " 12 (t = 0.12 s) stalled ...: accepted"] if n else []
+    runs[2].warnings = ["UserWarning: other"]
+    lines = study_module.warning_summary(runs)
+    assert lines[0].startswith("# 10 Newton steps accepted on contacts switching between iterates")
+    assert "in 2 runs: tet10_4x1x1 (newton, dt 0.01 s): 3, tet10_8x1x1 (newton, dt 0.01 s): 7" in lines[0]
+    assert lines[1:] == ["# warning in tet4_4x2x2 (newton, dt 0.01 s): UserWarning: other"]
+
+
+def test_recommend_across_steps_names_every_stage_and_explains_the_time_error(tmp_path, capsys):
+    """--schemes/--dts: a named bar per study ("[i/n] study ..."), the Newton reference its own bar in steps; none
+    within a tolerance below the time discretisation error: the message gives that error and asks for a smaller dt."""
+    from experiments.study import recommend_steps
+
+    with pytest.raises(NoConfigurationWithinTolerance) as info:
+        recommend_steps(SCENE, tmp_path, 1e-9, schemes=("warped",), dts=(0.02,), elements=["tet10"], ladder="small",
+                        duration=0.1, workers=0, plots=False)
+    err = capsys.readouterr().err
+    assert f"[1/2] study {SCENE} (warped, dt 0.02 s)" in err
+    assert "[2/2] reference tet10_16x2x2 (newton, dt 0.01 s)" in err and "10/10" in err and "step" in err
+    msg = str(info.value)
+    assert "backward Euler's time discretisation error against this reference, on the reference mesh tet10_16x2x2: " \
+           "warped dt 0.02 s" in msg and "needs a smaller dt (--dts 0.01" in msg
+    rec = info.value.recommendation
+    assert "newton, dt 0.01 s" in rec.basis and "time discretisation error" in rec.basis
