@@ -269,6 +269,8 @@ def recommend_command(args: argparse.Namespace) -> None:
         raise InvalidInputError("--study DIR is one study (one scheme and dt) and --schemes/--dts compare one study per "
                                 "scheme and dt under studies/SCENE/: give one or the other")
     shipped = studies.shipped_results(scene)
+    if compare_steps or args.recompute or shipped is None:  # a study to run: a scene without a ladder said at once
+        studies.get_ladder(scene, "small" if args.quick else args.ladder)
     if compare_steps:  # a study per scheme and step, against one Newton reference: the time step weighed too
         schemes = args.schemes or list(studies.SCHEMES)
         dts = args.dts or [0.01, 0.02]
