@@ -57,6 +57,7 @@ _EXPORTS = {
     "RigidLink": "rigid", "RigidBody": "rigid",
     "Recorder": "recording", "record": "recording",
     "ContactSolver": "contact",
+    "WorldState": "state",
 }
 
 __all__ = sorted(_EXPORTS)

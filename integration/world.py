@@ -20,11 +20,13 @@ and leaves soft and rigid bodies as they were before the step.
 """
 from __future__ import annotations
 
+import copy
 import math
 import time
 import warnings
 from collections import defaultdict
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
@@ -34,6 +36,7 @@ from softbody.errors import InvalidInputError, SimulationDiverged, finite_number
 from softbody.integrator import Constraints, LinearSystem
 from softbody.simulation import run_steps
 from softbody.stack import BodyStack, stack_key
+from softbody.state import not_copyable, read_state
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
 from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances, run_starts
@@ -43,6 +46,7 @@ from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceC
 from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
 from .softcontact import SoftHits, SoftLayout, SoftSurface, soft_contacts
+from .state import WorldState, bullet_bytes, restore_bullet
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
@@ -1111,6 +1115,88 @@ class World:
             progress: bool = False) -> None:
         """Step for ``duration`` [s], calling ``callback(world)`` after each step; progress bar on request."""
         run_steps(self.step, self.dt, duration, None if callback is None else lambda: callback(self), progress)
+
+    # ------------------------------------------------------------------ saved states
+    def _handles(self) -> tuple[dict[int, int], list[tuple[int, ...]]]:
+        """(id(member) -> its index in ``bodies``, each stepped body as the tuple of its members' indices)."""
+        index = {id(m): k for k, m in enumerate(self._members)}
+        return index, [tuple(index[id(m)] for m in getattr(s, "members", [s])) for s in self.sim.bodies]
+
+    def save_state(self, path: str | Path | None = None) -> WorldState:
+        """Everything the next steps read, copied: the soft bodies' state and solvers' (softbody.state), pybullet's
+        world (its saveBullet), the contacts' warm starts and friction states, the stacking, the reactions lagged to
+        the next step and the last step's results. Continuing after :meth:`restore_state` of it is the same to the
+        bit as continuing now. ``path``: also write it there (``state.write(path)`` does the same later)."""
+        self._restack()
+        index, layout = self._handles()
+        by_id = {id(s): h for s, h in zip(self.sim.bodies, layout)}
+        previous = {(kind, key if kind == "soft" else by_id[key]): copy.deepcopy(value)
+                    for (kind, key), value in self.contact_solver.previous.items()
+                    if kind == "soft" or key in by_id}
+        attachment = {id(a): k for k, a in enumerate(self.attachments)}
+        results = {
+            "contacts": self.contacts, "face_hits": self.face_hits, "soft_hits": self.soft_hits,
+            "soft_member_pairs": self._soft_member_pairs, "pair_results": list(self.pair_results),
+            "contact_results": {by_id[k]: v for k, v in self.contact_results.items() if k in by_id},
+            "face_results": {by_id[k]: v for k, v in self.face_results.items() if k in by_id},
+            "attachment_forces": [(attachment[id(a)], f) for a, f in self.attachment_forces],
+        }
+        state = WorldState(self.sim.save_state(), [m.n_nodes for m in self._members], len(self.attachments), layout,
+                           {index[k]: index[g] for k, g in self._dense_group.items() if k in index and g in index},
+                           self._restack_due, sorted(index[k] for k in self._started if k in index),
+                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), bullet_bytes(self.client))
+        if path is not None:
+            state.write(path)
+        return state
+
+    def restore_state(self, state: WorldState | str | Path) -> None:
+        """Go back to a state of :meth:`save_state`, or read one from its path (also in a new process, with the same
+        scene built: the same rigid bodies loaded and soft bodies added in the same order). Loads, motor targets,
+        constraints and settings stay as they are now (the scene, not its state)."""
+        if isinstance(state, (str, Path)):
+            state = read_state(state, WorldState)
+        if not isinstance(state, WorldState):
+            raise InvalidInputError(f"restore_state takes a WorldState or its path, got {type(state).__name__}")
+        nodes = [m.n_nodes for m in self._members]
+        if nodes != state.members or len(self.attachments) != state.attachments:
+            raise InvalidInputError(
+                f"the saved state is of {len(state.members)} soft bodies of {state.members} nodes and "
+                f"{state.attachments} attachments; this World has {len(nodes)} of {nodes} nodes and "
+                f"{len(self.attachments)} attachments: build the same scene (the same bodies, added in the same order) "
+                "before restoring")
+        fresh = self.sim.steps == 0 and not self._started
+        restore_bullet(state, self.client, fresh)
+        self.adapter.invalidate()
+        self._sync()
+        members = self._members
+        self._dense_group = {id(members[k]): id(members[g]) for k, g in state.dense_group.items()}
+        self._restack_due = True
+        self._restack()
+        index, layout = self._handles()
+        if layout != state.layout:
+            raise InvalidInputError(f"the soft bodies stack as {layout} here, as {state.layout} in the saved state: "
+                                    "build the same scene (the same materials, friction and ignored bodies)")
+        self._restack_due = state.restack_due
+        self.sim.restore_state(state.sim)
+        for s in self.sim.bodies:
+            if isinstance(s, BodyStack):
+                s.gather()
+        stepped = {h: s for h, s in zip(layout, self.sim.bodies)}
+        self.contact_solver.previous = {(kind, key if kind == "soft" else id(stepped[key])): copy.deepcopy(value)
+                                        for (kind, key), value in state.previous.items()}
+        self._started = {id(members[k]) for k in state.started}
+        self._lagged = copy.deepcopy(state.lagged)
+        r = copy.deepcopy(state.results)
+        self.contacts, self.face_hits, self.soft_hits = r["contacts"], r["face_hits"], r["soft_hits"]
+        self._soft_member_pairs, self.pair_results = r["soft_member_pairs"], r["pair_results"]
+        self.contact_results = {id(stepped[h]): v for h, v in r["contact_results"].items()}
+        self.face_results = {id(stepped[h]): v for h, v in r["face_results"].items()}
+        self.attachment_forces = [(self.attachments[k], f) for k, f in r["attachment_forces"]]
+        self._results_of = {id(m): (id(self.sim.bodies[w]), first) for m in members for w, first in [self._place[id(m)]]}
+        self._results_of_version = self._place_version
+
+    __deepcopy__ = not_copyable("a pybullet client and the soft bodies' solver factorisations", "World")
+    __reduce_ex__ = not_copyable("a pybullet client and the soft bodies' solver factorisations", "World")
 
     # ------------------------------------------------------------------ diagnostics
     def max_penetration(self) -> float:

@@ -11,12 +11,13 @@ from .mesh import Mesh
 from .meshing import ball_mesh, box_mesh, read_mesh, to_tet10, tube_mesh
 from .simulation import Simulation, solve_static
 from .stack import BodyStack, stack_key
+from .state import SimulationState
 from .surface import tetrahedralize
 
 __all__ = [
     "BodyStack", "stack_key",
     "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Mesh",
-    "MeshError", "Simulation", "SimulationDiverged", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
+    "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
     "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]
 __version__ = "0.1.0"

@@ -179,6 +179,7 @@ class SpdSolver:
             raise SolverError("system matrix has non-finite entries")
         if not self._analysed:
             self.analyse(data)
+        self._values = None  # set again once this factorisation succeeds
         if self.backend == "pardiso":
             self._data = np.ascontiguousarray(data, dtype=self.dtype)  # kept for the solve phase
             self._pardiso(22, self._data, np.zeros(self.n))
@@ -200,6 +201,29 @@ class SpdSolver:
                                          options=dict(SymmetricMode=True))
             except RuntimeError as exc:
                 raise SolverError(f"SuperLU factorisation failed: {exc}") from exc
+        self._values = data  # kept, not copied: callers pass an array of their own (see factor_values)
+
+    def factor_values(self) -> np.ndarray | None:
+        """A copy of the upper-triangle values (float64) of the current factorisation, None without one: what
+        :meth:`refactorize` needs to rebuild the same factor (a saved state, softbody.state)."""
+        values = self.__dict__.get("_values")
+        if values is None or (self.backend == "blocks" and self._factor is None):
+            return None
+        return values.copy()
+
+    def refactorize(self, values: np.ndarray | None) -> None:
+        """Factorise ``values`` (from :meth:`factor_values`) again: with this solver's analysis, the same factor to
+        the bit; None drops the factor (solves then need a factorisation first)."""
+        if values is None:
+            self._values = None
+            if self.backend != "pardiso":
+                self._factor = None
+            return
+        values = np.asarray(values, dtype=float)
+        if values.shape != self.indices.shape:
+            raise InvalidInputError(f"factor values of shape {values.shape} for a pattern of {len(self.indices)} "
+                                    "upper-triangle entries: saved from another body or mesh")
+        self.factorize(values.copy())
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         b = np.asarray(b, dtype=float)

@@ -18,6 +18,7 @@ no extra iterations, and a node that stays in contact costs nothing after its fi
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,6 +73,28 @@ class Preconditioner:
     def cached_nodes(self) -> int:
         """Nodes whose P^-1 columns are cached for the current factorisation."""
         return 0 if self._Y is None else self._Y.shape[1] // 3
+
+    # the fields that a saved state holds (the rest, _last, is a gather made again from these)
+    _STATE = ("T", "Q", "stale", "factorizations", "iterations", "eliminated", "column_nodes", "previous_velocities",
+              "products", "_slot", "_Y")
+
+    def save_state(self) -> dict:
+        """Everything the next steps read of this preconditioner, copied: its frames, counters, warm start, cached
+        columns and the values its solver factorised (softbody.state)."""
+        out = {name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
+        out["factor"] = self.solver.factor_values()
+        out["backend"] = self.solver.backend
+        return out
+
+    def load_state(self, state: dict) -> None:
+        """Take over a state of :meth:`save_state` (from this body's preconditioner with the same backend): the
+        factor is made again from the saved values, the same to the bit."""
+        if state["backend"] != self.solver.backend:
+            raise ValueError(f"a preconditioner state of backend {state['backend']!r} for one of {self.solver.backend!r}")
+        for name in self._STATE:
+            setattr(self, name, copy.deepcopy(state[name]))
+        self._last = (None, None)
+        self.solver.refactorize(state["factor"])
 
     def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
         """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""

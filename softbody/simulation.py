@@ -1,12 +1,15 @@
 """Simulation: bodies, time, step and run; and the static solve."""
 from __future__ import annotations
 
+import copy
 import math
+import warnings
+from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from . import compilation
+from . import compilation, kernels
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
@@ -14,6 +17,7 @@ from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
 from .solvers import BodySolvers
 from .stack import BodyStack
+from .state import SimulationState, copy_pairs, not_copyable, read_state
 
 # A hook (bodies, their step systems, their supports, t_next) -> the bodies' new velocities (N_i, 3); the
 # integration layer uses it to solve contacts and the coupling to rigid bodies for all bodies at once.
@@ -118,6 +122,39 @@ class Simulation:
         method = self.linear_method(body)
         return step_system(body, self.dt, self.load(body), solver, method, self.settings, self.timings,
                            None if method == "direct" else self.solvers.preconditioner(body, solver))
+
+    # ------------------------------------------------------------------ saved states
+    def save_state(self) -> SimulationState:
+        """Everything the next steps read, copied (softbody.state): continuing after :meth:`restore_state` of it is
+        the same to the bit as continuing now. ``state.write(path)`` puts it on disk."""
+        return SimulationState(
+            self.t, self.steps, copy_pairs([(b.positions, b.velocities) for b in self.bodies]),
+            self.solvers.save_state(self.bodies),
+            {"cycled_steps": self.newton.cycled_steps, "report": copy.deepcopy(self.newton.report)},
+            bool(kernels.ENABLED))
+
+    def restore_state(self, state: SimulationState | str | Path) -> None:
+        """Go back to a state of :meth:`save_state` (or one written to disk, read from its path): the bodies' positions
+        and velocities, the time, the step count, the preconditioners and the Newton counters. The bodies must be
+        those it was saved from (the same meshes in the same order); loads and supports stay as they are now."""
+        if isinstance(state, (str, Path)):
+            state = read_state(state, SimulationState)
+        if not isinstance(state, SimulationState):
+            raise InvalidInputError(f"restore_state takes a SimulationState or its path, got {type(state).__name__}")
+        state.check(self.bodies)
+        for b, (x, v) in zip(self.bodies, copy_pairs(state.bodies)):
+            b.positions, b.velocities = x, v
+        self.t, self.steps = float(state.t), int(state.steps)
+        self.solvers.load_state(self.bodies, state.preconditioners)
+        self.newton.cycled_steps = int(state.newton["cycled_steps"])
+        self.newton.report = copy.deepcopy(state.newton["report"])
+        if state.kernels != bool(kernels.ENABLED):
+            warnings.warn(f"the state was saved with the compiled kernels {'on' if state.kernels else 'off'}, they are "
+                          f"{'on' if kernels.ENABLED else 'off'} now: the continuation agrees with the original to "
+                          "round-off, not to the bit", RuntimeWarning, stacklevel=2)
+
+    __deepcopy__ = not_copyable("the bodies' solver factorisations (MKL PARDISO handles)", "Simulation")
+    __reduce_ex__ = not_copyable("the bodies' solver factorisations (MKL PARDISO handles)", "Simulation")
 
     @property
     def newton_report(self) -> NewtonReport:

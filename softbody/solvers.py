@@ -42,6 +42,31 @@ class BodySolvers:
             for key in [k for k, (b, *_) in held.items() if id(b) not in keep]:
                 del held[key]
 
+    def save_state(self, bodies: list[FemBody]) -> dict[tuple[int, str], dict]:
+        """The preconditioners' states (Preconditioner.save_state) of ``bodies``, keyed by (index in ``bodies``,
+        backend): what the iterative path carries from step to step. The direct path's factorisations are made
+        anew every step and hold nothing across steps."""
+        out = {}
+        for i, body in enumerate(bodies):
+            for (key, backend), (held, pre) in self._preconditioners.items():
+                if key == id(body) and held is body:
+                    out[(i, backend)] = pre.save_state()
+        return out
+
+    def load_state(self, bodies: list[FemBody], states: dict[tuple[int, str], dict]) -> None:
+        """Take over the states of :meth:`save_state` for the same ``bodies`` (in the same order): a preconditioner
+        that had not been made then is dropped now, the others take their saved factor, frames and counters."""
+        for i, body in enumerate(bodies):
+            for key in [k for k, (held, _) in self._preconditioners.items() if k[0] == id(body)]:
+                if (i, key[1]) not in states:
+                    del self._preconditioners[key]
+        for (i, backend), state in states.items():
+            body = bodies[i]
+            held = self._preconditioners.get((id(body), backend))
+            if held is None or held[0] is not body:
+                held = self._preconditioners[(id(body), backend)] = (body, new_preconditioner(body, backend))
+            held[1].load_state(state)
+
     def held_preconditioner(self, body: FemBody, backend: str) -> Preconditioner | None:
         """The body's preconditioner for ``backend`` if one was made, else None (for counters)."""
         held = self._preconditioners.get((id(body), backend))
