@@ -4,6 +4,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from collections.abc import MutableMapping
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -38,6 +39,57 @@ def _gravity(gravity) -> np.ndarray:
     return g
 
 
+class ExternalForces(MutableMapping):
+    """Extra loads per body, on top of gravity: ``sim.external_forces[body] = f`` with f (N, 3) [N] per node of that
+    body (a body of the Simulation, or a member of one of its BodyStacks; in a World, one of ``world.bodies``),
+    acting over every step until changed or deleted (``del sim.external_forces[body]``). Keyed by the body itself;
+    checked when set: shape, finite values."""
+
+    def __init__(self):
+        self._loads: dict[int, tuple[FemBody, np.ndarray]] = {}
+
+    def __setitem__(self, body: FemBody, force) -> None:
+        if not isinstance(body, FemBody):
+            raise InvalidInputError(f"external_forces is keyed by the body (a FemBody): sim.external_forces[body] = f, "
+                                    f"got a key of type {type(body).__name__}")
+        try:
+            f = np.array(force, dtype=float)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"external force of a body of {body.n_nodes} nodes must be an ({body.n_nodes}, 3) "
+                                    f"array [N], got {type(force).__name__}") from None
+        if f.shape != (body.n_nodes, 3):
+            raise InvalidInputError(f"external force of a body of {body.n_nodes} nodes must be an ({body.n_nodes}, 3) "
+                                    f"array [N] (one force per node), got shape {f.shape}")
+        if not np.isfinite(f).all():
+            raise InvalidInputError(f"external force has non-finite entries (first at node "
+                                    f"{int(np.flatnonzero(~np.isfinite(f).all(axis=1))[0])})")
+        self._loads[id(body)] = (body, f)
+
+    def _held(self, body) -> tuple[FemBody, np.ndarray] | None:
+        held = self._loads.get(id(body))
+        return held if held is not None and held[0] is body else None
+
+    def __getitem__(self, body: FemBody) -> np.ndarray:
+        held = self._held(body)
+        if held is None:
+            raise KeyError(body)
+        return held[1]
+
+    def __delitem__(self, body: FemBody) -> None:
+        if self._held(body) is None:
+            raise KeyError(body)
+        del self._loads[id(body)]
+
+    def __iter__(self):
+        return iter([b for b, _ in self._loads.values()])
+
+    def __len__(self) -> int:
+        return len(self._loads)
+
+    def __contains__(self, body) -> bool:
+        return self._held(body) is not None
+
+
 def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
     """A new SPD solver on the body's pattern (solve_static's; a Simulation keeps its own per body, see
     softbody.solvers.BodySolvers)."""
@@ -56,6 +108,8 @@ class Simulation:
     paper's step: rotations at the start of the step, one solve) or "newton" (the nonlinear backward Euler
     step, softbody.newton: rotations re-evaluated, Newton iterations to the residual newton_tol, at most
     newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals).
+    ``external_forces[body] = f`` adds loads f (N, 3) [N] to a body's gravity for every step (ExternalForces);
+    :meth:`save_state` / :meth:`restore_state` checkpoint the whole state (softbody.state).
     """
 
     def __init__(self, bodies: FemBody | Sequence[FemBody], dt: float, gravity=(0.0, 0.0, -9.81),
@@ -92,7 +146,7 @@ class Simulation:
         self.velocity_solver: VelocitySolver | None = None
         # seconds of the last step by phase: rotations, forces, assembly, factorize, solve
         self.timings: dict[str, float] = {}
-        self.external_forces: dict[int, np.ndarray] = {}  # id(body) -> (N, 3) extra loads [N]
+        self.external_forces = ExternalForces()  # body -> (N, 3) extra loads [N], see ExternalForces
         self.solvers = BodySolvers()  # per body: the SPD solvers and preconditioners kept from step to step
         for b in bodies:
             self.solvers.solver(b, solver)  # fail early on a bad backend
@@ -101,13 +155,15 @@ class Simulation:
         """The external load (N, 3) [N] on ``body``: gravity and its external_forces (a BodyStack: also its
         members')."""
         f_ext = body.node_mass[:, None] * self.gravity
-        extra = self.external_forces.get(id(body))
+        if not len(self.external_forces):
+            return f_ext
+        extra = self.external_forces.get(body)
         members = getattr(body, "members", ())  # a BodyStack: its members' loads, in their rows
-        if any(id(m) in self.external_forces for m in members):
+        if any(m in self.external_forces for m in members):
             f_ext = f_ext.copy()
             for i, m in enumerate(members):
-                if id(m) in self.external_forces:
-                    f_ext[body.rows(i)] += self.external_forces[id(m)]
+                if m in self.external_forces:
+                    f_ext[body.rows(i)] += self.external_forces[m]
         return f_ext if extra is None else f_ext + extra
 
     def linear_method(self, body: FemBody) -> str:

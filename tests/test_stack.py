@@ -35,8 +35,8 @@ def test_stack_steps_like_its_members_alone():
         b.prescribe(ids, lambda t, x0=b.rest[ids].copy(): x0 + [0.0, 0.0, 0.02 * t])
     for b in (alone[2], stacked[2]):
         b.velocities = np.tile([0.0, 0.5, 0.0], (b.n_nodes, 1))
-    sa.external_forces[id(alone[0])] = np.tile([0.0, 1.0, 0.0], (alone[0].n_nodes, 1))
-    ss.external_forces[id(stacked[0])] = np.tile([0.0, 1.0, 0.0], (stacked[0].n_nodes, 1))
+    sa.external_forces[alone[0]] = np.tile([0.0, 1.0, 0.0], (alone[0].n_nodes, 1))
+    ss.external_forces[stacked[0]] = np.tile([0.0, 1.0, 0.0], (stacked[0].n_nodes, 1))
     for _ in range(30):
         sa.step()
         ss.step()

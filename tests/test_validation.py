@@ -212,3 +212,28 @@ def test_zero_duration_run_and_bodies_list():
     # both bodies fall the same way (backward Euler free fall, default alpha damping aside, equal for both)
     np.testing.assert_allclose(a.positions[:, 2].mean() - a.rest[:, 2].mean(),
                                b.positions[:, 2].mean() - b.rest[:, 2].mean(), rtol=1e-10)
+
+
+def test_external_forces_are_checked_when_set_and_move_a_free_body_by_newton():
+    """sim.external_forces[body] = f (N, 3) [N]: a wrong shape, a non-finite entry or a key that is not a body is an
+    InvalidInputError at once (not a numpy error at step time); a uniform force per unit mass on a free body in zero
+    gravity gives its momentum exactly F t (Newton's second law; the elastic forces sum to zero; undamped)."""
+    import softbody as sb
+
+    body = sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10"), sb.LinearElastic(1e6, 0.3, 1000),
+                      damping=(0.0, 0.0))  # Rayleigh's mass term would damp the free motion too
+    sim = sb.Simulation(body, 0.01, gravity=(0, 0, 0))
+    for bad, match in ((np.ones((3, 3)), r"\(117, 3\) array"), (np.full((body.n_nodes, 3), np.nan), "non-finite")):
+        with pytest.raises(sb.InvalidInputError, match=match):
+            sim.external_forces[body] = bad
+    with pytest.raises(sb.InvalidInputError, match="keyed by the body"):
+        sim.external_forces[id(body)] = np.zeros((body.n_nodes, 3))
+    f = body.node_mass[:, None] * np.array([2.0, 0.0, 0.0])  # 2 m/s^2 on every node
+    sim.external_forces[body] = f
+    assert body in sim.external_forces and np.array_equal(sim.external_forces[body], f)
+    for _ in range(10):
+        sim.step()
+    momentum = (body.node_mass[:, None] * body.velocities).sum(axis=0)
+    assert momentum == pytest.approx(f.sum(axis=0) * 0.1, rel=1e-9, abs=1e-12)
+    del sim.external_forces[body]
+    assert len(sim.external_forces) == 0
