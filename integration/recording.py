@@ -19,7 +19,9 @@ Open the file with ``rerun <file>.rrd``. Everything is logged on the ``sim_time`
     world/attachments         attached soft nodes
     world/monitor             the monitored nodes as points
     plots/monitored           the scene's monitored coordinate [mm], a plot of its own
-    plots/monitor/<node>      x, y, z of each monitored node [mm] (Scalars)
+    plots/monitor/<node>/x    x, y and z (also /y, /z) of each monitored node [mm], a plot each (one axis of
+                              mm for all three would flatten a coordinate that moves little next to one that
+                              moves far, and hide one under another that moves alike)
     plots/energy              energies [J]: soft kinetic, elastic, gravitational, rigid kinetic and
                               gravitational (World), and their total, which damping and contact can only lower
     plots/step_time           wall time of each step from the second on [ms]
@@ -78,6 +80,12 @@ FIELD_BUDGET = 256 * 2**20
 #: width / height assumed for the scene view and the contacts view of the blueprint (a 1600 x 1000 viewer gives
 #: about 960 x 690 and 640 x 380 px)
 SCENE_ASPECT, CONTACTS_ASPECT = 1.3, 1.6
+#: where a plot with several series shows its legend: top right, as a settling curve starts at the top left or
+#: the bottom left; a plot of one series has none (its view's name says what it is)
+PLOT_LEGEND_CORNER = rrb.Corner2D.RightTop
+#: the blueprint's left column: scene view over the colour bar and legend row, by height; and that row's split
+#: between colour bar and legend (the legend's text fits in its share of a 1600 x 1000 viewer)
+LEFT_ROW_SHARES, UNDER_COLUMN_SHARES = (5.0, 1.8), (1.0, 1.0)
 #: direction from the scene's centre to the eye of the three-quarter view (azimuth -55 deg, elevation 30 deg)
 EYE_DIRECTION = np.array([math.cos(math.radians(30)) * math.cos(math.radians(-55)),
                           math.cos(math.radians(30)) * math.sin(math.radians(-55)), math.sin(math.radians(30))])
@@ -269,8 +277,9 @@ def box_corners(lo, hi) -> np.ndarray:
     return np.array(np.meshgrid(*zip(lo, hi), indexing="ij")).reshape(3, -1).T
 
 
-def colorbar_png(colormap: str, lo: float, hi: float, label: str, width: int = 900, height: int = 130) -> bytes:
-    """A horizontal colour bar of ``colormap`` over lo..hi with numbered ticks and ``label``, as PNG bytes."""
+def colorbar_png(colormap: str, lo: float, hi: float, label: str, width: int = 700, height: int = 300) -> bytes:
+    """A horizontal colour bar of ``colormap`` over lo..hi with numbered ticks and ``label``, as PNG bytes (its
+    default shape about that of its view in a 1600 x 1000 viewer, so that its text is drawn near full size)."""
     import io
 
     import matplotlib
@@ -278,11 +287,11 @@ def colorbar_png(colormap: str, lo: float, hi: float, label: str, width: int = 9
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(width / 100, height / 100), dpi=100)
-    ax = fig.add_axes((0.03, 0.52, 0.94, 0.28))
+    ax = fig.add_axes((0.04, 0.4, 0.92, 0.22))
     norm = matplotlib.colors.Normalize(lo, hi)
     fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=colormap), cax=ax, orientation="horizontal")
-    ax.tick_params(labelsize=12)
-    ax.set_title(label, fontsize=13)
+    ax.tick_params(labelsize=16)
+    ax.set_title(label, fontsize=16, pad=10)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", facecolor="white")
     return buf.getvalue()
@@ -641,30 +650,42 @@ class Recorder:
         self._series += n
         return out
 
-    def _plots(self) -> list[tuple[str, str]]:
-        """(entity, title) of the time-series views, the monitored coordinate first."""
+    def _plots(self) -> list[tuple[str, list[tuple[str, str, int]]]]:
+        """The time-series views, the monitored coordinate first: (name, views) per view or group of views side
+        by side (each monitored node's x, y and z), a view as (entity, title, number of series)."""
         plots = []
         if self.scene is not None and self._monitor:
-            plots.append(("plots/monitored", f"{'xyz'[self.scene.axis]} of node {self.scene.monitor} [mm]"))
-        plots += [(f"plots/monitor/{self._node_label(b, n)}", f"node {n}: x, y, z [mm]") for b, n in self._monitor]
+            title = f"{'xyz'[self.scene.axis]} of node {self.scene.monitor} [mm]"
+            plots.append((title, [("plots/monitored", title, 1)]))
+        for b, n in self._monitor:
+            label = self._node_label(b, n)
+            plots.append((f"node {n}: x, y, z [mm]",
+                          [(f"plots/monitor/{label}/{axis}", f"node {n}: {axis} [mm]", 1) for axis in "xyz"]))
+        single = [("plots/energy", "energy [J]", len(self._energy_names()))] if "diagnostics" in self.content else []
         if "diagnostics" in self.content:
-            plots.append(("plots/energy", "energy [J]"))
             if self.is_world:
-                plots.append(("plots/contacts", "contacts"))
-            plots.append(("plots/step_time", "step time from the second step [ms]"))
+                single.append(("plots/contacts", "contacts", 2))
+            single.append(("plots/step_time", "step time from the second step [ms]", 1))
             if self._newton:
-                plots += [("plots/newton/iterations", "Newton iterations per step"),
-                          ("plots/newton/residual", "Newton: log10 final relative residual")]
+                single += [("plots/newton/iterations", "Newton iterations per step", 1),
+                           ("plots/newton/residual", "Newton: log10 final relative residual", 1)]
         if "colors" in self.content:
             name, unit, _ = COLOR_FIELDS[self.color_by]
-            plots.append(("plots/color_range", f"{name}: frame min and max [{unit}]"))
-        return plots
+            single.append(("plots/color_range", f"{name}: frame min and max [{unit}]", 2))
+        return plots + [(title, [(path, title, n)]) for path, title, n in single]
+
+    @staticmethod
+    def _series_view(path: str, title: str, series: int) -> rrb.TimeSeriesView:
+        """A time-series view of ``path``; with more than one series its legend at PLOT_LEGEND_CORNER, else none."""
+        legend = rrb.PlotLegend(corner=PLOT_LEGEND_CORNER, visible=True) if series > 1 else \
+            rrb.PlotLegend(visible=False)
+        return rrb.TimeSeriesView(origin="/" + path, name=title, plot_legend=legend)
 
     def _blueprint(self, framing: tuple | None = None) -> rrb.Blueprint:
         """Scene view framed three-quarter on ``framing`` (everything, the rigid links: each points and radii, see
         :meth:`framing`; default: the scene's at attach), colour bar and legend under it; on the right the
         contacts (soft bodies hidden, framed on the rigid links), the monitored coordinate and the other plots in
-        tabs."""
+        tabs (each monitored node's x, y and z side by side in one; :meth:`_series_view` for the legends)."""
         framing = self.start_framing if framing is None else framing
 
         def eye_controls(aspect: float, which: int = 0):
@@ -673,15 +694,16 @@ class Recorder:
 
         scene = rrb.Spatial3DView(origin="/world", name="scene", eye_controls=eye_controls(SCENE_ASPECT),
                                   contents=["+ /world/**", "- /world/contacts/**"])  # contacts: their own view
-        left, shares = [scene], [5]
+        left, shares = [scene], [LEFT_ROW_SHARES[0]]
         under = []
         if "colors" in self.content:
             under.append(rrb.Spatial2DView(origin="/colorbar", name="colour bar"))
         if self.content & {"colors", "diagnostics"}:
             under.append(rrb.TextDocumentView(origin="/legend", name="legend"))
         if under:
-            left.append(rrb.Horizontal(*under, column_shares=[3, 2][:len(under)]) if len(under) > 1 else under[0])
-            shares.append(1.4)
+            left.append(rrb.Horizontal(*under, column_shares=list(UNDER_COLUMN_SHARES)) if len(under) > 1
+                        else under[0])
+            shares.append(LEFT_ROW_SHARES[1])
         right, rshares = [], []
         if self.is_world and "contacts" in self.content:
             right.append(rrb.Spatial3DView(origin="/world", name="contacts (soft bodies hidden)",
@@ -689,9 +711,9 @@ class Recorder:
                                            eye_controls=eye_controls(CONTACTS_ASPECT, 1)))
             rshares.append(3)
         listed = self._plots()
-        plots = [rrb.TimeSeriesView(origin="/" + path, name=name, plot_legend=rrb.PlotLegend(visible=True))
-                 for path, name in listed]
-        if listed and listed[0][0] == "plots/monitored":  # the monitored coordinate: a view of its own
+        plots = [self._series_view(*views[0]) if len(views) == 1 else
+                 rrb.Horizontal(*(self._series_view(*v) for v in views), name=name) for name, views in listed]
+        if listed and listed[0][1][0][0] == "plots/monitored":  # the monitored coordinate: a view of its own
             right.append(plots.pop(0))
             rshares.append(2)
         if plots:
@@ -724,7 +746,8 @@ class Recorder:
         if self.scene is not None and self._monitor:
             self._series_lines("plots/monitored", [f"{'xyz'[self.scene.axis]} [mm]"], widths=2.0)
         for b, n in self._monitor:
-            self._series_lines(f"plots/monitor/{self._node_label(b, n)}", ["x [mm]", "y [mm]", "z [mm]"])
+            for axis in "xyz":
+                self._series_lines(f"plots/monitor/{self._node_label(b, n)}/{axis}", [f"{axis} [mm]"])
         if self._monitor and "mesh" in self.content:
             rec.log("world/monitor", rr.Points3D.from_fields(colors=_MONITOR_COLOR, radii=0.012), static=True)
         if "diagnostics" in self.content:
@@ -769,38 +792,35 @@ class Recorder:
 
     def _log_legend(self) -> None:
         """The legend (static, rewritten once the first step's time is known and at close): colour field, how it
-        is drawn, colour map and range, contact arrows."""
+        is drawn, colour map and range, contact arrows, set-up time. Short: it fits its view in a 1600 x 1000
+        viewer (LEFT_ROW_SHARES, UNDER_COLUMN_SHARES)."""
         lines = []
         if "colors" in self.content:
             name, unit, k = COLOR_FIELDS[self.color_by]
             if self.color_by == "displacement":
-                src = "the node's |x - X|, interpolated over the triangles"
+                src = "per node"
             elif self.color_mode == "element":
-                src = ("each element's value at its centre (unrotated small-strain stress) on its boundary "
-                       "faces, not averaged: a colour step is a step between elements")
+                src = "per element face (each element's value at its centre, not averaged)"
             else:
-                src = "the volume-weighted mean of the elements at each surface node, interpolated over the triangles"
+                src = "the volume-weighted mean of the elements at each surface node"
             if self.color_range:
                 how = f"a fixed range {k * self.color_range[0]:.4g} .. {k * self.color_range[1]:.4g} {unit}"
             else:
-                basis = "Young's modulus" if self.color_by == "von_mises" else "body extent"
-                final = "the run's largest value" if self.closed else "the largest value so far (the run's at close)"
-                how = (f"one range for the whole recording, 0 .. {k * self._color_high:.4g} {unit}: {final}, at "
-                       f"least {k * self._color_floor:.4g} {unit} ({COLOR_FLOOR_FRACTION:g} x the smallest {basis})")
+                final = "the run's largest" if self.closed else "the largest so far"
+                how = (f"one range for the whole recording, 0 .. {k * self._color_high:.4g} {unit} ({final}, at "
+                       f"least {k * self._color_floor:.4g} {unit})")
                 if self._stale_from is not None:
-                    how += (f" (frames from t = {self._stale_from:g} s on were past the recorder's memory budget and "
-                            "may be drawn on a smaller range)")
-            lines.append(f"**Colours**: {name} [{unit}], {src}. Colour map **{self.colormap}** (dark: low, bright: "
-                         f"high), {how}. Frame min/max in `plots/color_range`.")
+                    how += (f"; frames from t = {self._stale_from:g} s on, past the recorder's memory budget, may be "
+                            "on a smaller one")
+            lines.append(f"**Colours**: {name} [{unit}], {src}; map **{self.colormap}**, {how}.")
         if "contacts" in self.content and self.is_world:
-            what = (f"forces on the soft body, out of the rigid body, {1e3 * self.force_scale:.3g} mm per N"
-                    if self.contact_arrows == "force" else f"unit normals drawn {self.arrow_length:g} m long")
-            lines.append(f"**Contacts** (view *contacts*, soft bodies hidden): red points on the rigid surfaces, "
-                         f"arrows: {what}; face contacts magenta, soft-soft blue.")
+            what = (f"forces on the soft body, {1e3 * self.force_scale:.3g} mm per N"
+                    if self.contact_arrows == "force" else f"unit normals, {self.arrow_length:g} m long")
+            lines.append(f"**Contacts** (own view): red points on the rigid surfaces, arrows: {what} (face "
+                         "contacts magenta, soft-soft blue).")
         if "diagnostics" in self.content:
             setup = "" if self._setup_ms is None else f": {self._setup_ms:.1f} ms"
-            lines.append(f"**Set-up** (the first step: symbolic analysis, first factorisation){setup}, in "
-                         "`plots/setup_time`, not in `plots/step_time`.")
+            lines.append(f"**Set-up** (the first step, not in *step time*){setup}.")
         if lines:
             self.rec.log("legend", rr.TextDocument("\n\n".join(lines), media_type="text/markdown"), static=True)
 
@@ -925,7 +945,8 @@ class Recorder:
         if self._monitor:
             xs = np.array([self._soft[b].body.positions[n] for b, n in self._monitor])
             for (b, n), x in zip(self._monitor, xs):
-                f[f"plots/monitor/{self._node_label(b, n)}"] = 1e3 * x
+                for axis, value in zip("xyz", x):
+                    f[f"plots/monitor/{self._node_label(b, n)}/{axis}"] = (1e3 * float(value),)
             if self.scene is not None:
                 f["plots/monitored"] = (1e3 * float(xs[0, self.scene.axis]),)
             if "mesh" in content:

@@ -110,8 +110,8 @@ def test_recording_round_trip(tmp_path):
     verify(rec.path)
     data, static = read(rec.path)
     node = f"plots/monitor/node{scene.monitor}"
-    for entity in ["world/soft/body0", "world/contacts/points", "world/contacts/arrows", node, "world/monitor",
-                   "plots/energy", "plots/step_time", "plots/setup_time", "plots/contacts", "plots/color_range"]:
+    for entity in ["world/soft/body0", "world/contacts/points", "world/contacts/arrows", *(f"{node}/{a}" for a in "xyz"),
+                   "world/monitor", "plots/energy", "plots/step_time", "plots/setup_time", "plots/contacts", "plots/color_range"]:
         assert "/" + entity in data, f"{entity} missing; have {sorted(data)}"
     for entity in ["world", "world/soft/body0", "world/rigid/sphere_0", "legend"]:
         assert "/" + entity in static, f"static {entity} missing; have {sorted(static)}"
@@ -123,9 +123,11 @@ def test_recording_round_trip(tmp_path):
     np.testing.assert_allclose(seconds(mesh["sim_time"]), t_true, atol=1e-9)
     # the stored trajectory is exactly what the simulation produced, in mm; the monitored coordinate has a plot
     # of its own
-    traj = data["/" + node]
-    np.testing.assert_allclose(seconds(traj["sim_time"]), t_true, atol=1e-9)
-    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), 1e3 * np.array([x for _, x in truth]))
+    x_true = np.array([x for _, x in truth])
+    for i, axis in enumerate("xyz"):  # a plot each
+        traj = data[f"/{node}/{axis}"]
+        np.testing.assert_allclose(seconds(traj["sim_time"]), t_true, atol=1e-9)
+        np.testing.assert_array_equal(np.array(traj["Scalars:scalars"])[:, 0], 1e3 * x_true[:, i])
     own = np.array(data["/plots/monitored"]["Scalars:scalars"])[:, 0]
     np.testing.assert_array_equal(own, 1e3 * np.array([x[scene.axis] for _, x in truth]))
     # the sheet really falls: the monitored z goes down
@@ -184,12 +186,98 @@ def test_every_kth_step(tmp_path, every):
     data, _ = read(rec.path)
     steps = int(round(DURATION / scene.world.dt))
     expected = [truth[0]] + [truth[k] for k in range(every, steps + 1, every)]
-    traj = data[f"/plots/monitor/node{scene.monitor}"]
-    assert len(traj["sim_time"]) == len(data["/world/soft/body0"]["sim_time"]) == 1 + steps // every
-    np.testing.assert_allclose(seconds(traj["sim_time"]), [t for t, _ in expected], atol=1e-9)
-    np.testing.assert_array_equal(np.array(traj["Scalars:scalars"]), 1e3 * np.array([x for _, x in expected]))
+    for i, axis in enumerate("xyz"):
+        traj = data[f"/plots/monitor/node{scene.monitor}/{axis}"]
+        assert len(traj["sim_time"]) == len(data["/world/soft/body0"]["sim_time"]) == 1 + steps // every
+        np.testing.assert_allclose(seconds(traj["sim_time"]), [t for t, _ in expected], atol=1e-9)
+        np.testing.assert_array_equal(np.array(traj["Scalars:scalars"])[:, 0],
+                                      1e3 * np.array([x[i] for _, x in expected]))
     # content that is off is neither computed nor logged
     assert not any(e.startswith(("/plots/energy", "/world/contacts", "/world/rigid")) for e in data)
+
+
+def static_series(path: Path) -> dict[str, list[str]]:
+    """The series names logged (static SeriesLines / SeriesPoints) per entity path of a recording."""
+    out: dict[str, list[str]] = {}
+    for chunk in RrdReader(path).stream():
+        if chunk.is_static:
+            batch = chunk.to_record_batch()
+            for name in ("SeriesLines:names", "SeriesPoints:names"):
+                if name in batch.schema.names:
+                    out[chunk.entity_path] = batch.column(name).to_pylist()[-1]
+    return out
+
+
+def walk(item, around=()):
+    """(view, names of the containers around it) for every view of a blueprint or container, depth first."""
+    import rerun.blueprint as rrb
+
+    if isinstance(item, rrb.Blueprint):
+        item = item.root_container
+    if isinstance(item, rrb.Container):
+        for child in item.contents:
+            yield from walk(child, (*around, item.name))
+    else:
+        yield item, around
+
+
+def test_blueprint_plots_one_series_without_a_legend_several_with_it_top_right(tmp_path):
+    """The monitored coordinate and each of x, y and z have a plot of their own, without a legend (the view's
+    name says what it is); a plot of several series has its legend top right, away from a settling curve's
+    start (the sheet's corner falls from the top left)."""
+    import rerun.blueprint as rrb
+
+    from integration.recording import PLOT_LEGEND_CORNER
+
+    rec, scene, truth = run_recorded(tmp_path)
+    series = static_series(rec.path)
+    views = [(v, around) for v, around in walk(rec._blueprint()) if isinstance(v, rrb.TimeSeriesView)]
+    assert len(views) >= 7
+    for view, _ in views:
+        names = series[view.origin]
+        legend = view.properties["PlotLegend"]
+        shown = legend.visible.as_arrow_array().to_pylist() == [True]
+        assert shown == (len(names) > 1), (view.name, names)
+        if shown:
+            assert legend.corner.as_arrow_array().to_pylist() == [PLOT_LEGEND_CORNER.value] == [
+                rrb.Corner2D.RightTop.value], view.name
+    by_origin = {v.origin: (v, around) for v, around in views}
+    monitored, _ = by_origin["/plots/monitored"]
+    assert monitored.name == f"z of node {scene.monitor} [mm]" and series["/plots/monitored"] == ["z [mm]"]
+    node = f"/plots/monitor/node{scene.monitor}"
+    xyz = [by_origin[f"{node}/{a}"] for a in "xyz"]  # one view per coordinate, side by side in one tab
+    assert [v.name for v, _ in xyz] == [f"node {scene.monitor}: {a} [mm]" for a in "xyz"]
+    assert all(series[f"{node}/{a}"] == [f"{a} [mm]"] for a in "xyz")
+    assert len({around for _, around in xyz}) == 1 and xyz[0][1][-1] == f"node {scene.monitor}: x, y, z [mm]"
+    # the reason: the corner's x and y move alike (the sheet is square) and far less than z
+    x = np.array([p for _, p in truth])
+    np.testing.assert_allclose(x[:, 0] - x[0, 0], x[:, 1] - x[0, 1], atol=2e-3)
+    assert np.ptp(x[:, 2]) > 5 * np.ptp(x[:, 0])
+
+
+def test_the_legend_text_fits_its_view(tmp_path):
+    """The legend's three paragraphs (colours, contacts, set-up) fit their view of a 1600 x 1000 viewer: the
+    text wrapped at the view's width in characters of rerun's font (7 px on average, measured on the pictures
+    of docs/recording.md at 6.3 px), 17 px a line (measured 15.5), a blank line between paragraphs."""
+    import re
+
+    import textwrap
+
+    from integration.recording import LEFT_ROW_SHARES, UNDER_COLUMN_SHARES
+
+    rec, _, _ = run_recorded(tmp_path)
+    text = None
+    for chunk in RrdReader(rec.path).stream():
+        if chunk.is_static and chunk.entity_path == "/legend":
+            text = chunk.to_record_batch().column("TextDocument:text").to_pylist()[-1][0]
+    assert text is not None
+    paragraphs = text.split("\n\n")
+    assert [p.split("**")[1] for p in paragraphs] == ["Colours", "Contacts", "Set-up"]
+    width = 1600 * 3 / 5 * UNDER_COLUMN_SHARES[1] / sum(UNDER_COLUMN_SHARES) - 20  # the right column: 2 / 5
+    height = (1000 - 70) * LEFT_ROW_SHARES[1] / sum(LEFT_ROW_SHARES) - 24 - 16  # bars, view title, padding
+    plain = [re.sub(r"[*`]", "", p) for p in paragraphs]
+    lines = sum(len(textwrap.wrap(p, int(width / 7))) for p in plain) + len(plain) - 1
+    assert lines * 17 <= height, (lines, height, text)
 
 
 def test_interrupted_run_leaves_valid_recording(tmp_path):
