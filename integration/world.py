@@ -46,7 +46,7 @@ from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceC
 from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
 from .softcontact import SoftHits, SoftLayout, SoftSurface, soft_contacts
-from .state import WorldState, bullet_bytes, restore_bullet
+from .state import WorldState
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
@@ -456,8 +456,13 @@ class World:
         for b in self._members:
             key = self._stack_key(b)
             groups.setdefault(("alone", id(b)) if key is None else key, []).append(b)
+        self._apply_layout(list(groups.values()))
+
+    def _apply_layout(self, groups: list[list[FemBody]]) -> None:
+        """Step the soft bodies as ``groups`` (each a list of members: one alone, several as a BodyStack, a stack of
+        the same members kept), with what each stepped body needs (friction, ignored links, surface, places)."""
         held = {tuple(map(id, s.members)): s for s in self.sim.bodies if isinstance(s, BodyStack)}
-        stepped = [g[0] if len(g) == 1 else held.pop(tuple(map(id, g)), None) or BodyStack(g) for g in groups.values()]
+        stepped = [g[0] if len(g) == 1 else held.pop(tuple(map(id, g)), None) or BodyStack(g) for g in groups]
         for gone in held.values():  # stacks dissolved: their members keep their state (views of its rows)
             for d in (self.friction, self._ignore, self._surface):
                 d.pop(id(gone), None)
@@ -1127,7 +1132,7 @@ class World:
         world (its saveBullet), the contacts' warm starts and friction states, the stacking, the reactions lagged to
         the next step and the last step's results. Continuing after :meth:`restore_state` of it is the same to the
         bit as continuing now. ``path``: also write it there (``state.write(path)`` does the same later)."""
-        self._restack()
+        self._ensure_placed()
         index, layout = self._handles()
         by_id = {id(s): h for s, h in zip(self.sim.bodies, layout)}
         previous = {(kind, key if kind == "soft" else by_id[key]): copy.deepcopy(value)
@@ -1141,46 +1146,85 @@ class World:
             "face_results": {by_id[k]: v for k, v in self.face_results.items() if k in by_id},
             "attachment_forces": [(attachment[id(a)], f) for a, f in self.attachment_forces],
         }
-        state = WorldState(self.sim.save_state(), [m.n_nodes for m in self._members], len(self.attachments), layout,
+        state = WorldState(self.sim.save_state(), self._scene_summary(), len(self.attachments), layout,
                            {index[k]: index[g] for k, g in self._dense_group.items() if k in index and g in index},
                            self._restack_due, sorted(index[k] for k in self._started if k in index),
-                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), bullet_bytes(self.client))
+                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), self.adapter.save_world())
         if path is not None:
             state.write(path)
         return state
 
+    def _ensure_placed(self) -> None:
+        """Members added since the last step join the stepped bodies (a restack), so that every member has a place;
+        otherwise the stepping stays as the last step left it (a regrouping it asked for waits for the next step)."""
+        if any(id(m) not in self._place for m in self._members):
+            self._restack()
+
+    def _scene_summary(self) -> dict:
+        """What a saved state must find again to restore into this World: the soft bodies' node counts, the time step
+        and gravity, pybullet's bodies (ids, names, joint counts)."""
+        ad = self.adapter
+        return {"members": [m.n_nodes for m in self._members], "dt": self.dt, "gravity": tuple(map(float, self.gravity)),
+                "rigid": [(b, ad.body_name(b), ad.num_links(b)) for b in ad.body_ids()]}
+
+    def _check_restorable(self, state: WorldState) -> list[list[FemBody]]:
+        """Raise InvalidInputError naming what differs unless ``state`` was saved from this scene; returns the saved
+        stepping as groups of members. Changes nothing."""
+        have, want = self._scene_summary(), state.scene
+        what = []
+        if have["members"] != want["members"]:
+            what.append(f"soft bodies of {want['members']} nodes saved, {have['members']} here")
+        if len(self.attachments) != state.attachments:
+            what.append(f"{state.attachments} attachments saved, {len(self.attachments)} here")
+        if have["dt"] != want["dt"] or have["gravity"] != want["gravity"]:
+            what.append(f"dt {want['dt']:g} s and gravity {want['gravity']} saved, dt {have['dt']:g} s and gravity "
+                        f"{have['gravity']} here")
+        if have["rigid"] != want["rigid"]:
+            what.append(f"pybullet bodies (id, name, links) {want['rigid']} saved, {have['rigid']} here")
+        groups = [[self._members[k] for k in h] for h in state.layout] if not what else []
+        for g in groups:
+            keys = {self._stack_key(m)[:-1] if self._stack else None for m in g}
+            if len(g) > 1 and (not self._stack or len(keys) > 1):
+                what.append(f"soft bodies {[self._members.index(m) for m in g]} were stepped as one stack, here they "
+                            "differ in what a stack shares (element kind, material, damping, friction, ignored links) "
+                            "or stacking is off")
+                break
+        if what:
+            raise InvalidInputError("the saved state is of another scene: " + "; ".join(what) + ". Build the same "
+                                    "scene (the same rigid bodies loaded, the same soft bodies added in the same order, "
+                                    "with the same settings) before restoring; nothing was changed")
+        return groups
+
     def restore_state(self, state: WorldState | str | Path) -> None:
         """Go back to a state of :meth:`save_state`, or read one from its path (also in a new process, with the same
         scene built: the same rigid bodies loaded and soft bodies added in the same order). Loads, motor targets,
-        constraints and settings stay as they are now (the scene, not its state)."""
+        constraints and settings stay as they are now (the scene, not its state). A state of another scene is refused
+        with what differs, and the World is left as it was."""
         if isinstance(state, (str, Path)):
             state = read_state(state, WorldState)
         if not isinstance(state, WorldState):
             raise InvalidInputError(f"restore_state takes a WorldState or its path, got {type(state).__name__}")
-        nodes = [m.n_nodes for m in self._members]
-        if nodes != state.members or len(self.attachments) != state.attachments:
-            raise InvalidInputError(
-                f"the saved state is of {len(state.members)} soft bodies of {state.members} nodes and "
-                f"{state.attachments} attachments; this World has {len(nodes)} of {nodes} nodes and "
-                f"{len(self.attachments)} attachments: build the same scene (the same bodies, added in the same order) "
-                "before restoring")
-        fresh = self.sim.steps == 0 and not self._started
-        restore_bullet(state, self.client, fresh)
-        self.adapter.invalidate()
         self._sync()
+        groups = self._check_restorable(state)
+        backup = self.save_state()
+        try:
+            self._apply_state(state, groups)
+        except BaseException:
+            self._apply_state(backup, [[self._members[k] for k in h] for h in backup.layout])
+            raise
+
+    def _apply_state(self, state: WorldState, groups: list[list[FemBody]]) -> None:
+        """Restore ``state`` (checked by :meth:`_check_restorable`, which gave ``groups``)."""
+        self.adapter.restore_world(state.bullet, fresh=self.sim.steps == 0 and not self._started)
         members = self._members
         self._dense_group = {id(members[k]): id(members[g]) for k, g in state.dense_group.items()}
-        self._restack_due = True
-        self._restack()
-        index, layout = self._handles()
-        if layout != state.layout:
-            raise InvalidInputError(f"the soft bodies stack as {layout} here, as {state.layout} in the saved state: "
-                                    "build the same scene (the same materials, friction and ignored bodies)")
+        self._apply_layout(groups)
         self._restack_due = state.restack_due
         self.sim.restore_state(state.sim)
         for s in self.sim.bodies:
             if isinstance(s, BodyStack):
                 s.gather()
+        index, layout = self._handles()
         stepped = {h: s for h, s in zip(layout, self.sim.bodies)}
         self.contact_solver.previous = {(kind, key if kind == "soft" else id(stepped[key])): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}

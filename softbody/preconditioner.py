@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from .errors import InvalidInputError
 from .linsolve import SpdSolver
 
 
@@ -90,7 +91,7 @@ class Preconditioner:
         """Take over a state of :meth:`save_state` (from this body's preconditioner with the same backend): the
         factor is made again from the saved values, the same to the bit."""
         if state["backend"] != self.solver.backend:
-            raise ValueError(f"a preconditioner state of backend {state['backend']!r} for one of {self.solver.backend!r}")
+            raise InvalidInputError(f"a preconditioner state of backend {state['backend']!r} for one of {self.solver.backend!r}")
         for name in self._STATE:
             setattr(self, name, copy.deepcopy(state[name]))
         self._last = (None, None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
-from collections.abc import MutableMapping
+from collections.abc import Mapping, MutableMapping
 from pathlib import Path
 from typing import Callable, Iterable, Sequence
 
@@ -43,7 +43,8 @@ class ExternalForces(MutableMapping):
     """Extra loads per body, on top of gravity: ``sim.external_forces[body] = f`` with f (N, 3) [N] per node of that
     body (a body of the Simulation, or a member of one of its BodyStacks; in a World, one of ``world.bodies``),
     acting over every step until changed or deleted (``del sim.external_forces[body]``). Keyed by the body itself;
-    checked when set: shape, finite values."""
+    checked when set: shape, finite values. The load is copied when set: change it by setting it again (or in place
+    through ``sim.external_forces[body][:] = ...``)."""
 
     def __init__(self):
         self._loads: dict[int, tuple[FemBody, np.ndarray]] = {}
@@ -146,10 +147,25 @@ class Simulation:
         self.velocity_solver: VelocitySolver | None = None
         # seconds of the last step by phase: rotations, forces, assembly, factorize, solve
         self.timings: dict[str, float] = {}
-        self.external_forces = ExternalForces()  # body -> (N, 3) extra loads [N], see ExternalForces
+        self._external_forces = ExternalForces()  # body -> (N, 3) extra loads [N], see ExternalForces
         self.solvers = BodySolvers()  # per body: the SPD solvers and preconditioners kept from step to step
         for b in bodies:
             self.solvers.solver(b, solver)  # fail early on a bad backend
+
+    @property
+    def external_forces(self) -> ExternalForces:
+        """Extra loads per body, on top of gravity: ``sim.external_forces[body] = f`` (see ExternalForces)."""
+        return self._external_forces
+
+    @external_forces.setter
+    def external_forces(self, loads) -> None:
+        """Replace all extra loads by ``loads``, a mapping body -> (N, 3) [N] (each checked as when set one by one)."""
+        if not isinstance(loads, Mapping):
+            raise InvalidInputError(f"external_forces takes a mapping body -> (N, 3) forces [N], got {type(loads).__name__}")
+        fresh = ExternalForces()
+        for body, force in loads.items():
+            fresh[body] = force
+        self._external_forces = fresh
 
     def load(self, body: FemBody) -> np.ndarray:
         """The external load (N, 3) [N] on ``body``: gravity and its external_forces (a BodyStack: also its
@@ -209,8 +225,8 @@ class Simulation:
                           f"{'on' if kernels.ENABLED else 'off'} now: the continuation agrees with the original to "
                           "round-off, not to the bit", RuntimeWarning, stacklevel=2)
 
-    __deepcopy__ = not_copyable("the bodies' solver factorisations (MKL PARDISO handles)", "Simulation")
-    __reduce_ex__ = not_copyable("the bodies' solver factorisations (MKL PARDISO handles)", "Simulation")
+    __deepcopy__ = not_copyable("the bodies' solver factorisations (MKL PARDISO or compiled factors)", "Simulation")
+    __reduce_ex__ = not_copyable("the bodies' solver factorisations (MKL PARDISO or compiled factors)", "Simulation")
 
     @property
     def newton_report(self) -> NewtonReport:

@@ -75,7 +75,7 @@ def test_a_simulation_refuses_another_bodys_state_and_copies():
             attempt(sim)
 
 
-def _scene(client: int | None = None) -> tuple[World, list[sb.FemBody], int, int]:
+def _scene(client: int | None = None, friction: tuple = (0.4, 0.4, 0.4)) -> tuple[World, list[sb.FemBody], int, int]:
     """Three soft tet10 cubes on a plane (two stacked: soft contact, friction), a dynamic box on the third (two-way
     coupling), and pybullet_data's KUKA iiwa in the user's own client, its motors driven by the loop."""
     cid = p.connect(p.DIRECT) if client is None else client
@@ -89,8 +89,8 @@ def _scene(client: int | None = None) -> tuple[World, list[sb.FemBody], int, int
     world = World(client=cid)
     cubes = [sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=c), sb.LinearElastic(5e5, 0.33, 1000))
              for c in [(0, 0, 0.051), (0.0, 0.01, 0.17), (0.4, 0, 0.051)]]
-    for b in cubes:
-        world.add_soft(b, friction=0.4)
+    for b, mu in zip(cubes, friction):
+        world.add_soft(b, friction=mu)
     return world, cubes, box, kuka
 
 
@@ -157,13 +157,64 @@ def test_a_saved_world_restores_in_a_new_process(tmp_path):
     _close(world)
 
 
+def test_a_state_saved_while_the_stacks_regroup_keeps_the_last_results():
+    """Saved right after the step at which the soft bodies first touched (their stacks regroup at the next step): the
+    restored World reports the same contact forces and continues to the bit."""
+    world, cubes, box, kuka = _scene()
+    for k in range(12):
+        _run(world, cubes, box, kuka, 1)
+        if world._restack_due:
+            break
+    assert world._restack_due, "no regrouping within 12 steps: the scene no longer tests it"
+    plane = 0
+    force = world.contact_force(plane)
+    state = world.save_state()
+    assert state.restack_due
+    original = _run(world, cubes, box, kuka, 10)
+    world.restore_state(state)
+    assert np.array_equal(world.contact_force(plane), force) and force[2] < 0  # the cubes press on the plane
+    assert np.array_equal(_run(world, cubes, box, kuka, 10), original)
+    _close(world)
+
+
+def test_a_refused_restore_changes_nothing():
+    """A state of a scene whose soft bodies stack otherwise (another friction), of another time step, or with a
+    pybullet body more: refused with what differs, the World untouched (rigid poses, soft states, time)."""
+    world, cubes, box, kuka = _scene()
+    _run(world, cubes, box, kuka, 20)
+    state = world.save_state()
+    other, cubes2, box2, kuka2 = _scene(friction=(0.4, 0.1, 0.4))  # cube 1 no longer stacks with cube 0
+    _run(other, cubes2, box2, kuka2, 3)
+    before = (_pose(other, box2), [c.positions.copy() for c in cubes2], other.t)
+    with pytest.raises(InvalidInputError, match="stepped as one stack"):
+        other.restore_state(state)
+    assert _pose(other, box2) == before[0] and other.t == before[2]
+    assert all(np.array_equal(c.positions, x) for c, x in zip(cubes2, before[1]))
+    _close(other)
+    third, cubes3, box3, kuka3 = _scene()
+    p.createMultiBody(0.1, p.createCollisionShape(p.GEOM_SPHERE, radius=0.02, physicsClientId=third.client),
+                      basePosition=[1, 1, 0.5], physicsClientId=third.client)
+    with pytest.raises(InvalidInputError, match="pybullet bodies"):
+        third.restore_state(state)
+    _close(third)
+    fourth = World(dt=0.005)
+    with pytest.raises(InvalidInputError, match="dt 0.01 s"):
+        fourth.restore_state(state)
+    fourth.close()
+    _close(world)
+
+
+def _pose(world: World, body: int) -> tuple:
+    return p.getBasePositionAndOrientation(body, physicsClientId=world.client)
+
+
 def test_a_world_refuses_a_state_of_another_scene(tmp_path):
     world, cubes, box, kuka = _scene()
     world.step()
     state = world.save_state()
     other = World(dt=0.01)
     other.add_soft(sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10"), sb.LinearElastic(5e5, 0.33, 1000)))
-    with pytest.raises(InvalidInputError, match="build the same scene"):
+    with pytest.raises(InvalidInputError, match="soft bodies of"):
         other.restore_state(state)
     (tmp_path / "junk.state").write_bytes(b"not a state")
     with pytest.raises(InvalidInputError, match="not a saved state"):
