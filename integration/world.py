@@ -1224,8 +1224,7 @@ class World:
         for s in self.sim.bodies:
             if isinstance(s, BodyStack):
                 s.gather()
-        index, layout = self._handles()
-        stepped = {h: s for h, s in zip(layout, self.sim.bodies)}
+        stepped = {h: s for h, s in zip(self._handles()[1], self.sim.bodies)}
         self.contact_solver.previous = {(kind, key if kind == "soft" else id(stepped[key])): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
         self._started = {id(members[k]) for k in state.started}

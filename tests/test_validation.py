@@ -237,3 +237,7 @@ def test_external_forces_are_checked_when_set_and_move_a_free_body_by_newton():
     assert momentum == pytest.approx(f.sum(axis=0) * 0.1, rel=1e-9, abs=1e-12)
     del sim.external_forces[body]
     assert len(sim.external_forces) == 0
+    with pytest.raises(sb.InvalidInputError, match=r"\(117, 3\) array"):  # a whole mapping is checked too
+        sim.external_forces = {body: np.ones((3, 3))}
+    sim.external_forces = {body: f}
+    assert np.array_equal(sim.external_forces[body], f)
