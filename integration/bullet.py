@@ -29,10 +29,11 @@ import pybullet as p
 
 from softbody.errors import InvalidInputError
 
+from .shapes import BY_GEOM, RigidShape, from_pybullet
+
 BASE = -1
 MOVABLE_JOINTS = (p.JOINT_REVOLUTE, p.JOINT_PRISMATIC)
-GEOMETRY = {p.GEOM_SPHERE: "sphere", p.GEOM_BOX: "box", p.GEOM_CAPSULE: "capsule", p.GEOM_CYLINDER: "cylinder",
-            p.GEOM_PLANE: "plane", p.GEOM_MESH: "mesh"}
+GEOMETRY = {geom: cls.kind for geom, cls in BY_GEOM.items()}  # pybullet's GEOM_* -> kind name (shapes.BY_GEOM)
 
 
 def quat_matrix(q) -> np.ndarray:
@@ -81,48 +82,39 @@ def skew(r: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Shape:
-    """One collision (or visual) shape of a link, in the link's inertial frame.
+    """One collision (or visual) shape of a link, in the link's inertial frame: its ``geometry``
+    (integration.shapes), position (3,) and quaternion (4,) in the link's inertial frame, rgba: colour
+    (visual shapes)."""
 
-    kind: one of GEOMETRY's values; size: radius (sphere), half extents (box), (radius, length)
-    (capsule, cylinder), scale (mesh); mesh_file: the mesh's file for kind "mesh" ("" if pybullet
-    made the mesh itself); position (3,) and quaternion (4,) of the shape in the link's inertial frame;
-    rgba: colour (visual shapes)."""
-
-    kind: str
-    size: tuple
+    geometry: RigidShape
     position: tuple
     quaternion: tuple
-    mesh_file: str = ""
     rgba: tuple = (0.67, 0.67, 0.67, 1.0)
+
+    @property
+    def kind(self) -> str:
+        """sphere, box, capsule, cylinder, plane or mesh."""
+        return self.geometry.kind
+
+    @property
+    def size(self) -> tuple:
+        """(radius,) (sphere), half extents (box), (radius, length) (capsule, cylinder), normal (plane), scale
+        (mesh)."""
+        return tuple(float(v) for v in self.geometry.size)
+
+    @property
+    def mesh_file(self) -> str:
+        """A mesh's file ("" if pybullet made the mesh itself, or not a mesh)."""
+        return self.geometry.file
 
     def bounding_radius(self) -> float:
         """Radius [m] about the shape's own origin that holds the shape (inf for planes and meshes of
         unknown extent)."""
-        if self.kind == "sphere":
-            return float(self.size[0])
-        if self.kind == "box":
-            return float(np.linalg.norm(self.size))
-        if self.kind in ("capsule", "cylinder"):
-            r, length = self.size
-            return float(math.hypot(r, 0.5 * length) + (r if self.kind == "capsule" else 0.0))
-        return math.inf
+        return self.geometry.bounding_radius()
 
 
 def _shape_from_pybullet(kind_id: int, dims, mesh_file: bytes | str, pos, orn, rgba=None) -> Shape:
-    kind = GEOMETRY.get(kind_id, "mesh")
-    dims = tuple(float(d) for d in dims)
-    if kind == "sphere":
-        size = (dims[0],)
-    elif kind == "box":
-        size = tuple(0.5 * d for d in dims[:3])  # pybullet reports full extents
-    elif kind in ("capsule", "cylinder"):
-        size = (dims[1], dims[0])  # pybullet reports (length, radius)
-    else:
-        size = dims[:3]
-    name = mesh_file.decode() if isinstance(mesh_file, bytes) else str(mesh_file)
-    if name == "unknown_file":
-        name = ""
-    return Shape(kind, size, tuple(float(c) for c in pos), tuple(float(c) for c in orn), name,
+    return Shape(from_pybullet(kind_id, dims, mesh_file), tuple(float(c) for c in pos), tuple(float(c) for c in orn),
                  tuple(float(c) for c in rgba) if rgba is not None else Shape.rgba)
 
 
@@ -331,12 +323,10 @@ class BulletAdapter:
         p.resetBaseVelocity(body, list(linear), list(angular), physicsClientId=self.client)
 
     # ------------------------------------------------------------------ bodies the World creates
-    def create_body(self, kind: str, size: dict, position, orientation, mass: float) -> int:
-        """A single-link body of one primitive collision shape (kind: sphere, box, plane, mesh; size: the
-        keyword arguments of createCollisionShape) at a pose; a dynamic one (mass > 0) keeps its momentum
-        (pybullet's default damping switched off)."""
-        geom = {"sphere": p.GEOM_SPHERE, "box": p.GEOM_BOX, "plane": p.GEOM_PLANE, "mesh": p.GEOM_MESH}[kind]
-        col = p.createCollisionShape(geom, physicsClientId=self.client, **size)
+    def create_body(self, shape: RigidShape, position, orientation, mass: float) -> int:
+        """A single-link body of one collision shape (integration.shapes) at a pose; a dynamic one (mass > 0)
+        keeps its momentum (pybullet's default damping switched off)."""
+        col = p.createCollisionShape(physicsClientId=self.client, **shape.pybullet_args())
         bid = p.createMultiBody(mass, col, basePosition=list(position), baseOrientation=list(orientation),
                                 physicsClientId=self.client)
         if mass > 0:

@@ -94,16 +94,11 @@ def plane(p: np.ndarray, normal: np.ndarray) -> Result:
 
 
 def shape_distance(kind: str, size, p: np.ndarray) -> Result:
-    """Dispatch on ``kind`` (sphere, box, capsule, cylinder, plane); size as integration.bullet.Shape's:
-    (radius,), half extents, (radius, length), or the plane's normal."""
-    if kind == "sphere":
-        return sphere(p, float(size[0]))
-    if kind == "box":
-        return box(p, np.asarray(size, float))
-    if kind == "capsule":
-        return capsule(p, float(size[0]), float(size[1]))
-    if kind == "cylinder":
-        return cylinder(p, float(size[0]), float(size[1]))
-    if kind == "plane":
-        return plane(p, np.asarray(size, float))
-    raise ValueError(f"no closed-form distance for shape {kind!r}")
+    """The distance of the shape class of ``kind`` (integration.shapes: sphere, box, capsule, cylinder, plane)
+    of a part's ``size``: (radius,), half extents, (radius, length), or the plane's normal."""
+    from .shapes import BY_KIND  # shapes.py builds on this module
+
+    cls = BY_KIND.get(kind)
+    if cls is None or not cls.closed_form:
+        raise ValueError(f"no closed-form distance for shape {kind!r}")
+    return cls.from_size(size).distance(p)

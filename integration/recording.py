@@ -65,8 +65,6 @@ import scipy.sparse as sp
 from softbody import FemBody, Simulation
 from softbody.errors import InvalidInputError
 
-from .bullet import quat_matrix
-
 TIMELINE = "sim_time"
 CONTENT = ("mesh", "colors", "rigid", "contacts", "attachments", "monitor", "diagnostics")
 #: colour field -> (name, display unit, display unit per SI unit)
@@ -189,37 +187,11 @@ def _link_visuals(rb) -> list:
     shapes = rb.adapter.visual_shapes(rb.id).get(rb.link) or rb.shapes
     out = []
     for sh in shapes:
-        pos, quat = np.asarray(sh.position, float), np.asarray(sh.quaternion, float)
-        R = quat_matrix(quat)
-        color = tuple(int(round(255 * c)) for c in sh.rgba)
-        if sh.kind == "box":
-            out.append(rr.Boxes3D(half_sizes=[sh.size], centers=[pos], quaternions=[rr.Quaternion(xyzw=quat)],
-                                  colors=color, fill_mode="solid"))
-        elif sh.kind == "sphere":  # a smooth mesh with normals, as the World's own spheres
-            import trimesh
-
-            ball = trimesh.creation.icosphere(subdivisions=3, radius=float(sh.size[0]))
-            out.append(rr.Mesh3D(vertex_positions=ball.vertices + pos, triangle_indices=ball.faces,
-                                 vertex_normals=ball.vertex_normals, albedo_factor=color))
-        elif sh.kind == "capsule":  # rerun's capsule runs from its origin along +z: start it half a length down
-            r, length = sh.size
-            out.append(rr.Capsules3D(lengths=[length], radii=[r], translations=[pos - 0.5 * length * R[:, 2]],
-                                     quaternions=[rr.Quaternion(xyzw=quat)], colors=color))
-        elif sh.kind == "cylinder":
-            r, length = sh.size
-            out.append(rr.Cylinders3D(lengths=[length], radii=[r], centers=[pos], quaternions=[rr.Quaternion(xyzw=quat)],
-                                      colors=color, fill_mode="solid"))
-        elif sh.kind == "mesh" and sh.mesh_file:
-            try:
-                import trimesh
-
-                tm = trimesh.load(sh.mesh_file, force="mesh")
-                verts = (np.asarray(tm.vertices) * np.asarray(sh.size)) @ R.T + pos
-                normals = trimesh.Trimesh(verts, tm.faces, process=False).vertex_normals
-            except Exception:  # a file trimesh cannot read: the link is drawn without this shape
-                continue
-            out.append(rr.Mesh3D(vertex_positions=verts, triangle_indices=np.asarray(tm.faces), vertex_normals=normals,
-                                 albedo_factor=color))
+        pose = (np.asarray(sh.position, float), np.asarray(sh.quaternion, float))
+        # planes are not drawn; nor meshes without a file trimesh reads
+        drawn = sh.geometry.draw(tuple(int(round(255 * c)) for c in sh.rgba), pose)
+        if drawn is not None:
+            out.append(drawn)
     return out
 
 
@@ -853,32 +825,12 @@ class Recorder:
         return f"world/rigid/{rr.escape_entity_path_part(rb.name or rb.shape)}_{rb.id}{link}"
 
     def _rigid_shape(self, rb):
-        """The rigid body's shape in its own frame."""
-        if rb.shape == "sphere":  # a smooth mesh with normals (rerun's ellipsoid is visibly faceted)
-            import trimesh
-
-            ball = trimesh.creation.icosphere(subdivisions=4, radius=float(rb.params["radius"]))
-            return rr.Mesh3D(vertex_positions=ball.vertices, triangle_indices=ball.faces,
-                             vertex_normals=ball.vertex_normals, albedo_factor=_RIGID_COLOR)
-        if rb.shape == "box":
-            return rr.Boxes3D(half_sizes=[rb.params["half_extents"]], colors=_RIGID_COLOR, fill_mode="solid")
-        if rb.shape == "plane":
-            n = np.asarray(rb.params["normal"], float)
-            helper = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-            t1 = np.cross(n, helper)
-            t1 /= np.linalg.norm(t1)
-            t2 = np.cross(n, t1)
-            h = 0.5 * self.plane_size
-            quad = np.array([-t1 - t2, t1 - t2, t1 + t2, -t1 + t2]) * h
-            return rr.Mesh3D(vertex_positions=quad, triangle_indices=[[0, 1, 2], [0, 2, 3]],
-                             vertex_normals=np.tile(n, (4, 1)), albedo_factor=_RIGID_COLOR)
-        if rb.shape == "mesh":
-            import trimesh
-
-            tm = trimesh.Trimesh(np.asarray(rb.params["vertices"]), np.asarray(rb.params["faces"]), process=False)
-            return rr.Mesh3D(vertex_positions=tm.vertices, triangle_indices=tm.faces, vertex_normals=tm.vertex_normals,
-                             albedo_factor=_RIGID_COLOR)
-        raise InvalidInputError(f"cannot record rigid shape {rb.shape!r}")
+        """The rigid body's shape (a World's own body) in its own frame."""
+        shape = rb.geometry
+        drawn = None if shape is None else shape.draw(_RIGID_COLOR, plane_size=self.plane_size, subdivisions=4)
+        if drawn is None:
+            raise InvalidInputError(f"cannot record rigid shape {rb.shape!r}")
+        return drawn
 
     # ------------------------------------------------------------------ per frame
     def _color_field(self, s: _SoftChannel) -> np.ndarray:

@@ -8,8 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
@@ -18,11 +17,21 @@ from softbody.errors import InvalidInputError
 from . import kernels
 from .bullet import BASE, BulletAdapter, Shape, quat_matrix
 from .distance import cross
+from .shapes import RigidShape, load_trimesh, of_kind  # noqa: F401  (load_trimesh: imported from here too)
 
 # A kinematic pose script: t [s] -> (position (3,), quaternion xyzw (4,)) or just a position.
 PoseScript = Callable[[float], object]
 
 SHAPES = ("sphere", "box", "plane", "mesh", "urdf")
+
+
+class Part(NamedTuple):
+    """One shape of a link: the shape, its rotation (3, 3) (shape frame -> link frame) and position (3,) [m] in
+    the link's inertial frame."""
+
+    shape: RigidShape
+    rotation: np.ndarray
+    position: np.ndarray
 
 
 @dataclass
@@ -34,7 +43,8 @@ class RigidLink:
     half_extents, normal, or vertices/faces of a mesh in the body frame); mass [kg] (0: fixed or
     kinematic); motion: pose script of a kinematic body; name: for logs and recordings; friction: the
     Coulomb coefficient against soft bodies (None: the soft body's own); movable: pybullet integrates the
-    link's body (a free base or movable joints), so it takes part in the coupled solve.
+    link's body (a free base or movable joints), so it takes part in the coupled solve; geometry: a World's
+    own body's shape (integration.shapes; made from ``shape`` and ``params`` if not given), None for "urdf".
     """
 
     id: int
@@ -50,6 +60,22 @@ class RigidLink:
     link: int = BASE
     movable: bool = False
     shapes: list[Shape] = field(default_factory=list)
+    geometry: RigidShape | None = None
+
+    def __post_init__(self) -> None:
+        if self.geometry is None and self.shape != "urdf":
+            self.geometry = of_kind(self.shape).from_params(self.params, self.concave)
+
+    @property
+    def parts(self) -> list[Part]:
+        """The link's shapes in its inertial frame: a World body's one shape, or a URDF link's collision shapes."""
+        if "_parts" not in self.__dict__:
+            if self.geometry is not None:
+                self._parts = [Part(self.geometry, np.eye(3), np.zeros(3))]
+            else:
+                self._parts = [Part(sh.geometry, quat_matrix(sh.quaternion), np.asarray(sh.position, float))
+                               for sh in self.shapes]
+        return self._parts
 
     @property
     def key(self) -> tuple[int, int]:
@@ -117,16 +143,11 @@ class RigidLink:
         or from its axis-aligned box when a shape's extent is unknown (a mesh)."""
         if "_bounding_radius" in self.__dict__:
             return self._bounding_radius
-        if self.shape == "sphere":
-            r = float(self.params["radius"])
-        elif self.shape == "box":
-            r = float(np.linalg.norm(self.params["half_extents"]))
-        elif self.shape == "mesh":
-            r = float(np.linalg.norm(np.asarray(self.params["vertices"]), axis=1).max())
-        elif self.shape == "plane" or any(s.kind == "plane" for s in self.shapes):
+        if not all(part.shape.bounded for part in self.parts):  # a plane
             r = math.inf
         else:
-            r = max((np.linalg.norm(s.position) + s.bounding_radius() for s in self.shapes), default=math.inf)
+            r = float(max((np.linalg.norm(part.position) + part.shape.bounding_radius() for part in self.parts),
+                          default=math.inf))
             if not math.isfinite(r):  # a mesh: bound it by the box pybullet keeps around the link
                 lo, hi = self.aabb()
                 c, _ = self.pose()
@@ -139,22 +160,11 @@ class RigidLink:
         vertices (k, 3) of a convex mesh or None). Planes and concave meshes are not convex parts."""
         if "_convex_parts" in self.__dict__:
             return self._convex_parts
-        eye, zero = np.eye(3), np.zeros(3)
         parts = []
-        if self.shape == "sphere":
-            parts.append(("sphere", np.array([self.params["radius"]], float), eye, zero, None))
-        elif self.shape == "box":
-            parts.append(("box", np.asarray(self.params["half_extents"], float), eye, zero, None))
-        elif self.shape == "mesh" and not self.concave:
-            parts.append(("mesh", np.ones(3), eye, zero, np.asarray(self.params["vertices"], float)))
-        elif self.shape == "urdf":
-            for sh in self.shapes:
-                R, pos = quat_matrix(sh.quaternion), np.asarray(sh.position, float)
-                if sh.kind in ("sphere", "box", "capsule", "cylinder"):
-                    parts.append((sh.kind, np.asarray(sh.size, float), R, pos, None))
-                elif sh.kind == "mesh" and sh.mesh_file and Path(sh.mesh_file).exists():
-                    verts = np.asarray(load_trimesh(sh.mesh_file).convex_hull.vertices) * np.asarray(sh.size)
-                    parts.append(("mesh", np.ones(3), R, pos, verts))
+        for shape, R, pos in self.parts:
+            convex = shape.convex_part()
+            if convex is not None:
+                parts.append((shape.kind, convex[0], R, pos, convex[1]))
         self._convex_parts = parts
         return parts
 
@@ -163,19 +173,9 @@ class RigidLink:
         (kind, size, rotation (3, 3), position (3,)); None if any shape is a mesh (pybullet's query then)."""
         if "_primitives" in self.__dict__:
             return self._primitives
-        eye, zero = np.eye(3), np.zeros(3)
-        if self.shape == "sphere":
-            parts = [("sphere", np.array([self.params["radius"]], float), eye, zero)]
-        elif self.shape == "box":
-            parts = [("box", np.asarray(self.params["half_extents"], float), eye, zero)]
-        elif self.shape == "plane":
-            parts = [("plane", np.asarray(self.params["normal"], float), eye, zero)]
-        elif self.shape == "urdf" and self.shapes and all(
-                sh.kind in ("sphere", "box", "capsule", "cylinder", "plane") for sh in self.shapes):
-            parts = [(sh.kind, np.asarray(sh.size, float), quat_matrix(sh.quaternion), np.asarray(sh.position, float))
-                     for sh in self.shapes]
-        else:
-            parts = None
+        parts = None
+        if self.parts and all(part.shape.closed_form for part in self.parts):
+            parts = [(shape.kind, shape.size, R, pos) for shape, R, pos in self.parts]
         self._primitives = parts
         return parts
 
@@ -189,13 +189,7 @@ class RigidLink:
         """(S,) bool per point of :meth:`support_points`: True where it lies on a smooth surface (sphere,
         capsule), False on a rim (cylinder)."""
         if "_round" not in self.__dict__:
-            flags = []
-            for kind, *_ in self.convex_parts():
-                if kind == "sphere":
-                    flags.append(True)
-                elif kind in ("capsule", "cylinder"):
-                    flags += [kind == "capsule"] * 2
-            self._round = np.array(flags, dtype=bool)
+            self._round = np.array([flag for part in self.parts for flag in part.shape.round], dtype=bool)
         return self._round
 
     def round_part_arrays(self, pose: tuple[np.ndarray, np.ndarray] | None = None
@@ -205,8 +199,8 @@ class RigidLink:
         (P, 3, 3) and centres (P, 3) [m] at the link's current pose; ``pose``: that pose as (centre (3,), rotation
         matrix (3, 3)), if at hand."""
         if "_round_local" not in self.__dict__:  # the parts in the link's frame (kernels.part_arrays), made once
-            self._round_local = kernels.part_arrays([prt[:4] for prt in self.convex_parts()
-                                                     if prt[0] in ("sphere", "capsule", "cylinder")])
+            self._round_local = kernels.part_arrays([(shape.kind, shape.size, R, pos) for shape, R, pos in self.parts
+                                                     if shape.round])
         kinds, sizes, R, pos = self._round_local
         if pose is None:
             c, q = self.pose()
@@ -221,49 +215,26 @@ class RigidLink:
         both ends. These are the deepest points of the part into a plane facing ``-direction``. Boxes and
         meshes offer their corners instead (:meth:`corner_points`)."""
         d = np.asarray(directions, float).reshape(-1, 3)
-        parts = [prt for prt in self.convex_parts() if prt[0] in ("sphere", "capsule", "cylinder")]
-        out = []
+        parts = [part for part in self.parts if part.shape.round]
         if not parts:
             return np.zeros((len(d), 0, 3))
         c, q = self.pose()
         Rl = quat_matrix(q)
-        for kind, size, R, pos, _ in parts:
-            centre = c + Rl @ pos
-            if kind == "sphere":  # no frame needed
-                out.append(centre + size[0] * d)
-                continue
-            Rw = Rl @ R  # part frame -> world
-            dl = d @ Rw  # the directions in the part's frame
-            r, length = size
-            if kind == "capsule":
-                rim = r * dl
-            else:
-                radial = dl.copy()
-                radial[:, 2] = 0.0
-                norm = np.linalg.norm(radial, axis=1, keepdims=True)
-                rim = np.where(norm > 1e-12, r * radial / np.maximum(norm, 1e-300), 0.0)
-            for end in (0.5 * length, -0.5 * length):
-                out.append(centre + (rim + np.array([0.0, 0.0, end])) @ Rw.T)
+        out = []
+        for shape, R, pos in parts:  # part frame -> world: Rl @ R
+            out += shape.support_points(d, Rl @ R, c + Rl @ pos)
         return np.stack(out, axis=1)
 
     def corner_points(self) -> tuple[np.ndarray, np.ndarray]:
         """World positions (k, 3) of the link's corners (box corners, the vertices of convex and concave
         meshes) and the centres (k, 3) of the convex parts they belong to (NaN for a concave mesh's)."""
         if "_corners_local" not in self.__dict__:
-            corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
             local, centre = [], []
-            for kind, size, R, pos, verts in self.convex_parts():
-                if kind == "box":
-                    local.append((corners * size) @ R.T + pos)
-                elif kind == "mesh":
-                    local.append(verts @ R.T + pos)
-                    pos = verts.mean(axis=0) @ R.T + pos
-                else:
-                    continue
-                centre.append(np.broadcast_to(pos, local[-1].shape))
-            if self.concave:
-                local.append(np.asarray(self.params["vertices"], float))
-                centre.append(np.full(local[-1].shape, np.nan))
+            for shape, R, pos in self.parts:
+                corners, middle = shape.corners()
+                if len(corners):
+                    local.append(corners @ R.T + pos)
+                    centre.append(np.broadcast_to(middle @ R.T + pos, local[-1].shape))
             self._corners_local = np.concatenate(local) if local else np.zeros((0, 3))
             self._corner_centres = np.concatenate(centre) if centre else np.zeros((0, 3))
         if not len(self._corners_local):
@@ -273,31 +244,9 @@ class RigidLink:
     def support_centres(self) -> np.ndarray:
         """World centres (S, 3) of the round parts, one per point of :meth:`support_points`."""
         if "_support_local" not in self.__dict__:  # the parts' centres in the link's frame, one per point
-            local = [pos for kind, _, _, pos, _ in self.convex_parts() if kind in ("sphere", "capsule", "cylinder")
-                     for _ in range(1 if kind == "sphere" else 2)]
+            local = [pos for shape, _, pos in self.parts for _ in shape.round]
             self._support_local = np.array(local, dtype=float).reshape(-1, 3)
         c, q = self.pose()
         return c + self._support_local @ quat_matrix(q).T
 
 RigidBody = RigidLink  # the name of a World's own single-link bodies
-
-
-def load_trimesh(mesh) -> "object":
-    """A trimesh.Trimesh from a Trimesh or a file path trimesh can read; clear error otherwise."""
-    import trimesh
-
-    if isinstance(mesh, trimesh.Trimesh):
-        tm = mesh
-    elif isinstance(mesh, (str, Path)):
-        path = Path(mesh)
-        if not path.exists():
-            raise InvalidInputError(f"mesh file {str(path)!r} does not exist")
-        try:
-            tm = trimesh.load(str(path), force="mesh")
-        except Exception as exc:
-            raise InvalidInputError(f"trimesh cannot read {str(path)!r}: {exc}") from exc
-    else:
-        raise InvalidInputError(f"mesh must be a trimesh.Trimesh or a file path, got {type(mesh).__name__}")
-    if not isinstance(tm, trimesh.Trimesh) or len(tm.faces) == 0:
-        raise InvalidInputError(f"{mesh!r} holds no triangles")
-    return tm

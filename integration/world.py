@@ -45,6 +45,7 @@ from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceC
                       PairContacts)
 from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
+from .shapes import Box, Mesh, Plane, RigidShape, Sphere
 from .softcontact import SoftHits, SoftLayout, SoftSurface, soft_contacts
 from .state import WorldState
 
@@ -270,9 +271,8 @@ class World:
         if ad.movable(b) and unsupported:
             self._one_way.add(b)
 
-    def _add(self, shape: str, size: dict, params: dict, position, orientation, mass: float,
-             motion: PoseScript | None, name: str, friction: float | None, concave: bool = False,
-             tm=None) -> RigidLink:
+    def _add(self, shape: RigidShape, position, orientation, mass: float, motion: PoseScript | None, name: str,
+             friction: float | None, tm=None) -> RigidLink:
         mass = float(mass)
         if not math.isfinite(mass) or mass < 0:
             raise InvalidInputError(f"mass must be >= 0 (0: fixed or kinematic), got {mass!r}")
@@ -282,9 +282,10 @@ class World:
             raise InvalidInputError("motion must be a function of time returning a pose")
         if friction is not None:
             friction = _friction(friction)
-        bid = self.adapter.create_body(shape, size, _vec3(position, "position"), _quat(orientation), mass)
-        body = RigidLink(bid, self.adapter, shape, params, mass, motion, name or f"{shape}{bid}", friction, concave, tm,
-                         movable=mass > 0, shapes=self.adapter.collision_shapes(bid, BASE))
+        bid = self.adapter.create_body(shape, _vec3(position, "position"), _quat(orientation), mass)
+        body = RigidLink(bid, self.adapter, shape.kind, shape.params(), mass, motion, name or f"{shape.kind}{bid}",
+                         friction, shape.concave, tm, movable=mass > 0, shapes=self.adapter.collision_shapes(bid, BASE),
+                         geometry=shape)
         if motion is not None:
             pos, orn = body.scripted_pose(self.t)
             self.adapter.reset_pose(bid, pos.tolist(), orn.tolist())
@@ -296,7 +297,7 @@ class World:
                    name: str = "", friction: float | None = None) -> RigidLink:
         """A sphere of ``radius`` [m]: fixed (mass 0), dynamic (mass > 0 [kg]) or kinematic (motion script)."""
         r = _positive(radius, "radius")
-        return self._add("sphere", {"radius": r}, {"radius": r}, position, None, mass, motion, name, friction)
+        return self._add(Sphere(r), position, None, mass, motion, name, friction)
 
     def add_box(self, half_extents, position=(0, 0, 0), orientation=None, mass: float = 0.0,
                 motion: PoseScript | None = None, name: str = "", friction: float | None = None) -> RigidLink:
@@ -304,8 +305,7 @@ class World:
         he = np.asarray(half_extents, dtype=float)
         if he.shape != (3,) or not np.isfinite(he).all() or (he <= 0).any():
             raise InvalidInputError(f"half_extents must be three positive lengths, got {half_extents!r}")
-        return self._add("box", {"halfExtents": he.tolist()}, {"half_extents": he}, position, orientation, mass,
-                         motion, name, friction)
+        return self._add(Box(he), position, orientation, mass, motion, name, friction)
 
     def add_plane(self, normal=(0, 0, 1), point=(0, 0, 0), name: str = "", friction: float | None = None,
                   motion: PoseScript | None = None) -> RigidLink:
@@ -314,8 +314,7 @@ class World:
         if np.linalg.norm(nrm) == 0:
             raise InvalidInputError("plane normal must be non-zero")
         nrm = nrm / np.linalg.norm(nrm)
-        return self._add("plane", {"planeNormal": nrm.tolist()}, {"normal": nrm}, point, None, 0.0, motion, name,
-                         friction)
+        return self._add(Plane(nrm), point, None, 0.0, motion, name, friction)
 
     def add_mesh(self, mesh, position=(0, 0, 0), orientation=None, mass: float = 0.0, scale: float = 1.0,
                  motion: PoseScript | None = None, name: str = "", friction: float | None = None,
@@ -334,11 +333,8 @@ class World:
                                     "(convex hull) or mass=0")
         if convex:
             tm = tm.convex_hull
-            size = {"vertices": tm.vertices.tolist()}
-        else:
-            size = {"vertices": tm.vertices.tolist(), "indices": tm.faces.ravel().astype(int).tolist()}
-        return self._add("mesh", size, {"vertices": np.asarray(tm.vertices), "faces": np.asarray(tm.faces)},
-                         position, orientation, mass, motion, name, friction, concave=not convex, tm=tm)
+        return self._add(Mesh(np.asarray(tm.vertices), np.asarray(tm.faces), concave=not convex), position,
+                         orientation, mass, motion, name, friction, tm=tm)
 
     def rigid(self, body_id: int, link: int = BASE) -> RigidLink:
         """The rigid link ``link`` (-1: the base) of pybullet body ``body_id``."""
