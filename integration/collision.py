@@ -22,6 +22,7 @@ import scipy.sparse as sp
 from . import kernels
 from .bullet import quat_matrix
 from .distance import cross, shape_distance
+from .segments import edge_normals
 from .rigid import RigidLink
 
 
@@ -36,6 +37,18 @@ RIGID_SLACK = 1.5
 SOFT_SLACK = 2.0
 # a contact normal and a soft surface's own normal face each other if they make more than ~95 degrees
 FACING = -0.1
+# a rigid point between nodes (on an edge, or a round part's on a facet) counts only where it lies deeper than the
+# node contacts of the nodes around it hold it (their gaps interpolated at the point), by more than this [m]
+EDGE_EXPLAINED = 5e-5
+# at most this many rigid points (corners) inside one soft triangle
+CORNERS_PER_FACET = 4
+# an edge's deepest point counts between its nodes only (within this fraction of an end it is the node's contact)
+EDGE_END = 0.02
+# golden-section steps for an edge's deepest point into a part (its signed distance is convex along the edge):
+# the bracket shrinks to 0.618^36 ~ 3e-8 of the edge
+GOLDEN_STEPS = 36
+# the weight of the ends' chord in that search: it only breaks ties (a flat stretch), never moves a deepest point
+TIE = 1e-3
 
 
 @dataclass
@@ -188,31 +201,47 @@ class CollisionDetector:
 
     def detect(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
                supported: np.ndarray, links: list[RigidLink], sweeps: list[Sweep], touch: float,
-               incidence: sp.spmatrix | None = None) -> tuple["Contacts", "FaceHits"]:
-        """Contact candidates of one soft body (positions (N, 3), surface nodes (s,) not held by supports,
-        surface triangles (T, 3), supported (N,) bool) against ``links``: node contacts within each link's
-        reach (``sweeps``, one per link: what the two sides may close within the step), one per node (the
-        deepest), and rigid points on its triangles between nodes (face contacts; a node within ``touch`` of
-        a link rests on it). Far links cost no query (broad phase on boxes). ``incidence``: the triangles'
-        node_incidence, if at hand (for the surface normals)."""
+               incidence: sp.spmatrix | None = None, edges: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple["Contacts", "FaceHits"]:
+        """Contact candidates of one soft body (positions (N, 3), surface nodes (s,), surface triangles (T, 3),
+        supported (N,) bool) against ``links``: node contacts within each link's reach (``sweeps``, one per link:
+        what the two sides may close within the step), one per node (the deepest), rigid points on its triangles
+        between nodes (face contacts; a node within ``touch`` of a link rests on it) and, given the surface's
+        ``edges`` (E, 2) with the triangles each bounds (E, 2), the points of its edges deepest into immovable
+        links of primitive parts, between nodes (edge_contacts; not yet for links the coupled solve moves, whose
+        rows at a box's rim gained energy in the frictional solve). A supported node has contacts only with movable links (a
+        support wins over contact, but a rigid body resting on it must be held). Far links cost no query (broad
+        phase on boxes). ``incidence``: the triangles' node_incidence, if at hand (for the surface normals)."""
         if not len(surface):
             return Contacts.empty(), FaceHits.empty()
         lo0 = hi0 = None  # the surface's box, made when first needed
         parts, faces = [], []
         boxes = touching = touch_normal = None  # made when first needed
+        any_support = bool(supported.any())
         for rb, sweep in zip(links, sweeps):
+            # supports count as resting nodes for immovable links only: a face point next to a supported node is
+            # that node's business then, but against a movable link the support is a rigid surface to be held
+            held = supported if any_support and not rb.movable else np.zeros(len(positions), dtype=bool)
             if kernels.ENABLED and incidence is not None and rb.primitive_parts() is not None:
                 if touching is None:
                     touching, touch_normal = np.zeros(len(positions), dtype=bool), np.zeros((len(positions), 3))
-                status, margin, found = self._primitive_link(body_index, positions, surface, triangles, supported,
+                status, margin, found = self._primitive_link(body_index, positions, surface, triangles, held,
                                                              rb, sweep, touch, incidence, touching, touch_normal)
+                if status == 0:
+                    continue
+                if any_support and not rb.movable and len(found):
+                    found = found.select(~supported[found.node])
                 if len(found):
                     parts.append(found)
+                with_edges = edges is not None and not rb.movable and _edge_parts(rb)
+                gap = node_gaps(found, len(positions)) if status == 2 or with_edges else None
                 if status == 2:  # face contacts possible: the numpy search decides
                     if boxes is None:
                         boxes = triangle_boxes(positions, triangles)
                     faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching,
-                                                    touch_normal, boxes, sweep, possible=True))
+                                                    touch_normal, boxes, sweep, possible=True, node_gap=gap))
+                if with_edges:
+                    faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
                 continue
             if lo0 is None:
                 lo0, hi0 = box_of(positions.take(surface, axis=0))
@@ -221,6 +250,8 @@ class CollisionDetector:
             if np.any(rlo > hi0 + margin) or np.any(rhi < lo0 - margin):
                 continue  # broad phase: far apart, no query at all
             found = self.node_contacts(body_index, positions, surface, rb, margin, sweep)
+            if any_support and not rb.movable and len(found):
+                found = found.select(~supported[found.node])
             if len(found):
                 # a rigid face must face the soft surface at the node: a node lying in the plane of a box's bottom,
                 # beside its edge, is no contact with the side face beyond (the box slides over it, it does not
@@ -229,6 +260,9 @@ class CollisionDetector:
                 facing = np.einsum("ij,ij->i", found.normal, normals) < FACING
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
+            gap = node_gaps(found, len(positions))
+            if edges is not None and not rb.movable and _edge_parts(rb):
+                faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
                 continue  # a plane: no face contacts (CollisionDetector.face_contacts)
             if touching is None:
@@ -238,13 +272,13 @@ class CollisionDetector:
             resting = found.distance <= touch
             touching[found.node[resting]] = True
             touch_normal[found.node[resting]] = found.normal[resting]
-            touching[supported] = True
+            touching[held] = True
             if kernels.ENABLED and not _face_contacts_possible(positions, triangles, rb, margin, touching, sweep):
                 continue  # nothing near (face_contacts would say the same, after the triangles' boxes)
             if boxes is None:
                 boxes = triangle_boxes(positions, triangles)
             faces.append(self.face_contacts(body_index, positions, triangles, rb, margin, touching, touch_normal, boxes,
-                                            sweep))
+                                            sweep, node_gap=gap))
         found = Contacts.concat(parts)
         if len(parts) == 1 and np.all(found.node[1:] > found.node[:-1]):
             pass  # one link's contacts, one per node and in node order already
@@ -348,7 +382,7 @@ class CollisionDetector:
                       margin: float, touching: np.ndarray | None = None,
                       touch_normal: np.ndarray | None = None,
                       boxes: tuple[np.ndarray, np.ndarray] | None = None, sweep: Sweep | None = None,
-                      possible: bool = False) -> "FaceHits":
+                      possible: bool = False, node_gap: np.ndarray | None = None) -> "FaceHits":
         """Points of a rigid link inside (or within ``margin`` of) soft surface triangles, between their nodes.
 
         The candidates are the link's corners (box corners, mesh vertices) and, for every soft triangle
@@ -364,8 +398,11 @@ class CollisionDetector:
         lying flat on a box face adds nothing. A smooth part (sphere, capsule) counts only on triangles
         none of whose nodes touches it: with a node on it, the facet's chord under the curved surface is
         the discretisation, not a penetration, and a second constraint on nearly the same spot would only
-        make the contact forces ill-determined. Sharp parts (box corners, cylinder rims, mesh vertices)
-        count on partly touching triangles too: they poke between nodes that rest on the part's faces.
+        make the contact forces ill-determined; and, where the triangle's nodes have contacts with the link
+        (``node_gap`` (N,): their gaps [m], inf where a node has none), only deeper than they hold it
+        (interpolated at the point, less EDGE_EXPLAINED). Sharp parts (box corners, cylinder rims, mesh vertices)
+        count on partly touching triangles too: they poke between nodes that rest on the part's faces; up to
+        four of them inside one triangle (a small box on a coarse facet stands on its four corners).
         ``boxes``: the triangles' bounds (triangle_boxes), if already at hand. ``sweep``: a point outside a
         triangle's plane counts only within its reach (what it closes along the normal within the step).
         ``possible``: the compiled early-out (kernels.face_contacts_possible) has said already that contacts may
@@ -487,6 +524,9 @@ class CollisionDetector:
         with np.errstate(divide="ignore", invalid="ignore"):
             beside = (np.maximum(-bary, 0.0) * (area2[ti, None] / edge)).max(axis=1)
             maybe = ~(d * d + beside * beside >= margin * margin)  # NaN (a degenerate triangle) stays in
+        if node_gap is not None:  # a round part's point only where deeper than the nodes' contacts hold it
+            held = held_gap(bary, node_gap[tri_nodes[ti]])
+            maybe &= (group >= 0) | (d < held - EDGE_EXPLAINED)
         if not maybe.any():
             return FaceHits.empty()
         if not maybe.all():
@@ -511,11 +551,15 @@ class CollisionDetector:
             return FaceHits.empty()
         ti, q, d, bary, group, inside, closest, feature = (ti[ok], q[ok], d[ok], bary[ok], group[ok], inside[ok],
                                                            closest[ok], feature[ok])
-        # per triangle, the deepest point inside it and the deepest outside only: a flat rigid face over a
-        # triangle (many mesh vertices at one depth) is one contact, not one per vertex
+        # per triangle, the four deepest points inside it (a box's face on a coarse facet: its corners) and the
+        # deepest outside only: a flat rigid face over a triangle (many mesh vertices at one depth) is a few
+        # contacts, not one per vertex
         order = np.lexsort((d, ~inside, ti))
+        starts = run_starts(ti[order], inside[order])
+        run = np.cumsum(starts) - 1
+        rank = np.arange(len(order)) - np.flatnonzero(starts)[run]
         keep = np.zeros(len(ti), dtype=bool)
-        keep[order] = run_starts(ti[order], inside[order])
+        keep[order] = rank < np.where(inside[order], CORNERS_PER_FACET, 1)
         ti, q, d, bary, group, inside, closest, feature = (ti[keep], q[keep], d[keep], bary[keep], group[keep],
                                                            inside[keep], closest[keep], feature[keep])
         # a point inside a triangle counts there (primary) only if that triangle is the soft surface nearest to
@@ -551,6 +595,120 @@ class CollisionDetector:
         key = (tri.astype(np.int64) << 28) | ((feature % 4096) << 16) | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)
         return FaceHits(np.full(m, body_index), tri, triangles[tri], bary, q, -nrm[ti], d, np.full(m, rigid.id),
                         np.full(m, rigid.link), group, primary, key)
+
+
+def _edge_parts(rigid: RigidLink) -> list:
+    """The link's parts (index, primitive part) a soft edge can meet between its nodes (edge_contacts): its
+    primitive parts but planes (a straight edge is deepest at an end) and spheres (the sag of a chord between two
+    nodes resting on a sphere is the discretisation: held, a coarse sheet balanced on its facets' edges and slid
+    off); none for a link with a mesh part. Made once per link."""
+    if "_edge_parts" not in rigid.__dict__:
+        parts = rigid.primitive_parts()
+        rigid._edge_parts = [] if parts is None else [(k, prt) for k, prt in enumerate(parts)
+                                                       if prt[0] not in ("plane", "sphere")]
+    return rigid._edge_parts
+
+
+def node_gaps(found: Contacts, n_nodes: int) -> np.ndarray:
+    """(N,) the gaps [m] the node contacts ``found`` (of one link) hold, inf at nodes without one."""
+    gap = np.full(n_nodes, np.inf)
+    gap[found.node] = found.distance
+    return gap
+
+
+def held_gap(weights: np.ndarray, gaps: np.ndarray) -> np.ndarray:
+    """(m,) the gap the nodes' contacts hold at points with weights (m, k) over nodes with gaps (m, k) (inf:
+    no contact): the weights clipped to the element and interpolated (inf if a node with weight has none)."""
+    w = np.clip(weights, 0.0, None)
+    w = w / np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    with np.errstate(invalid="ignore"):  # 0 * inf where a node without a contact has no weight
+        return np.where(w > 0, w * gaps, 0.0).sum(axis=1)
+
+
+def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
+                  edges: tuple[np.ndarray, np.ndarray], rigid: RigidLink, sweep: Sweep, node_gap: np.ndarray
+                  ) -> "FaceHits":
+    """Points of soft surface edges deepest into a link of primitive parts, between their nodes: where a box's edge
+    or side, a capsule or a cylinder lies across an edge whose nodes are outside it (a bar across a thin box, a
+    plate on a rail), or where a round part pokes between two nodes resting on it.
+
+    ``edges``: the surface's edges (E, 2) and the triangles each bounds (E, 2); ``node_gap`` (N,): the gaps [m] the
+    link's node contacts hold (inf where none). For every edge near the link and every convex part, the point of
+    least signed distance (convex along the edge: golden-section search; on a flat stretch, such as under a box's
+    face, the one farthest below the chord of the ends' distances, where the nodes hold it least) counts if it lies between the ends
+    (EDGE_END), nearer to the part than either end is and than the ends' node contacts hold it (interpolated), by
+    EDGE_EXPLAINED (a box lying on a soft face with an edge past its rim adds nothing until the rim digs in), within
+    reach
+    (margin plus closing within the step) and the part faces the edge (its normal against the edge's outward
+    normal, FACING), inside it too. Planes have no such point (a straight edge is deepest at an end). Each
+    is a face hit with weights (1 - t, t, 0) over the edge's nodes and the third of a triangle it bounds, its own
+    rigid point (group), primary, ``edge`` set; links with a mesh part have none, spheres none (see below)."""
+    parts = _edge_parts(rigid)
+    if not parts or not len(edges[0]):
+        return FaceHits.empty()
+    E, edge_tris = edges
+    x0, x1 = positions.take(E[:, 0], axis=0), positions.take(E[:, 1], axis=0)
+    lo, hi = rigid.aabb()
+    bound = sweep.bound()
+    cand = np.flatnonzero(((np.maximum(x0, x1) >= lo - bound) & (np.minimum(x0, x1) <= hi + bound)).all(axis=1))
+    if len(cand) and math.isfinite(sweep.radius):
+        mid, half = 0.5 * (x0[cand] + x1[cand]), 0.5 * np.linalg.norm(x1[cand] - x0[cand], axis=1)
+        cand = cand[sweep.swept(mid, half, sweep.soft_travel(E[cand]))]
+    if not len(cand):
+        return FaceHits.empty()
+    a, b = x0[cand], x1[cand]
+    c, q = rigid.pose()
+    Rl = quat_matrix(q)
+    out = []
+    for k, (kind, size, R, pos) in parts:
+        Rw, origin = Rl @ R, c + Rl @ pos
+        la, lb = (a - origin) @ Rw, (b - origin) @ Rw  # the edges in the part's frame
+
+        d_a, d_b = shape_distance(kind, size, la)[2], shape_distance(kind, size, lb)[2]
+
+        def f(t):  # the distance, ties (a flat stretch) going to the point farthest below the ends' chord
+            return shape_distance(kind, size, la + t[:, None] * (lb - la))[2] - TIE * ((1 - t) * d_a + t * d_b)
+
+        g = 0.5 * (math.sqrt(5.0) - 1.0)
+        t_lo, t_hi = np.zeros(len(cand)), np.ones(len(cand))
+        t1, t2 = t_hi - g, t_lo + g
+        f1, f2 = f(t1), f(t2)
+        for _ in range(GOLDEN_STEPS):
+            left = f1 < f2  # the minimum lies in [t_lo, t2]
+            t_hi = np.where(left, t2, t_hi)
+            t_lo = np.where(left, t_lo, t1)
+            t_new = np.where(left, t_hi - g * (t_hi - t_lo), t_lo + g * (t_hi - t_lo))
+            f_new = f(t_new)
+            t1, t2, f1, f2 = (np.where(left, t_new, t2), np.where(left, t1, t_new), np.where(left, f_new, f2),
+                              np.where(left, f1, f_new))
+        t = 0.5 * (t_lo + t_hi)
+        closest, normal, d = shape_distance(kind, size, la + t[:, None] * (lb - la))
+        held = held_gap(np.column_stack([1 - t, t]), node_gap[E[cand]])
+        # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
+        ok = (t > EDGE_END) & (t < 1 - EDGE_END) & (d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED)
+        if not ok.any():
+            continue
+        e, t, d = cand[ok], t[ok], d[ok]
+        point, normal = closest[ok] @ Rw.T + origin, normal[ok] @ Rw.T
+        v_soft = (1 - t)[:, None] * sweep.velocities[E[e, 0]] + t[:, None] * sweep.velocities[E[e, 1]]
+        near = d < sweep.reach(point, normal, v_soft)
+        facing = np.einsum("ij,ij->i", normal, edge_normals(positions, triangles, edge_tris[e])) < FACING
+        ok = near & facing  # inside, too: near a rim the nearest face may be a side, which would push it sideways
+        if ok.any():
+            out.append((k, e[ok], t[ok], d[ok], point[ok], normal[ok]))
+    if not out:
+        return FaceHits.empty()
+    part = np.concatenate([np.full(len(o[1]), o[0]) for o in out])
+    e, t, d, point, normal = (np.concatenate([o[i] for o in out]) for i in range(1, 6))
+    m = len(e)
+    tri = triangles[edge_tris[e, 0]]  # the edge's nodes first, the triangle's third node (weight 0) last
+    third = np.where((tri != E[e, 0:1]) & (tri != E[e, 1:2]), tri, -1).max(axis=1)
+    nodes = np.column_stack([E[e, 0], E[e, 1], third])
+    key = ((1 << 62) | (e.astype(np.int64) << 28) | ((part % 4096) << 16)
+           | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)).astype(np.int64)
+    return FaceHits(np.full(m, body_index), edge_tris[e, 0], nodes, np.column_stack([1 - t, t, np.zeros(m)]), point,
+                    normal, d, np.full(m, rigid.id), np.full(m, rigid.link), np.arange(m), np.ones(m, dtype=bool), key,
+                    np.ones(m, dtype=bool))
 
 
 def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tuple | None = None
@@ -723,7 +881,9 @@ class FaceHits:
     rigid point (entries of one group are one point against several triangles); primary (m,): the
     point projects into this triangle, the soft surface nearest to it (else a neighbour it may cross
     into within the step, with the weights of the triangle's point nearest to it); key (m,): names the
-    same contact (triangle, corner or part, link) from step to step."""
+    same contact (triangle, corner or part, link) from step to step; edge (m,): the point lies on an edge of
+    the triangle (weights (1 - t, t, 0) over nodes (i, j, i), see edge_contacts), it holds there whatever the
+    triangles around do (None: none does)."""
 
     body: np.ndarray
     triangle: np.ndarray
@@ -737,6 +897,11 @@ class FaceHits:
     group: np.ndarray
     primary: np.ndarray
     key: np.ndarray
+    edge: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.edge is None:
+            self.edge = np.zeros(len(self.triangle), dtype=bool)
 
     @classmethod
     def empty(cls) -> "FaceHits":

@@ -114,12 +114,14 @@ class FaceContacts(NodeContacts):
     next step), nodes (m, 3), weights (m, 3) the triangle's nodes and the point's barycentric weights,
     group (m,) the rigid point (one point may face several triangles), primary (m,) whether the point
     projects into the triangle at the start of the step (the others are neighbours it may cross into:
-    they take part only if it does, see collision.FaceHits)."""
+    they take part only if it does, see collision.FaceHits); edge (m,): the point lies on an edge (weights over
+    its two nodes), where it holds whatever the triangles around do (None: none does)."""
 
     nodes: np.ndarray | None = None
     weights: np.ndarray | None = None
     group: np.ndarray | None = None
     primary: np.ndarray | None = None
+    edge: np.ndarray | None = None
 
 
 @dataclass
@@ -526,7 +528,8 @@ class _FaceSet(_RowSet):
         """(m,) which contacts may be added after a solve with velocities vs[part] (N, 3) and du, given the
         contacts ``active`` (m,) in that solve (default: this set's own active set): those whose rigid
         point, at the end of the step, projects into its triangle and has it as the nearest of its group,
-        one per rigid point and iteration, and none nearly parallel to an active contact of that point."""
+        one per rigid point and iteration, and none nearly parallel to an active contact of that point; a point on
+        an edge (c.edge) always."""
         c, h = self.c, self.h
         x_end = self.x_tri + h * vs[self.part][c.nodes]
         vr = c.rigid_velocity if c.jacobian is None or not len(du) else c.rigid_velocity + c.jacobian @ du
@@ -536,7 +539,7 @@ class _FaceSet(_RowSet):
             kernels.face_eligible(np.ascontiguousarray(x_end, dtype=float), np.ascontiguousarray(q_end, dtype=float),
                                   c.group, np.ascontiguousarray(c.normal, dtype=float),
                                   self.active if active is None else active, SAME_FACE, first)
-            return first
+            return _or_edges(first, c)
         inside = (barycentric(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]) >= -1e-9).all(axis=1)
         dist = np.linalg.norm(q_end - closest_on_triangles(q_end, x_end[:, 0], x_end[:, 1], x_end[:, 2]), axis=1)
         groups = int(c.group.max()) + 1
@@ -552,7 +555,21 @@ class _FaceSet(_RowSet):
         idx = np.flatnonzero(ok)
         _, pick = np.unique(c.group[idx], return_index=True)
         first[idx[pick]] = True
-        return first
+        return _or_edges(first, c)
+
+
+def _or_edges(eligible: np.ndarray, c: FaceContacts) -> np.ndarray:
+    """The eligible face contacts (m,) and those on edges (FaceContacts.edge), which hold whatever the triangles
+    around them do."""
+    edge = getattr(c, "edge", None)
+    return eligible if edge is None else eligible | edge
+
+
+def _coupled(c: NodeContacts) -> np.ndarray:
+    """(m,) which contacts move with a coupled rigid body (a Jacobian not zero)."""
+    if c.jacobian is None or not c.jacobian.size:
+        return np.zeros(len(c), dtype=bool)
+    return np.abs(c.jacobian).reshape(len(c), -1).max(axis=1) > 0
 
 
 def _groups(count: int, pairs: PairContacts | None) -> np.ndarray:
@@ -638,10 +655,12 @@ class ContactSolver:
             if len(held) and ((c is not None and len(c)) or (f is not None and len(f))):
                 is_held = np.zeros(st.system.body.n_nodes, dtype=bool)
                 is_held[held] = True
+                # a contact at a held node (or on a triangle of held nodes only) is held already, unless it holds a
+                # movable rigid body (a box resting on a fixed rim: the support is a rigid surface to it)
                 if c is not None and len(c):
-                    c = c.select(~is_held[c.node])
-                if f is not None and len(f):  # a point on a triangle of held nodes only is held already
-                    f = f.select(~is_held[f.nodes].all(axis=1))
+                    c = c.select(~is_held[c.node] | _coupled(c))
+                if f is not None and len(f):
+                    f = f.select(~is_held[f.nodes].all(axis=1) | _coupled(f))
             prepared.append((_stack(cons), np.concatenate(G) if n else None, c, f))
             dense.append((n > 0 and any(x is not None and len(x) and np.abs(x.jacobian).max() > 0 for x in (c, f, a)))
                          or (f is not None and len(f) > 0 and bool(np.any(f.mu > 0))))

@@ -928,7 +928,8 @@ class Recorder:
             if self.is_world:
                 active = sum(int(np.count_nonzero(r.active)) for _, r in
                              [*target.contact_results.values(), *target.face_results.values(), *target.pair_results])
-                found = len(target.contacts) + len(target.face_hits) + len(target.soft_hits)
+                found = (len(target.contacts) + len(target.face_hits) + len(target.soft_hits)
+                         + len(getattr(target, "edge_hits", ())))
                 f["plots/contacts"] = (active, max(found - active, 0))
             if self.sim.steps > self._steps0 + 1:  # the first step is set-up (plots/setup_time, from __call__)
                 f["plots/step_time"] = (self._step_ms(tic),)

@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, read_only, run_starts, vertex_normals
 from .distance import cross
+from .segments import closest_between_segments, edge_normals, surface_edges
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
 # that a node above the shared edge of two triangles is held by one of them
@@ -42,20 +43,24 @@ NODE_BITS = 21
 @dataclass
 class SoftSurface:
     """A soft body's surface, fixed at construction: triangles (T, 3) outward, nodes (s,) (sorted), the
-    triangles' longest rest edge (T,) [m] and the node-triangle incidence (N, T) (for normals)."""
+    triangles' longest rest edge (T,) [m], the node-triangle incidence (N, T) (for normals), and its edges
+    (E, 2) with the triangles each bounds (E, 2) (segments.surface_edges)."""
 
     triangles: np.ndarray
     nodes: np.ndarray
     rest_edge: np.ndarray
     incidence: sp.csr_matrix
+    edges: np.ndarray | None = None
+    edge_tris: np.ndarray | None = None
 
     @classmethod
     def of(cls, rest: np.ndarray, triangles: np.ndarray) -> "SoftSurface":
         """The surface of a body with rest positions (N, 3) [m] and outward surface triangles (T, 3)."""
         triangles = np.asarray(triangles, np.int64)
         P = rest[triangles]
-        edges = np.linalg.norm(P - np.roll(P, 1, axis=1), axis=2).max(axis=1)
-        return cls(triangles, np.unique(triangles), edges, node_incidence(triangles, len(rest)))
+        longest = np.linalg.norm(P - np.roll(P, 1, axis=1), axis=2).max(axis=1)
+        edges, edge_tris = surface_edges(triangles) if len(triangles) else (np.zeros((0, 2), np.int64),) * 2
+        return cls(triangles, np.unique(triangles), longest, node_incidence(triangles, len(rest)), edges, edge_tris)
 
     def node_normals(self, x: np.ndarray) -> np.ndarray:
         """Area-weighted unit normals (N, 3) at the surface nodes for positions x (N, 3) (zero elsewhere)."""
@@ -332,8 +337,9 @@ def pair_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurfa
 def without_mirrors(hits: SoftHits) -> SoftHits:
     """The contacts without mirror images: where node i of one surface holds against a triangle point at node
     j (most of its weight on j) and node j against a point at node i, both hold the same gap, and two such rows
-    only split their forces arbitrarily (large and opposite, with sticking friction); the one with the smaller
-    key stays."""
+    only split their forces arbitrarily (large and opposite, with sticking friction); the deeper one stays (the
+    smaller key of two equally deep): the shallower one's linearisation (its triangle's plane) lets the node sit
+    inside the other body by the difference for good."""
     if len(hits) < 2:
         return hits
     top = hits.weights.argmax(axis=1)
@@ -348,5 +354,170 @@ def without_mirrors(hits: SoftHits) -> SoftHits:
     at = np.clip(np.searchsorted(pair, mirror), 0, len(pair) - 1)
     found = pair[at] == mirror
     drop = np.zeros(len(hits), dtype=bool)
-    drop[idx[found]] = hits.key[owner[at[found]]] < hits.key[idx[found]]
+    me, other = idx[found], owner[at[found]]
+    d_me, d_other = hits.distance[me], hits.distance[other]
+    drop[me] = (d_other < d_me) | ((d_other == d_me) & (hits.key[other] < hits.key[me]))
     return hits.select(~drop)
+
+
+# an edge crossing counts between the ends of both edges only (within this fraction of an end it is the node's own
+# node-against-face contact), and between edges more than ~6 degrees apart (the closest points of nearly parallel
+# edges are their nodes', held by those nodes' contacts)
+EDGE_END = 0.02
+EDGE_SIN = 0.1
+EDGE_BITS = 21  # edge-edge key: 1 << 62 | (a * 1024 + b) << 2 EDGE_BITS | edge of a << EDGE_BITS | edge of b
+
+_EMPTY_EDGE_FIELDS = read_only(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 4), np.int64),
+                               np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64))
+
+
+@dataclass
+class EdgeHits:
+    """Edge-against-edge contacts between soft bodies (m entries): a point of an edge of body a (m,) against a point
+    of an edge of body b (m,); nodes (m, 4): a's edge's two nodes, then b's; weights (m, 4): (1 - s, s, -(1 - t),
+    -t) for the points' parameters s, t along the edges, so that a row's value is the velocity of a's point
+    relative to b's; normal (m, 3): unit, from b's edge towards a's (along their cross product); distance (m,)
+    signed [m] (negative: crossed); key (m,): names the crossing from step to step."""
+
+    a: np.ndarray
+    b: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+    key: np.ndarray
+
+    @classmethod
+    def empty(cls) -> "EdgeHits":
+        return cls(*_EMPTY_EDGE_FIELDS)
+
+    def __len__(self) -> int:
+        return len(self.a)
+
+    def select(self, keep: np.ndarray) -> "EdgeHits":
+        return EdgeHits(*(getattr(self, f.name)[keep] for f in fields(self)))
+
+
+def _node_gaps(explained: SoftHits | None, node: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The signed gaps [m] of nodes ``node`` of bodies ``a`` to bodies ``b`` (broadcast together) that
+    node-against-face contacts in ``explained`` hold, inf where there is none."""
+    want = np.asarray(node | ((a * 1024 + b) << NODE_BITS), dtype=np.int64)
+    out = np.full(want.shape, np.inf)
+    if explained is None or not len(explained) or not want.size:
+        return out
+    order = np.argsort(explained.key, kind="stable")
+    keys = explained.key[order]
+    at = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
+    found = keys[at] == want
+    out[found] = explained.distance[order[at[found]]]
+    return out
+
+
+def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
+                  margin: float, h: float, depth: float, explained: SoftHits | None = None,
+                  layout: SoftLayout | None = None) -> EdgeHits:
+    """Edge-against-edge contacts between distinct soft bodies ``bodies`` (positions (N, 3), velocities (N, 3),
+    surface, rest positions) for the index ``pairs`` (a, b) (self-contact pairs a == b are left out): two surface
+    edges whose closest points lie between the ends of both, facing each other (the normal along the edges' cross
+    product makes more than ~87 degrees with both edges' outward normals), within reach (the margin plus what the
+    two points close along the normal within the step h [s], as soft_contacts) and less than ``depth`` [m]
+    crossed, and none of the four ends in a node contact with the other
+    body (``explained``: soft_contacts' hits; where one is, the two surfaces touch by faces and nodes there). Node against face both ways round and this cover every way two closed surfaces can meet.
+
+    Broad phase: the bodies' boxes grown by their reach (``layout``: SoftLayout.of their surfaces and pairs, if
+    kept), then each body's edges whose boxes meet a partner's, a k-d tree over their midpoints (one for all
+    bodies); narrow phase vectorised over the candidate pairs."""
+    pairs = [(a, b) for a, b in pairs if a != b]
+    if not pairs:
+        return EdgeHits.empty()
+    layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
+    if not len(layout.used):
+        return EdgeHits.empty()
+    # every body's box grown by what it may close within the step (one pass over all of them; a crossing already
+    # made lies in both boxes)
+    data = [bodies[k] for k in layout.used.tolist()]
+    xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
+    vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
+    speed2 = np.einsum("ij,ij->i", vs, vs)
+    grow = (margin + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, layout.starts)))[:, None]
+    blo = np.minimum.reduceat(xs, layout.starts) - grow
+    bhi = np.maximum.reduceat(xs, layout.starts) + grow
+    row = {k: r for r, k in enumerate(layout.used.tolist())}
+    P_ = np.array([(row[a], row[b]) for a, b in pairs], dtype=np.int64)
+    apart = ((blo[P_[:, 0]] > bhi[P_[:, 1]]) | (blo[P_[:, 1]] > bhi[P_[:, 0]])).any(axis=1)
+    if apart.all():
+        return EdgeHits.empty()
+    meeting = [pr for pr, off in zip(pairs, apart.tolist()) if not off]
+    lo = {k: blo[row[k]] for pr in meeting for k in pr}
+    hi = {k: bhi[row[k]] for pr in meeting for k in pr}
+    partners: dict[int, list[int]] = {}
+    for a, b in meeting:
+        partners.setdefault(a, []).append(b)
+        partners.setdefault(b, []).append(a)
+    body_of, edge_of, ends, P0, P1, V0, V1, N = [], [], [], [], [], [], [], []
+    for k, others in sorted(partners.items()):  # each body's edges inside a partner's grown box
+        x, v, sf, _ = bodies[k]
+        e0, e1 = x.take(sf.edges[:, 0], axis=0), x.take(sf.edges[:, 1], axis=0)
+        elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
+        near = np.zeros(len(e0), dtype=bool)
+        for o in others:
+            near |= ((elo <= hi[o]) & (ehi >= lo[o])).all(axis=1)
+        e = np.flatnonzero(near)
+        if not len(e):
+            continue
+        body_of.append(np.full(len(e), k))
+        edge_of.append(e)
+        ends.append(sf.edges[e])
+        P0.append(e0[e])
+        P1.append(e1[e])
+        V0.append(v[sf.edges[e, 0]])
+        V1.append(v[sf.edges[e, 1]])
+        N.append(edge_normals(x, sf.triangles, sf.edge_tris[e]))
+    if len(body_of) < 2:
+        return EdgeHits.empty()
+    body_of, edge_of, ends = np.concatenate(body_of), np.concatenate(edge_of), np.concatenate(ends)
+    P0, P1, V0, V1, N = (np.concatenate(z) for z in (P0, P1, V0, V1, N))
+    mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
+    travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
+    reach = margin + depth
+    found = cKDTree(mid).query_pairs(2.0 * (half.max() + travel.max()) + reach, output_type="ndarray")
+    if not len(found):
+        return EdgeHits.empty()
+    i, j = found[:, 0].astype(np.int64), found[:, 1].astype(np.int64)
+    swap = body_of[i] > body_of[j]  # a: the body of smaller index
+    i, j = np.where(swap, j, i), np.where(swap, i, j)
+    allowed = np.array(sorted(min(a, b) * 1024 + max(a, b) for a, b in meeting), dtype=np.int64)
+    gap = mid[i] - mid[j]
+    ok = ((body_of[i] != body_of[j]) & np.isin(body_of[i] * 1024 + body_of[j], allowed)
+          & (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]))
+    i, j = i[ok], j[ok]
+    if not len(i):
+        return EdgeHits.empty()
+    s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
+    da, db = P1[i] - P0[i], P1[j] - P0[j]
+    cr = cross(da, db)
+    crn = np.sqrt(np.einsum("ij,ij->i", cr, cr))
+    ok = ((s > EDGE_END) & (s < 1 - EDGE_END) & (t > EDGE_END) & (t < 1 - EDGE_END)
+          & (crn > EDGE_SIN * 4.0 * half[i] * half[j]))
+    i, j, s, t, da, db, cr, crn = (z[ok] for z in (i, j, s, t, da, db, cr, crn))
+    if not len(i):
+        return EdgeHits.empty()
+    n = cr / crn[:, None]
+    n *= np.where(np.einsum("ij,ij->i", n, N[j]) < 0.0, -1.0, 1.0)[:, None]  # out of b's edge
+    d = np.einsum("ij,ij->i", n, (P0[i] + s[:, None] * da) - (P0[j] + t[:, None] * db))
+    v_rel = ((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
+    closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
+    facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
+    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > -depth)
+    i, j, s, t, n, d = (z[ok] for z in (i, j, s, t, n, d))
+    if not len(i):
+        return EdgeHits.empty()
+    a, b = body_of[i], body_of[j]
+    ga = _node_gaps(explained, ends[i], a[:, None], b[:, None])
+    gb = _node_gaps(explained, ends[j], b[:, None], a[:, None])
+    # a node of either edge already in contact with the other body: its faces and nodes are in touch there, and the
+    # node contacts hold the crossing (rows for crossings next to them gained energy in settling stacks)
+    ok = np.isinf(ga).all(axis=1) & np.isinf(gb).all(axis=1)
+    i, j, s, t, n, d, a, b = (z[ok] for z in (i, j, s, t, n, d, a, b))
+    key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (edge_of[i] << EDGE_BITS) | edge_of[j]).astype(np.int64)
+    return EdgeHits(a, b, np.column_stack([ends[i], ends[j]]), np.column_stack([1 - s, s, -(1 - t), -t]), n, d, key)

@@ -46,7 +46,8 @@ from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceC
 from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
 from .shapes import Box, Mesh, Plane, RigidShape, Sphere
-from .softcontact import SoftHits, SoftLayout, SoftSurface, soft_contacts
+from .intersection import intersection_depth
+from .softcontact import EdgeHits, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 from .state import WorldState
 
 
@@ -57,6 +58,9 @@ TOUCH = 0.1
 SOFT_DEPTH = 5.0
 # a fast rigid body found this deep [m] in a soft body after a step was missed within it (World._check_missed)
 MISSED = 1e-3
+# two soft surfaces found crossing deeper than this [m] after a step are said to intersect (a resting contact
+# leaves up to contact.SOFT_SLOP)
+INTERSECTING = 5e-4
 # a node the solved step carries this deep [m] into a moving rigid link's end pose gets a contact there, and
 # the step is solved again, up to END_ROUNDS times (World._end_contacts)
 END_TOL = 1e-4
@@ -191,7 +195,8 @@ class World:
         self._soft_surface: dict[int, SoftSurface] = {}
         self._self_contact: set[int] = set()  # id(body) of the bodies with self-contact
         self.soft_contact = bool(soft_contact)
-        self.soft_hits = SoftHits.empty()  # soft contact candidates of the last step
+        self.soft_hits = SoftHits.empty()  # soft contact candidates of the last step: node against face
+        self.edge_hits = EdgeHits.empty()  # and edge against edge
         self.pair_results: list[tuple[PairContacts, ContactResult]] = []  # soft contacts solved, last step
         self._ignore: dict[int, set] = {}  # id(body) -> {(body id, link or None)}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -592,13 +597,12 @@ class World:
     def _detect(self, i: int, body: FemBody) -> tuple[Contacts, FaceHits]:
         """Contact candidates of soft body i against every rigid link it does not ignore (collision.py)."""
         surf = self._surface[id(body)]
-        surface = surf.nodes[~body.supported()[surf.nodes]]  # supports win over contact: no query for them
         links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
         v = body.velocities
         speeds = np.sqrt(np.einsum("ij,ij->i", v, v))
         sweeps = [self._sweep(rb, v, speeds) for rb in links]
-        return self.detector.detect(i, body.positions, surface, surf.triangles, body.supported(), links, sweeps,
-                                    TOUCH * self.contact_margin, surf.incidence)
+        return self.detector.detect(i, body.positions, surf.nodes, surf.triangles, body.supported(), links, sweeps,
+                                    TOUCH * self.contact_margin, surf.incidence, (surf.edges, surf.edge_tris))
 
     def _sweep(self, rb: RigidLink, velocities: np.ndarray, speeds: np.ndarray | None = None) -> Sweep:
         """The motions of a link and a soft body's nodes (velocities (N, 3), speeds (N,)) over the step, for the
@@ -657,20 +661,26 @@ class World:
                 self._warn_once(("soft off", a, b), f"soft bodies {a} and {b} meet, but {why}: they pass through "
                                 "each other")
         self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
+        self.edge_hits = EdgeHits.empty()
         if not pairs:
             return SoftHits.empty()
         data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self._members]
         key = self._pairs_memo[0]  # the members' surfaces are fixed: the search's layout lasts as the pairs do
         if self._soft_layout is None or self._soft_layout[0] != key:
             self._soft_layout = (key, SoftLayout.of([sf for _, _, sf, _ in data], pairs))
-        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, SOFT_DEPTH * self.contact_margin,
-                             self._soft_layout[1])
-        self._soft_member_pairs = np.column_stack([hits.a, hits.b])  # in the members' numbering
-        if len(hits) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
+        depth = SOFT_DEPTH * self.contact_margin
+        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, depth, self._soft_layout[1])
+        self.edge_hits = edges = edge_contacts(data, pairs, self.contact_margin, self.dt, depth, hits,
+                                               self._soft_layout[1])
+        # in the members' numbering
+        self._soft_member_pairs = np.concatenate([np.column_stack([hits.a, hits.b]), np.column_stack([edges.a, edges.b])])
+        if (len(hits) or len(edges)) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
             place = np.array([self._place[id(b)] for b in self._members])
             hits.node = hits.node + place[hits.a, 1]
             hits.nodes = hits.nodes + place[hits.b, 1][:, None]
             hits.a, hits.b = place[hits.a, 0], place[hits.b, 0]
+            edges.nodes = edges.nodes + np.column_stack([place[edges.a, 1]] * 2 + [place[edges.b, 1]] * 2)
+            edges.a, edges.b = place[edges.a, 0], place[edges.b, 0]
         return hits
 
     def _box(self, body: FemBody) -> tuple[np.ndarray, np.ndarray]:
@@ -678,21 +688,28 @@ class World:
         x = body.positions[self._soft_surface[id(body)].nodes]
         return x.min(axis=0), x.max(axis=0)
 
-    def _pair_contacts(self, hits: SoftHits) -> PairContacts | None:
-        """The solver's form of soft contact candidates: rows over both bodies, friction the smaller one's."""
-        if not len(hits):
+    def _pair_contacts(self, hits: SoftHits, edges: EdgeHits) -> PairContacts | None:
+        """The solver's form of soft contact candidates, node against face and edge against edge: rows over both
+        bodies (4 slots), friction the smaller one's, the point on body b's side."""
+        m = len(hits) + len(edges)
+        if not m:
             return None
-        m = len(hits)
-        mu_of = np.array([self.friction[id(b)] for b in self.sim.bodies])
-        mu = np.minimum(mu_of[hits.a], mu_of[hits.b])
+        a, b = np.concatenate([hits.a, edges.a]), np.concatenate([hits.b, edges.b])
+        mu_of = np.array([self.friction[id(body)] for body in self.sim.bodies])
+        parts = np.concatenate([np.column_stack([hits.a, hits.b, hits.b, hits.b]),
+                                np.column_stack([edges.a, edges.a, edges.b, edges.b])])
+        nodes = np.concatenate([np.column_stack([hits.node, hits.nodes]), edges.nodes])
+        weights = np.concatenate([np.column_stack([np.ones(len(hits)), -hits.weights]), edges.weights])
         point = np.zeros((m, 3))
-        for b in np.unique(hits.b).tolist():
-            on = hits.b == b
-            point[on] = np.einsum("ms,msi->mi", hits.weights[on], self.sim.bodies[b].positions[hits.nodes[on]])
-        parts = np.column_stack([hits.a, hits.b, hits.b, hits.b])
-        return PairContacts(hits.key, hits.normal, hits.distance, np.zeros((m, 3)), mu, np.full(m, -1), point,
-                            np.full(m, -1), parts=parts, nodes=np.column_stack([hits.node, hits.nodes]),
-                            weights=np.column_stack([np.ones(m), -hits.weights]))
+        on_b = weights < 0  # the slots of body b: minus its weights
+        for k in np.unique(b).tolist():
+            on = b == k
+            x = self.sim.bodies[k].positions[np.where(on_b[on], nodes[on], 0)]  # (a's slots: other bodies' nodes)
+            point[on] = np.einsum("ms,msi->mi", np.where(on_b[on], -weights[on], 0.0), x)
+        return PairContacts(np.concatenate([hits.key, edges.key]), np.concatenate([hits.normal, edges.normal]),
+                            np.concatenate([hits.distance, edges.distance]), np.zeros((m, 3)),
+                            np.minimum(mu_of[a], mu_of[b]), np.full(m, -1), point, np.full(m, -1), parts=parts,
+                            nodes=nodes, weights=weights)
 
     def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: RigidCoupling
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -721,7 +738,8 @@ class World:
     def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: RigidCoupling) -> FaceContacts:
         mu, vr, J = self._contact_data(body, hits, coupling)
         return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
-                            nodes=hits.nodes, weights=hits.weights, group=hits.group, primary=hits.primary)
+                            nodes=hits.nodes, weights=hits.weights, group=hits.group, primary=hits.primary,
+                            edge=hits.edge)
 
     def _coupled_attachments(self, i: int, coupling: RigidCoupling
                              ) -> list[tuple[Attachment, np.ndarray, np.ndarray, np.ndarray]]:
@@ -919,7 +937,7 @@ class World:
         self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
                                for body, f in zip(bodies, hits) if len(f)}
         self._attach_pending = {id(body): self._coupled_attachments(i, coupling) for i, body in enumerate(bodies)}
-        self._pending_pairs = self._pair_contacts(self.soft_hits)
+        self._pending_pairs = self._pair_contacts(self.soft_hits, self.edge_hits)
         self._rigid_inside = 0.0
         # the moving links' poses at the start, for contacts found at the end of the step (_end_contacts)
         self._poses0 = ({rb.key: rb.pose() for rb in self.rigids.values() if rb.movable or rb.motion is not None}
@@ -955,13 +973,14 @@ class World:
                 pos, orn = rb.scripted_pose(self.t)
                 self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
         self._check_missed()
+        self._check_intersections()
         self._lagged = self._one_way_reactions()
         self.timings["rigid"] += time.perf_counter() - tr
         core = dict(self.sim.timings)
         contact = self.timings.pop("velocity_solve", 0.0)  # outside the core phases
         self.timings.update(core)
-        self.timings["contact"] = (max(contact, 0.0) if self._pending or self._pending_faces or len(self.soft_hits)
-                                   else 0.0)
+        in_contact = self._pending or self._pending_faces or self._pending_pairs is not None
+        self.timings["contact"] = max(contact, 0.0) if in_contact else 0.0
         self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"] - self._rigid_inside, 0.0)
         self.timings["total"] = sum(self.timings.values())
 
@@ -1022,6 +1041,26 @@ class World:
                         f"rad/s) ended {1e3 * depth:.1f} mm inside soft body {k} at t = {self.t:.4g} s: its contact "
                         f"was not caught within the step of {self.dt} s (it travels {1e3 * speed * self.dt:.0f} mm "
                         "per step); it is pushed out over the next steps. A smaller dt catches it."))
+
+    def _check_intersections(self) -> None:
+        """After a step: two soft bodies that had contact candidates in it (any crossing within the search's reach
+        gives some) whose surfaces cross deeper than INTERSECTING (a geometric test, intersection.py, apart from the
+        contact search) were not separated by their contacts; say so once per pair, naming both (bodies told not
+        to collide are said to pass through at _detect_soft)."""
+        if not len(self._soft_member_pairs):
+            return
+        for a, b in np.unique(np.sort(self._soft_member_pairs, axis=1), axis=0).tolist():
+            if a == b:
+                continue
+            ba, bb = self._members[a], self._members[b]
+            sa, sb = self._soft_surface[id(ba)], self._soft_surface[id(bb)]
+            depth = intersection_depth(ba.positions, sa.triangles, sa.edges, bb.positions, sb.triangles, sb.edges)
+            if depth > INTERSECTING:
+                self._warn_once(("intersect", a, b), (
+                    f"soft bodies {a} and {b} intersect {1e3 * depth:.2f} mm deep at t = {self.t:.4g} s: their "
+                    "contacts did not separate them (both held or moved by supports, or a crossing deeper than the "
+                    f"contact search reaches, {1e3 * SOFT_DEPTH * self.contact_margin:.1f} mm); they may pass "
+                    "through each other"))
 
     def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""
@@ -1136,7 +1175,7 @@ class World:
                     if kind == "soft" or key in by_id}
         attachment = {id(a): k for k, a in enumerate(self.attachments)}
         results = {
-            "contacts": self.contacts, "face_hits": self.face_hits, "soft_hits": self.soft_hits,
+            "contacts": self.contacts, "face_hits": self.face_hits, "soft_hits": self.soft_hits, "edge_hits": self.edge_hits,
             "soft_member_pairs": self._soft_member_pairs, "pair_results": list(self.pair_results),
             "contact_results": {by_id[k]: v for k, v in self.contact_results.items() if k in by_id},
             "face_results": {by_id[k]: v for k, v in self.face_results.items() if k in by_id},
@@ -1227,6 +1266,7 @@ class World:
         self._lagged = copy.deepcopy(state.lagged)
         r = copy.deepcopy(state.results)
         self.contacts, self.face_hits, self.soft_hits = r["contacts"], r["face_hits"], r["soft_hits"]
+        self.edge_hits = r.get("edge_hits", EdgeHits.empty())
         self._soft_member_pairs, self.pair_results = r["soft_member_pairs"], r["pair_results"]
         self.contact_results = {id(stepped[h]): v for h, v in r["contact_results"].items()}
         self.face_results = {id(stepped[h]): v for h, v in r["face_results"].items()}

@@ -129,10 +129,17 @@ def test_a_world_continues_from_its_saved_state_to_the_bit(tmp_path):
     assert world.t == pytest.approx(0.2)
     assert np.array_equal(_run(world, cubes, box, kuka, 30), original)
     assert np.array_equal(world.contact_force(box), force_after)
-    # the warm starts and friction states are state: without them the run continues elsewhere
+    # the warm starts and friction states are state: restored as saved (active and sticking contacts, sliding
+    # forces), per body (the solver keys them by the stepped body, the state by its handle)
     world.restore_state(state)
-    world.contact_solver.previous = {}
-    assert np.abs(_run(world, cubes, box, kuka, 30) - original).max() > 1e-9
+    kept = {k: v for k, v in world.contact_solver.previous.items() if v[0] or v[1] or v[2]}
+    assert kept and any(k[0] == "soft" for k in kept)
+    handle = {id(b): h for b, h in zip(world.sim.bodies, world._handles()[1])}
+    assert len(world.contact_solver.previous) == len(state.previous)
+    for (kind, key), value in world.contact_solver.previous.items():
+        want = state.previous[(kind, key if kind == "soft" else handle[key])]
+        assert value[0] == want[0] and value[1] == want[1]
+        assert value[2].keys() == want[2].keys() and all(np.array_equal(value[2][k], want[2][k]) for k in want[2])
     # from disk into the same scene built again (in this process; a new process: the test below)
     w2, cubes2, box2, kuka2 = _scene()
     w2.restore_state(tmp_path / "scene.state")
