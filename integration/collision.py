@@ -609,6 +609,14 @@ def _edge_parts(rigid: RigidLink) -> list:
     return rigid._edge_parts
 
 
+def _part_extent(kind: str, size: np.ndarray) -> np.ndarray:
+    """(3,) half extents [m] of a primitive part's box in its own frame (box, capsule, cylinder)."""
+    if kind == "box":
+        return np.asarray(size, dtype=float)
+    r, length = float(size[0]), float(size[1])
+    return np.array([r, r, 0.5 * length + (r if kind == "capsule" else 0.0)])
+
+
 def node_gaps(found: Contacts, n_nodes: int) -> np.ndarray:
     """(N,) the gaps [m] the node contacts ``found`` (of one link) hold, inf at nodes without one."""
     gap = np.full(n_nodes, np.inf)
@@ -663,6 +671,25 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
     for k, (kind, size, R, pos) in parts:
         Rw, origin = Rl @ R, c + Rl @ pos
         la, lb = (a - origin) @ Rw, (b - origin) @ Rw  # the edges in the part's frame
+        # only edges whose box in the part's frame meets the part's, grown by the reach (a tray's wall is no
+        # candidate for the edges of everything inside the tray)
+        ext = _part_extent(kind, size) + bound
+        near = ((np.maximum(la, lb) >= -ext) & (np.minimum(la, lb) <= ext)).all(axis=1)
+        if not near.any():
+            continue
+        la, lb, e_near = la[near], lb[near], cand[near]
+        if kind == "box":  # both ends in one face's region of the box (over that face, or inside nearest to it: a
+            # convex region where the distance is that face's, linear along the edge): deepest at an end, no point
+            # between (a soft face lying on a box's face)
+            qa, qb = np.abs(la) - size, np.abs(lb) - size
+            axis = np.argmax(qa, axis=1)
+            rows = np.arange(len(la))
+            same = (np.argmax(qb, axis=1) == axis) & (np.sign(la[rows, axis]) == np.sign(lb[rows, axis]))
+            qa[rows, axis] = qb[rows, axis] = -np.inf  # the other two axes: within the face's extents
+            same &= (qa.max(axis=1) <= 0.0) & (qb.max(axis=1) <= 0.0)
+            if same.all():
+                continue
+            la, lb, e_near = la[~same], lb[~same], e_near[~same]
 
         d_a, d_b = shape_distance(kind, size, la)[2], shape_distance(kind, size, lb)[2]
 
@@ -670,7 +697,7 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
             return shape_distance(kind, size, la + t[:, None] * (lb - la))[2] - TIE * ((1 - t) * d_a + t * d_b)
 
         g = 0.5 * (math.sqrt(5.0) - 1.0)
-        t_lo, t_hi = np.zeros(len(cand)), np.ones(len(cand))
+        t_lo, t_hi = np.zeros(len(e_near)), np.ones(len(e_near))
         t1, t2 = t_hi - g, t_lo + g
         f1, f2 = f(t1), f(t2)
         for _ in range(GOLDEN_STEPS):
@@ -683,12 +710,12 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
                               np.where(left, f1, f_new))
         t = 0.5 * (t_lo + t_hi)
         closest, normal, d = shape_distance(kind, size, la + t[:, None] * (lb - la))
-        held = held_gap(np.column_stack([1 - t, t]), node_gap[E[cand]])
+        held = held_gap(np.column_stack([1 - t, t]), node_gap[E[e_near]])
         # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
         ok = (t > EDGE_END) & (t < 1 - EDGE_END) & (d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED)
         if not ok.any():
             continue
-        e, t, d = cand[ok], t[ok], d[ok]
+        e, t, d = e_near[ok], t[ok], d[ok]
         point, normal = closest[ok] @ Rw.T + origin, normal[ok] @ Rw.T
         v_soft = (1 - t)[:, None] * sweep.velocities[E[e, 0]] + t[:, None] * sweep.velocities[E[e, 1]]
         near = d < sweep.reach(point, normal, v_soft)
