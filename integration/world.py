@@ -61,6 +61,8 @@ MISSED = 1e-3
 # two soft surfaces found crossing deeper than this [m] after a step are said to intersect (a resting contact
 # leaves up to contact.SOFT_SLOP)
 INTERSECTING = 5e-4
+# ... tested every step where the contact search saw that deep a crossing, and every this many steps for all pairs
+CHECK_EVERY = 10
 # a node the solved step carries this deep [m] into a moving rigid link's end pose gets a contact there, and
 # the step is solved again, up to END_ROUNDS times (World._end_contacts)
 END_TOL = 1e-4
@@ -1043,14 +1045,23 @@ class World:
                         "per step); it is pushed out over the next steps. A smaller dt catches it."))
 
     def _check_intersections(self) -> None:
-        """After a step: two soft bodies that had contact candidates in it (any crossing within the search's reach
-        gives some) whose surfaces cross deeper than INTERSECTING (a geometric test, intersection.py, apart from the
-        contact search) were not separated by their contacts; say so once per pair, naming both (bodies told not
-        to collide are said to pass through at _detect_soft)."""
-        if not len(self._soft_member_pairs):
-            return
-        for a, b in np.unique(np.sort(self._soft_member_pairs, axis=1), axis=0).tolist():
-            if a == b:
+        """After a step: two soft bodies whose surfaces cross deeper than INTERSECTING (a geometric test,
+        intersection.py, apart from the contact search) were not separated by their contacts; say so once per pair,
+        naming both (bodies told not to collide are said to pass through at _detect_soft). Tested: every step the
+        pairs whose contact candidates reach that deep, every CHECK_EVERY steps all pairs whose boxes overlap
+        (crossings the search does not see at all)."""
+        pairs = set()
+        if len(self.soft_hits) or len(self.edge_hits):
+            deep = np.concatenate([self.soft_hits.distance, self.edge_hits.distance]) < -INTERSECTING
+            if deep.any():
+                found = self._soft_member_pairs[deep]
+                pairs.update(map(tuple, np.sort(found, axis=1).tolist()))
+        if self.sim.steps % CHECK_EVERY == 0:
+            boxes = [self._box(b) for b in self._members]
+            pairs.update((a, b) for a, b in self._soft_pairs() if a != b and np.all(boxes[a][0] <= boxes[b][1])
+                         and np.all(boxes[b][0] <= boxes[a][1]))
+        for a, b in sorted(pairs):
+            if a == b or ("intersect", a, b) in self._warned:
                 continue
             ba, bb = self._members[a], self._members[b]
             sa, sb = self._soft_surface[id(ba)], self._soft_surface[id(bb)]
