@@ -636,21 +636,20 @@ def held_gap(weights: np.ndarray, gaps: np.ndarray) -> np.ndarray:
 def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
                   edges: tuple[np.ndarray, np.ndarray], rigid: RigidLink, sweep: Sweep, node_gap: np.ndarray
                   ) -> "FaceHits":
-    """Points of soft surface edges deepest into a link of primitive parts, between their nodes: where a box's edge
-    or side, a capsule or a cylinder lies across an edge whose nodes are outside it (a bar across a thin box, a
-    plate on a rail), or where a round part pokes between two nodes resting on it.
+    """Points of soft surface edges deepest into a link's boxes, capsules and cylinders, between their nodes: where a
+    box's edge or side, a capsule or a cylinder lies across an edge whose nodes are outside it (a bar across a thin
+    box, a plate on a rail) (_edge_parts: no planes, no spheres).
 
     ``edges``: the surface's edges (E, 2) and the triangles each bounds (E, 2); ``node_gap`` (N,): the gaps [m] the
-    link's node contacts hold (inf where none). For every edge near the link and every convex part, the point of
-    least signed distance (convex along the edge: golden-section search; on a flat stretch, such as under a box's
-    face, the one farthest below the chord of the ends' distances, where the nodes hold it least) counts if it lies between the ends
-    (EDGE_END), nearer to the part than either end is and than the ends' node contacts hold it (interpolated), by
-    EDGE_EXPLAINED (a box lying on a soft face with an edge past its rim adds nothing until the rim digs in), within
-    reach
-    (margin plus closing within the step) and the part faces the edge (its normal against the edge's outward
-    normal, FACING), inside it too. Planes have no such point (a straight edge is deepest at an end). Each
-    is a face hit with weights (1 - t, t, 0) over the edge's nodes and the third of a triangle it bounds, its own
-    rigid point (group), primary, ``edge`` set; links with a mesh part have none, spheres none (see below)."""
+    link's node contacts hold (inf where none). For every edge near a part (their boxes in the part's frame, not
+    both ends over one face of a box), the point of least signed distance (convex along the edge: golden-section
+    search; on a flat stretch, such as under a box's face, the one farthest below the chord of the ends'
+    distances) counts if it lies between the ends (EDGE_END), nearer to the part than either end is and than the
+    ends' node contacts hold it (interpolated), by EDGE_EXPLAINED (a box lying on a soft face with an edge past its
+    rim adds nothing until the rim digs in), within reach (margin plus closing within the step), and the part faces
+    the edge (its normal against the edge's outward normal, FACING), inside it too. Each is a face hit with weights
+    (1 - t, t, 0) over the edge's nodes and the third of a triangle it bounds, its own rigid point (group), primary,
+    ``edge`` set."""
     parts = _edge_parts(rigid)
     if not parts or not len(edges[0]):
         return FaceHits.empty()
