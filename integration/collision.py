@@ -598,23 +598,12 @@ class CollisionDetector:
 
 
 def _edge_parts(rigid: RigidLink) -> list:
-    """The link's parts (index, primitive part) a soft edge can meet between its nodes (edge_contacts): its
-    primitive parts but planes (a straight edge is deepest at an end) and spheres (the sag of a chord between two
-    nodes resting on a sphere is the discretisation: held, a coarse sheet balanced on its facets' edges and slid
-    off); none for a link with a mesh part. Made once per link."""
+    """The link's parts (index, Part) a soft edge can meet between its nodes (RigidShape.between_nodes); none for a
+    link with a mesh part. Made once per link."""
     if "_edge_parts" not in rigid.__dict__:
-        parts = rigid.primitive_parts()
-        rigid._edge_parts = [] if parts is None else [(k, prt) for k, prt in enumerate(parts)
-                                                       if prt[0] not in ("plane", "sphere")]
+        rigid._edge_parts = ([] if rigid.primitive_parts() is None else
+                             [(k, part) for k, part in enumerate(rigid.parts) if part.shape.between_nodes])
     return rigid._edge_parts
-
-
-def _part_extent(kind: str, size: np.ndarray) -> np.ndarray:
-    """(3,) half extents [m] of a primitive part's box in its own frame (box, capsule, cylinder)."""
-    if kind == "box":
-        return np.asarray(size, dtype=float)
-    r, length = float(size[0]), float(size[1])
-    return np.array([r, r, 0.5 * length + (r if kind == "capsule" else 0.0)])
 
 
 def node_gaps(found: Contacts, n_nodes: int) -> np.ndarray:
@@ -638,11 +627,11 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
                   ) -> "FaceHits":
     """Points of soft surface edges deepest into a link's boxes, capsules and cylinders, between their nodes: where a
     box's edge or side, a capsule or a cylinder lies across an edge whose nodes are outside it (a bar across a thin
-    box, a plate on a rail) (_edge_parts: no planes, no spheres).
+    box, a plate on a rail) (RigidShape.between_nodes: no planes, no spheres).
 
     ``edges``: the surface's edges (E, 2) and the triangles each bounds (E, 2); ``node_gap`` (N,): the gaps [m] the
     link's node contacts hold (inf where none). For every edge near a part (their boxes in the part's frame, not
-    both ends over one face of a box), the point of least signed distance (convex along the edge: golden-section
+    where the distance is linear along it: RigidShape.linear_between), the point of least signed distance (convex along the edge: golden-section
     search; on a flat stretch, such as under a box's face, the one farthest below the chord of the ends'
     distances) counts if it lies between the ends (EDGE_END), nearer to the part than either end is and than the
     ends' node contacts hold it (interpolated), by EDGE_EXPLAINED (a box lying on a soft face with an edge past its
@@ -667,33 +656,22 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
     c, q = rigid.pose()
     Rl = quat_matrix(q)
     out = []
-    for k, (kind, size, R, pos) in parts:
+    for k, (shape, R, pos) in parts:
         Rw, origin = Rl @ R, c + Rl @ pos
         la, lb = (a - origin) @ Rw, (b - origin) @ Rw  # the edges in the part's frame
         # only edges whose box in the part's frame meets the part's, grown by the reach (a tray's wall is no
-        # candidate for the edges of everything inside the tray)
-        ext = _part_extent(kind, size) + bound
+        # candidate for the edges of everything inside the tray), and not those along which the distance is
+        # linear (a soft face lying on a box's face): deepest at an end, no point between
+        ext = shape.extent() + bound
         near = ((np.maximum(la, lb) >= -ext) & (np.minimum(la, lb) <= ext)).all(axis=1)
+        near[near] = ~shape.linear_between(la[near], lb[near])
         if not near.any():
             continue
         la, lb, e_near = la[near], lb[near], cand[near]
-        if kind == "box":  # both ends in one face's region of the box (over that face, or inside nearest to it: a
-            # convex region where the distance is that face's, linear along the edge): deepest at an end, no point
-            # between (a soft face lying on a box's face)
-            qa, qb = np.abs(la) - size, np.abs(lb) - size
-            axis = np.argmax(qa, axis=1)
-            rows = np.arange(len(la))
-            same = (np.argmax(qb, axis=1) == axis) & (np.sign(la[rows, axis]) == np.sign(lb[rows, axis]))
-            qa[rows, axis] = qb[rows, axis] = -np.inf  # the other two axes: within the face's extents
-            same &= (qa.max(axis=1) <= 0.0) & (qb.max(axis=1) <= 0.0)
-            if same.all():
-                continue
-            la, lb, e_near = la[~same], lb[~same], e_near[~same]
-
-        d_a, d_b = shape_distance(kind, size, la)[2], shape_distance(kind, size, lb)[2]
+        d_a, d_b = shape.distance(la)[2], shape.distance(lb)[2]
 
         def f(t):  # the distance, ties (a flat stretch) going to the point farthest below the ends' chord
-            return shape_distance(kind, size, la + t[:, None] * (lb - la))[2] - TIE * ((1 - t) * d_a + t * d_b)
+            return shape.distance(la + t[:, None] * (lb - la))[2] - TIE * ((1 - t) * d_a + t * d_b)
 
         g = 0.5 * (math.sqrt(5.0) - 1.0)
         t_lo, t_hi = np.zeros(len(e_near)), np.ones(len(e_near))
@@ -708,7 +686,7 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
             t1, t2, f1, f2 = (np.where(left, t_new, t2), np.where(left, t1, t_new), np.where(left, f_new, f2),
                               np.where(left, f1, f_new))
         t = 0.5 * (t_lo + t_hi)
-        closest, normal, d = shape_distance(kind, size, la + t[:, None] * (lb - la))
+        closest, normal, d = shape.distance(la + t[:, None] * (lb - la))
         held = held_gap(np.column_stack([1 - t, t]), node_gap[E[e_near]])
         # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
         ok = (t > EDGE_END) & (t < 1 - EDGE_END) & (d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED)

@@ -46,6 +46,10 @@ class RigidShape:
     #: one flag per support point (:meth:`support_points`): True on a smooth surface, False on a rim; () where the
     #: shape offers corners instead
     round: ClassVar[tuple[bool, ...]] = ()
+    #: a soft edge can meet it between its nodes (collision.edge_contacts): not a plane (a straight edge is
+    #: deepest at an end) nor a sphere (the sag of a chord between two nodes resting on it is the discretisation:
+    #: held, a coarse sheet balanced on its facets' edges and slid off), nor a mesh (no closed form)
+    between_nodes: ClassVar[bool] = False
     # Mesh's fields (not annotated here, so that they keep their place in Mesh's constructor)
     concave = False  # a static triangle soup
     file = ""  # the mesh's file ("" if made from vertices)
@@ -59,6 +63,15 @@ class RigidShape:
     def size(self) -> np.ndarray:
         """The size as parts carry it (kernels.part_arrays, distance.shape_distance)."""
         raise NotImplementedError
+
+    def extent(self) -> np.ndarray:
+        """(3,) half extents [m] of its box in its own frame (the shapes that meet soft edges between nodes)."""
+        raise NotImplementedError
+
+    def linear_between(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(m,) bool: where the signed distance is linear along the segments a-b (m, 3 each, the shape's frame), so
+        deepest at an end (collision.edge_contacts skips them); none known by default."""
+        return np.zeros(len(a), dtype=bool)
 
     @classmethod
     def from_size(cls, size) -> RigidShape:
@@ -167,6 +180,7 @@ class Box(RigidShape):
     half_extents: np.ndarray
     kind: ClassVar[str] = "box"
     geom: ClassVar[int] = p.GEOM_BOX
+    between_nodes: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "half_extents", np.asarray(self.half_extents, float))
@@ -202,6 +216,19 @@ class Box(RigidShape):
     def corners(self) -> tuple[np.ndarray, np.ndarray]:
         return CORNERS * self.half_extents, np.zeros(3)
 
+    def extent(self) -> np.ndarray:
+        return self.half_extents
+
+    def linear_between(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Both ends in one face's region (over that face, or inside nearest to it: a convex region where the
+        distance is that face's)."""
+        qa, qb = np.abs(a) - self.half_extents, np.abs(b) - self.half_extents
+        axis = np.argmax(qa, axis=1)
+        rows = np.arange(len(a))
+        same = (np.argmax(qb, axis=1) == axis) & (np.sign(a[rows, axis]) == np.sign(b[rows, axis]))
+        qa[rows, axis] = qb[rows, axis] = -np.inf  # the other two axes: within the face's extents
+        return same & (qa.max(axis=1) <= 0.0) & (qb.max(axis=1) <= 0.0)
+
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr
 
@@ -215,10 +242,14 @@ class _Axial(RigidShape):
 
     radius: float
     length: float
+    between_nodes: ClassVar[bool] = True
 
     @property
     def size(self) -> np.ndarray:
         return np.array([self.radius, self.length], float)
+
+    def extent(self) -> np.ndarray:
+        return np.array([self.radius, self.radius, 0.5 * self.length + (self.radius if self.round[0] else 0.0)])
 
     @classmethod
     def from_size(cls, size) -> _Axial:

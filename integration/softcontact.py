@@ -394,9 +394,6 @@ class EdgeHits:
     def __len__(self) -> int:
         return len(self.a)
 
-    def select(self, keep: np.ndarray) -> "EdgeHits":
-        return EdgeHits(*(getattr(self, f.name)[keep] for f in fields(self)))
-
 
 def _node_gaps(explained: SoftHits | None, node: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The signed gaps [m] of nodes ``node`` of bodies ``a`` to bodies ``b`` (broadcast together) that
