@@ -21,7 +21,7 @@ import scipy.sparse as sp
 
 from . import kernels
 from .bullet import quat_matrix
-from .distance import cross, shape_distance
+from .distance import cross
 from .segments import edge_normals
 from .rigid import RigidLink
 
@@ -730,10 +730,10 @@ def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tupl
         kernels.primitive_distances(kinds, sizes, Rl @ R, c + pos @ Rl.T, x, point, normal, dist)
         return point, normal, dist
     best = None
-    for kind, size, R, pos in parts:
+    for shape, R, pos in parts:
         Rw = Rl @ R  # part frame -> world
         origin = c + Rl @ pos
-        cl, nl, d = shape_distance(kind, size, (x - origin) @ Rw)
+        cl, nl, d = shape.distance((x - origin) @ Rw)
         if best is None:
             best = [cl @ Rw.T + origin, nl @ Rw.T, d]
         else:

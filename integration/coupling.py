@@ -251,7 +251,14 @@ class CoupledSolver:
                 body = part.system.body
                 mass = body.M_data[body.pattern.diag][np.where(on, rows.node, 0)]  # the mass matrix's diagonal
                 free += np.where(on, rows.weight ** 2 / np.maximum(mass, 1e-300), 0.0).sum(axis=1)
+            # A held row that moves a rigid body (a box on a fixed rim) stays: its scale is then the rigid side's,
+            # the diagonal of g M^-1 g^T.
             held = np.diag(H)[n:] <= 1e-9 * free
+            if n and held.any():
+                g = rows.g[held]
+                rigid = np.einsum("ij,ji->i", g, np.linalg.solve(self.M, g.T))
+                free[held] = rigid
+                held[held] = rigid <= 0.0
             if held.any():
                 k = n + np.flatnonzero(held)
                 H[k, :], H[:, k], rhs[k] = 0.0, 0.0, 0.0

@@ -25,7 +25,7 @@ import numpy as np
 from softbody import compilation
 from softbody.kernels import AVAILABLE, _jit
 
-__all__ = ["ENABLED", "KINDS", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
+__all__ = ["ENABLED", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
            "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
            "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
 
@@ -328,20 +328,17 @@ def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float,
     return changed
 
 
-#: primitive kinds, as numbered for primitive_distances
-KINDS = {"sphere": 0, "box": 1, "capsule": 2, "cylinder": 3, "plane": 4}
-
-
 def part_arrays(parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Primitive parts (RigidLink.primitive_parts) as arrays for kernels.primitive_distances: kinds (P,)
-    (KINDS), sizes (P, 3) (a sphere's radius, a box's half extents, a capsule's or cylinder's radius and length,
-    a plane's normal; zero-padded), rotations (P, 3, 3) and positions (P, 3) in the link's frame."""
+    """Primitive parts (rigid.Part: shape, rotation, position; RigidLink.primitive_parts) as arrays for
+    kernels.primitive_distances: kinds (P,) (RigidShape.code: 0 sphere, 1 box, 2 capsule, 3 cylinder, 4 plane),
+    sizes (P, 3) (RigidShape.size: a sphere's radius, a box's half extents, a capsule's or cylinder's radius and
+    length, a plane's normal; zero-padded), rotations (P, 3, 3) and positions (P, 3) in the link's frame."""
     sizes = np.zeros((len(parts), 3))
-    for i, (_, size, _, _) in enumerate(parts):
-        sizes[i, :len(size)] = size
-    return (np.array([KINDS[k] for k, _, _, _ in parts], dtype=np.int64), sizes,
-            np.array([R for _, _, R, _ in parts], dtype=float).reshape(-1, 3, 3),
-            np.array([pos for _, _, _, pos in parts], dtype=float).reshape(-1, 3))
+    for i, (shape, _, _) in enumerate(parts):
+        sizes[i, :len(shape.size)] = shape.size
+    return (np.array([shape.code for shape, _, _ in parts], dtype=np.int64), sizes,
+            np.array([R for _, R, _ in parts], dtype=float).reshape(-1, 3, 3),
+            np.array([pos for _, _, pos in parts], dtype=float).reshape(-1, 3))
 
 
 @_jit
@@ -436,7 +433,7 @@ def _nearest_part(kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins:
 def primitive_distances(kinds: np.ndarray, sizes: np.ndarray, Rw: np.ndarray, origins: np.ndarray, x: np.ndarray,
                         point: np.ndarray, normal: np.ndarray, dist: np.ndarray) -> None:
     """collision.primitive_distances point by point: for world points x (m, 3) the closest point, outward normal
-    and signed distance on the nearest of P parts (kinds (P,) as KINDS, sizes (P, 3), part-to-world rotations
+    and signed distance on the nearest of P parts (kinds (P,) as RigidShape.code, sizes (P, 3), part-to-world rotations
     Rw (P, 3, 3), origins (P, 3)), into point, normal (m, 3) and dist (m,); the first part wins a tie."""
     for i in range(x.shape[0]):
         (point[i, 0], point[i, 1], point[i, 2], normal[i, 0], normal[i, 1], normal[i, 2],

@@ -168,14 +168,14 @@ class RigidLink:
         self._convex_parts = parts
         return parts
 
-    def primitive_parts(self) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]] | None:
-        """The link's shapes as primitives with closed-form distances (distance.py), in its inertial frame:
-        (kind, size, rotation (3, 3), position (3,)); None if any shape is a mesh (pybullet's query then)."""
+    def primitive_parts(self) -> list[Part] | None:
+        """The link's parts (:attr:`parts`) if all have closed-form distances (distance.py); None if any shape is
+        a mesh (pybullet's query then)."""
         if "_primitives" in self.__dict__:
             return self._primitives
         parts = None
         if self.parts and all(part.shape.closed_form for part in self.parts):
-            parts = [(shape.kind, shape.size, R, pos) for shape, R, pos in self.parts]
+            parts = self.parts
         self._primitives = parts
         return parts
 
@@ -195,12 +195,11 @@ class RigidLink:
     def round_part_arrays(self, pose: tuple[np.ndarray, np.ndarray] | None = None
                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The round parts (those of :meth:`support_points`) in the world, for kernels.face_contacts_possible:
-        kinds (P,) as kernels.KINDS, sizes (P, 3) (radius, length, 0; a sphere's length 0), part-to-world rotations
+        kinds (P,) as RigidShape.code, sizes (P, 3) (radius, length, 0; a sphere's length 0), part-to-world rotations
         (P, 3, 3) and centres (P, 3) [m] at the link's current pose; ``pose``: that pose as (centre (3,), rotation
         matrix (3, 3)), if at hand."""
         if "_round_local" not in self.__dict__:  # the parts in the link's frame (kernels.part_arrays), made once
-            self._round_local = kernels.part_arrays([(shape.kind, shape.size, R, pos) for shape, R, pos in self.parts
-                                                     if shape.round])
+            self._round_local = kernels.part_arrays([part for part in self.parts if part.shape.round])
         kinds, sizes, R, pos = self._round_local
         if pose is None:
             c, q = self.pose()

@@ -1,10 +1,11 @@
 """Rigid shape kinds as small objects: sphere, box, capsule, cylinder, plane and triangle mesh.
 
 Each holds its size [m] in its own frame (a capsule's and a cylinder's axis is z, centred; a plane passes
-through the origin) and knows: its ``kind`` name (integration.kernels.KINDS for the compiled closed forms),
-how pybullet makes it (:meth:`RigidShape.pybullet_args`) and reports it (:func:`from_pybullet`, the one
-table ``BY_GEOM`` keyed by pybullet's GEOM_* constant), its closed-form signed distance (distance.py), its
-bounding radius, its contact features (corners, round support points) and its drawing in rerun.
+through the origin) and knows: its ``kind`` name and ``code`` (its number in the compiled closed forms,
+integration.kernels._shape), how pybullet makes it (:meth:`RigidShape.pybullet_args`) and reports it
+(:func:`from_pybullet`, the one table ``BY_GEOM`` keyed by pybullet's GEOM_* constant), its closed-form signed
+distance (distance.py), its bounding radius, its contact features (corners, round support points), a closed
+triangulated surface and the sag of chords over it (for the check after the step) and its drawing in rerun.
 A RigidLink (rigid.py) places shapes in its inertial frame as parts (shape, rotation, position).
 """
 from __future__ import annotations
@@ -20,11 +21,26 @@ import pybullet as p
 
 from softbody.errors import InvalidInputError
 
-from . import distance, kernels
+from . import distance
 
 #: the eight corners (8, 3) of the box [-1, 1]^3
 CORNERS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
 _NO_CORNERS = (np.zeros((0, 3)), np.zeros(3))
+
+
+def _closed(tm) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """RigidShape.closed_surface of a trimesh.Trimesh (None if it is not watertight)."""
+    if not tm.is_watertight:
+        return None
+    return np.asarray(tm.vertices, float), np.asarray(tm.faces, np.int64), np.asarray(tm.edges_unique, np.int64)
+
+
+def _round_sags(radius: float, lengths: np.ndarray) -> np.ndarray:
+    """RigidShape.chord_sags on a surface of curvature ``radius`` [m]: R - sqrt(R^2 - L^2 / 4), NaN for a chord
+    longer than the diameter (it cannot rest on it by both ends)."""
+    L = np.asarray(lengths, float)
+    with np.errstate(invalid="ignore"):
+        return np.where(L <= 2.0 * radius, radius - np.sqrt(radius ** 2 - 0.25 * L ** 2), np.nan)
 
 
 def _pose(pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -40,6 +56,7 @@ class RigidShape:
     """A rigid shape in its own frame (the base of the kinds below)."""
 
     kind: ClassVar[str]
+    code: ClassVar[int | None] = None  # its number in the compiled closed forms (kernels._shape); None: no closed form
     geom: ClassVar[int]  # pybullet's GEOM_* constant
     closed_form: ClassVar[bool] = True  # distance.py has its signed distance
     bounded: ClassVar[bool] = True  # False: infinite (a plane)
@@ -55,13 +72,8 @@ class RigidShape:
     file = ""  # the mesh's file ("" if made from vertices)
 
     @property
-    def code(self) -> int | None:
-        """The kind's number in the compiled kernels (integration.kernels.KINDS), None without a closed form."""
-        return kernels.KINDS.get(self.kind)
-
-    @property
     def size(self) -> np.ndarray:
-        """The size as parts carry it (kernels.part_arrays, distance.shape_distance)."""
+        """The size as the compiled closed forms take it (kernels.part_arrays, distance.shape_distance)."""
         raise NotImplementedError
 
     def extent(self) -> np.ndarray:
@@ -119,6 +131,20 @@ class RigidShape:
         :attr:`round`, with the shape at ``centre`` (3,) [m] turned by ``rotation`` (3, 3) (shape to world)."""
         return []
 
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """A closed triangulated surface of the shape in its own frame, for the check after the step
+        (intersection.py): vertices (k, 3) [m], outward triangles (t, 3), edges (e, 2); round shapes inscribed
+        (a sag of at most ~1% of the radius). None where there is none: a plane, a mesh that is not closed."""
+        return None
+
+    def chord_sags(self, lengths: np.ndarray) -> np.ndarray:
+        """(m,) the deepest [m] straight chords of ``lengths`` (m,) [m] lie inside the shape with both ends on its
+        surface: what a soft surface of such edges resting on it sags through it by discretisation (not
+        modelled, docs/contact.md); 0 for flat-faced shapes, NaN for a chord that cannot rest on it by both
+        ends."""
+        return np.zeros(len(lengths))
+
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         """A rerun archetype of the shape at ``pose`` (position (3,), quaternion xyzw (4,)) in its link's frame
         (None: the link frame itself, no transform logged), or None if it cannot be drawn. ``plane_size`` [m]:
@@ -132,6 +158,7 @@ class Sphere(RigidShape):
 
     radius: float
     kind: ClassVar[str] = "sphere"
+    code: ClassVar[int] = 0
     geom: ClassVar[int] = p.GEOM_SPHERE
     round: ClassVar[tuple[bool, ...]] = (True,)
 
@@ -162,6 +189,15 @@ class Sphere(RigidShape):
     def support_points(self, directions: np.ndarray, rotation: np.ndarray, centre: np.ndarray) -> list[np.ndarray]:
         return [centre + self.radius * directions]  # no frame needed
 
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import trimesh
+
+        return _closed(trimesh.creation.icosphere(subdivisions=3, radius=float(self.radius)))
+
+    def chord_sags(self, lengths: np.ndarray) -> np.ndarray:
+        return _round_sags(self.radius, lengths)
+
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr
         import trimesh
@@ -179,6 +215,7 @@ class Box(RigidShape):
 
     half_extents: np.ndarray
     kind: ClassVar[str] = "box"
+    code: ClassVar[int] = 1
     geom: ClassVar[int] = p.GEOM_BOX
     between_nodes: ClassVar[bool] = True
 
@@ -229,6 +266,12 @@ class Box(RigidShape):
         qa[rows, axis] = qb[rows, axis] = -np.inf  # the other two axes: within the face's extents
         return same & (qa.max(axis=1) <= 0.0) & (qb.max(axis=1) <= 0.0)
 
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import trimesh
+
+        return _closed(trimesh.creation.box(extents=2.0 * self.half_extents))
+
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr
 
@@ -269,6 +312,10 @@ class _Axial(RigidShape):
     def pybullet_args(self, visual: bool = False) -> dict:
         return {"shapeType": self.geom, "radius": self.radius, ("length" if visual else "height"): self.length}
 
+    def chord_sags(self, lengths: np.ndarray) -> np.ndarray:
+        """Its side's (and a capsule's caps'): a chord across the axis sags as on a sphere of its radius."""
+        return _round_sags(self.radius, lengths)
+
     def _rim(self, local: np.ndarray) -> np.ndarray:
         """Offsets (T, 3) from an end's centre of the support points along directions (T, 3) in the shape's frame."""
         raise NotImplementedError
@@ -285,6 +332,7 @@ class Capsule(_Axial):
     """A capsule: two hemispheres of ``radius`` [m] whose centres lie ``length`` [m] apart on z, centred."""
 
     kind: ClassVar[str] = "capsule"
+    code: ClassVar[int] = 2
     geom: ClassVar[int] = p.GEOM_CAPSULE
     round: ClassVar[tuple[bool, ...]] = (True, True)
 
@@ -296,6 +344,12 @@ class Capsule(_Axial):
 
     def _rim(self, local: np.ndarray) -> np.ndarray:
         return self.radius * local  # on the end's hemisphere
+
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import trimesh
+
+        return _closed(trimesh.creation.capsule(height=float(self.length), radius=float(self.radius), count=[32, 32]))
 
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr
@@ -311,6 +365,7 @@ class Cylinder(_Axial):
     """A cylinder of ``radius`` [m] and ``length`` [m] along z, centred."""
 
     kind: ClassVar[str] = "cylinder"
+    code: ClassVar[int] = 3
     geom: ClassVar[int] = p.GEOM_CYLINDER
     round: ClassVar[tuple[bool, ...]] = (False, False)  # its support points lie on the caps' rims
 
@@ -326,6 +381,12 @@ class Cylinder(_Axial):
         norm = np.linalg.norm(radial, axis=1, keepdims=True)
         return np.where(norm > 1e-12, self.radius * radial / np.maximum(norm, 1e-300), 0.0)
 
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        import trimesh
+
+        return _closed(trimesh.creation.cylinder(radius=float(self.radius), height=float(self.length), sections=32))
+
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr
 
@@ -340,6 +401,7 @@ class Plane(RigidShape):
 
     normal: np.ndarray
     kind: ClassVar[str] = "plane"
+    code: ClassVar[int] = 4
     geom: ClassVar[int] = p.GEOM_PLANE
     bounded: ClassVar[bool] = False
 
@@ -468,6 +530,23 @@ class Mesh(RigidShape):
         if self.hull is None:
             return _NO_CORNERS
         return self.hull, self.hull.mean(axis=0)
+
+    @cached_property
+    def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The convex hull pybullet collides with; a concave mesh's own triangles if they close."""
+        import trimesh
+
+        if self.hull is not None:
+            return _closed(trimesh.convex.convex_hull(self.hull))
+        if self.vertices is not None:
+            return _closed(trimesh.Trimesh(np.asarray(self.vertices, float), np.asarray(self.faces), process=True))
+        if self.file and Path(self.file).exists():
+            try:
+                tm = load_trimesh(self.file)
+            except InvalidInputError:
+                return None
+            return _closed(trimesh.Trimesh(np.asarray(tm.vertices) * self.scale, tm.faces, process=True))
+        return None
 
     def draw(self, color, pose: tuple | None = None, plane_size: float | None = None, subdivisions: int = 3):
         import rerun as rr

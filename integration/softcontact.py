@@ -413,8 +413,10 @@ def _node_gaps(explained: SoftHits | None, node: np.ndarray, a: np.ndarray, b: n
 def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
                   margin: float, h: float, depth: float, explained: SoftHits | None = None,
                   layout: SoftLayout | None = None) -> EdgeHits:
-    """Edge-against-edge contacts between distinct soft bodies ``bodies`` (positions (N, 3), velocities (N, 3),
-    surface, rest positions) for the index ``pairs`` (a, b) (self-contact pairs a == b are left out): two surface
+    """Edge-against-edge contacts between soft bodies ``bodies`` (positions (N, 3), velocities (N, 3),
+    surface, rest positions) for the index ``pairs`` (a, b) (a == b: self-contact, as soft_contacts: not between
+    edges whose rest positions lie within one rest edge length of each other, the edge's own surroundings, and
+    never more than the margin crossed, so never pulled through the body): two surface
     edges whose closest points lie between the ends of both, facing each other (the normal along the edges' cross
     product makes more than ~87 degrees with both edges' outward normals), within reach (the margin plus what the
     two points close along the normal within the step h [s], as soft_contacts) and less than ``depth`` [m]
@@ -424,7 +426,6 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     Broad phase: the bodies' boxes grown by their reach (``layout``: SoftLayout.of their surfaces and pairs, if
     kept), then each body's edges whose boxes meet a partner's, a k-d tree over their midpoints (one for all
     bodies); narrow phase vectorised over the candidate pairs."""
-    pairs = [(a, b) for a, b in pairs if a != b]
     if not pairs:
         return EdgeHits.empty()
     layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
@@ -451,7 +452,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     for a, b in meeting:
         partners.setdefault(a, []).append(b)
         partners.setdefault(b, []).append(a)
-    body_of, edge_of, ends, P0, P1, V0, V1, N = [], [], [], [], [], [], [], []
+    body_of, edge_of, ends, P0, P1, V0, V1, N, R0, R1 = [], [], [], [], [], [], [], [], [], []
     for k, others in sorted(partners.items()):  # each body's edges inside a partner's grown box
         x, v, sf, _ = bodies[k]
         e0, e1 = x.take(sf.edges[:, 0], axis=0), x.take(sf.edges[:, 1], axis=0)
@@ -470,10 +471,13 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         V0.append(v[sf.edges[e, 0]])
         V1.append(v[sf.edges[e, 1]])
         N.append(edge_normals(x, sf.triangles, sf.edge_tris[e]))
-    if len(body_of) < 2:
+        rest = bodies[k][3]
+        R0.append(rest[sf.edges[e, 0]])
+        R1.append(rest[sf.edges[e, 1]])
+    if not body_of:
         return EdgeHits.empty()
     body_of, edge_of, ends = np.concatenate(body_of), np.concatenate(edge_of), np.concatenate(ends)
-    P0, P1, V0, V1, N = (np.concatenate(z) for z in (P0, P1, V0, V1, N))
+    P0, P1, V0, V1, N, R0, R1 = (np.concatenate(z) for z in (P0, P1, V0, V1, N, R0, R1))
     mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     reach = margin + depth
@@ -485,9 +489,19 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     i, j = np.where(swap, j, i), np.where(swap, i, j)
     allowed = np.array(sorted(min(a, b) * 1024 + max(a, b) for a, b in meeting), dtype=np.int64)
     gap = mid[i] - mid[j]
-    ok = ((body_of[i] != body_of[j]) & np.isin(body_of[i] * 1024 + body_of[j], allowed)
+    ok = (np.isin(body_of[i] * 1024 + body_of[j], allowed)
           & (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]))
     i, j = i[ok], j[ok]
+    same = body_of[i] == body_of[j]
+    if same.any():  # self-contact: not against the edge's own surroundings at rest
+        k = np.flatnonzero(same)
+        rs, rt = closest_between_segments(R0[i[k]], R1[i[k]], R0[j[k]], R1[j[k]])
+        between = (R0[i[k]] + rs[:, None] * (R1[i[k]] - R0[i[k]])) - (R0[j[k]] + rt[:, None] * (R1[j[k]] - R0[j[k]]))
+        longest = np.maximum(np.linalg.norm(R1[i[k]] - R0[i[k]], axis=1), np.linalg.norm(R1[j[k]] - R0[j[k]], axis=1))
+        near = np.einsum("ij,ij->i", between, between) <= (1.01 * longest) ** 2
+        keep = np.ones(len(i), dtype=bool)
+        keep[k[near]] = False
+        i, j = i[keep], j[keep]
     if not len(i):
         return EdgeHits.empty()
     s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
@@ -505,7 +519,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     v_rel = ((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
     facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
-    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > -depth)
+    deepest = np.where(body_of[i] == body_of[j], -margin, -depth)  # within one body: never pulled through
+    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > deepest)
     i, j, s, t, n, d = (z[ok] for z in (i, j, s, t, n, d))
     if not len(i):
         return EdgeHits.empty()

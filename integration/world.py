@@ -976,6 +976,7 @@ class World:
                 self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
         self._check_missed()
         self._check_intersections()
+        self._check_rigid_intersections()
         self._lagged = self._one_way_reactions()
         self.timings["rigid"] += time.perf_counter() - tr
         core = dict(self.sim.timings)
@@ -1072,6 +1073,72 @@ class World:
                     "contacts did not separate them (both held or moved by supports, or a crossing deeper than the "
                     f"contact search reaches, {1e3 * SOFT_DEPTH * self.contact_margin:.1f} mm); they may pass "
                     "through each other"))
+
+    def _check_rigid_intersections(self) -> None:
+        """After every CHECK_EVERY-th step: a soft body and a rigid link (boxes overlapping, not ignored) that
+        cross deeper than INTERSECTING were not separated by their contacts; say so once per pair, naming both.
+        Measured apart from the contact search's rows: the exact signed distance of the soft surfaces' free nodes
+        to the link's shapes (one query per link for all bodies near it), and, for shapes with a closed surface
+        (RigidShape.closed_surface: all but planes and open meshes), segment against triangle both ways
+        (intersection.py), so that a rigid edge through a soft face between its nodes shows too, less what the
+        soft surface's chords sag through a round part they rest on by both ends (RigidShape.chord_sag: the
+        mesh's discretisation, not modelled). A link holding supported nodes inside it (an embedded clamp) is
+        checked by its free nodes only."""
+        if self.sim.steps % CHECK_EVERY or not self.rigids:
+            return
+        members = self._members
+        surfs = [self._soft_surface[id(b)] for b in members]
+        boxes = [self._box(b) for b in members]
+        lo, hi = np.array([b[0] for b in boxes]) - INTERSECTING, np.array([b[1] for b in boxes]) + INTERSECTING
+        for rb in self.rigids.values():
+            rlo, rhi = (np.asarray(v, float) for v in rb.aabb())
+            near = [k for k in np.flatnonzero(np.all(lo <= rhi, axis=1) & np.all(hi >= rlo, axis=1)).tolist()
+                    if ("rigid intersect", k, rb.key) not in self._warned and not self._ignored(members[k], rb)]
+            if not near:
+                continue
+            nodes = [surfs[k].nodes for k in near]
+            x = np.concatenate([members[k].positions[n] for k, n in zip(near, nodes)])
+            held = np.concatenate([members[k].supported()[n] for k, n in zip(near, nodes)])
+            if rb.primitive_parts() is not None:
+                dist = primitive_distances(rb, rb.primitive_parts(), x)[2]
+            else:  # a mesh: pybullet's query, body by body
+                dist = np.full(len(x), np.inf)
+                at = np.cumsum([0] + [len(n) for n in nodes])
+                for k, n, a in zip(near, nodes, at[:-1]):
+                    found = self.detector.node_contacts(k, members[k].positions, n, rb, INTERSECTING)
+                    dist[a + np.searchsorted(n, found.node)] = found.distance
+            which = np.repeat(np.arange(len(near)), [len(n) for n in nodes])
+            deep = np.zeros(len(near))
+            np.maximum.at(deep, which[~held], -dist[~held])
+            clamped = np.zeros(len(near), dtype=bool)
+            clamped[which[held & (dist < -INTERSECTING)]] = True
+            closed = [part for part in rb.parts if part.shape.closed_surface is not None]
+            for r, k in enumerate(near):
+                depth = float(deep[r])
+                if depth <= INTERSECTING and closed and not clamped[r]:
+                    c, q = rb.pose()
+                    Rl = quat_matrix(q)
+                    xk = members[k].positions
+                    e = surfs[k].edges
+                    gap = np.full(len(xk), np.inf)  # the surface nodes' distances to the link
+                    gap[nodes[r]] = dist[which == r]
+                    lengths = np.sqrt(((xk[e[:, 1]] - xk[e[:, 0]]) ** 2).sum(axis=1))
+                    ends = np.maximum(gap[e[:, 0]], gap[e[:, 1]]) - self.contact_margin - INTERSECTING
+                    for part in closed:
+                        v, tris, edges = part.shape.closed_surface
+                        xr = (v @ part.rotation.T + part.position) @ Rl.T + c
+                        crossed = intersection_depth(xr, tris, edges, xk, surfs[k].triangles, e)
+                        if crossed > INTERSECTING:  # less the sag of the chords whose ends are close enough to dip
+                            sag = part.shape.chord_sags(lengths)
+                            crossed -= float(np.max(sag[ends <= sag], initial=0.0))
+                        depth = max(depth, crossed)
+                if depth > INTERSECTING:
+                    self._warn_once(("rigid intersect", k, rb.key), (
+                        f"rigid body {rb.name!r} and soft body {k} intersect {1e3 * depth:.2f} mm deep (beyond "
+                        f"the mesh's sag over round parts) at t = "
+                        f"{self.t:.4g} s: their contacts did not separate them (a feature the contact search "
+                        "does not model, see docs/contact.md, or a body driven through the other); they may "
+                        "pass through each other"))
 
     def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""

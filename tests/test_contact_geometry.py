@@ -188,6 +188,31 @@ def test_crossing_bars_rest_on_each_other(kind, E):
     assert depth < DEPTH
 
 
+def test_crossing_bars_of_one_body_rest_on_each_other_by_self_contact():
+    """The crossing bars above as one body (one mesh of two parts, self_contact=True), the upper part dropped from
+    120 mm (self-contact leaves out what lies within an edge's length at rest): its edges crossing between the
+    nodes of both are a self-contact; the upper part rests on the lower one (interpenetration < 0.1 mm, the same
+    independent depth)."""
+    lower, upper = bar_mesh("tet4", 1, (0, 0, 0.02)), bar_mesh("tet4", 0, (0, 0, 0.04 + 0.12 + 0.02))
+    both = sb.Mesh(np.vstack([lower.nodes, upper.nodes]),
+                   np.vstack([lower.elements, upper.elements + len(lower.nodes)]), "tet4")
+    world = World(dt=0.01)
+    world.add_plane()
+    body = sb.FemBody(both, sb.LinearElastic(1e5, 0.3, 1000.0), damping=(0.1, 0.001))
+    world.add_soft(body, friction=0.5, self_contact=True)
+    run(world, 1.0)
+    n = len(lower.nodes)
+    tris = both.surface_triangles()
+    parts = [tris[(tris < n).all(axis=1)], tris[(tris >= n).all(axis=1)]]
+    depth = geo.surface_intersection_depth(body.positions, parts[0], body.positions, parts[1])
+    pts = geo.triangle_samples(body.positions, parts[1])
+    pts = pts[(np.abs(pts[:, 0]) < 0.02) & (np.abs(pts[:, 1]) < 0.02)]  # over the crossing
+    gaps = pts[:, 2] - heights_under(pts, body.positions, parts[0])
+    gap = float(gaps.min()) if len(gaps) else np.inf
+    print(f"measured: one body's crossing parts: depth {1e3 * depth:.3f} mm, gap over the crossing {1e3 * gap:.3f} mm")
+    assert -DEPTH < gap < 1e-3 and depth < DEPTH  # resting on the lower part, not in or through it
+
+
 # --------------------------------------------------------------------------------------- 2. thin box edge
 def bar_on_edge_scene(kind: str, half_thickness: float):
     """(world, box, bar): a fixed box (half extents (t, 0.1, 0.05)) standing on a plane, its top edge along y at
@@ -392,3 +417,71 @@ def test_an_intersection_that_cannot_be_resolved_is_said_naming_both_bodies():
     assert depth > 0.005  # the premise: they do intersect
     both = [m for m in messages if ("soft bodies 0 and 1" in m or ("soft body 0" in m and "soft body 1" in m))]
     assert both, f"no warning names soft bodies 0 and 1: {messages}"
+
+
+def test_a_rigid_edge_driven_through_a_held_slab_between_its_nodes_is_said_naming_both():
+    """A coarse slab (200 mm tet4 cells) held by all its nodes and a thin kinematic blade (4 mm) driven down
+    through it between its nodes at 5 cm/s: no contact can stop either (supports win; the blade's path is
+    prescribed) and no node of the slab ends inside the blade, so only its edges cross the slab's faces. The
+    check after the step finds it (the independent depth: the blade's edges inside the slab's surface) and a
+    warning names the blade and the soft body. A box dropped on such a slab rests on it (rows on held nodes that
+    move a rigid body: the support is a rigid surface to it) and is not warned about."""
+    world = World(dt=0.01, gravity=(0, 0, 0))
+    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
+    slab.fix(np.arange(slab.n_nodes))
+    world.add_box((0.002, 0.3, 0.05), motion=lambda t: ((0.05, 0.0, 0.071 - 0.05 * t), (0, 0, 0, 1)), name="blade")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run(world, 0.3)
+    blade = world.rigids[next(k for k, rb in world.rigids.items() if rb.name == "blade")]
+    x, tris = surface(slab)
+    depth = geo.rigid_penetration(world.client, blade.id, x, tris)
+    inside = geo.inside(blade.to_world(geo.box_surface((0.002, 0.3, 0.05))[0]), x, tris)
+    messages = [str(w.message) for w in said if "intersect" in str(w.message)]
+    print(f"measured: blade {1e3 * depth:.2f} mm deep, blade corners inside: {int(inside.sum())}; warnings: {messages}")
+    assert depth > 0.005  # the premise: the blade is through the slab's top
+    assert any("'blade'" in m and "soft body 0" in m for m in messages), messages
+
+    world = World(dt=0.01)
+    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
+    slab.fix(np.arange(slab.n_nodes))
+    world.add_box((0.0125, 0.0125, 0.0125), position=(0.05, 0.03, 0.0326), mass=0.05, name="box")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run(world, 0.3)
+    box = next(rb for rb in world.rigids.values() if rb.name == "box")
+    x, tris = surface(slab)
+    rest = geo.rigid_penetration(world.client, box.id, x, tris)
+    print(f"measured: box on the held slab at z {box.pose()[0][2]:.5f} m (resting: 0.0325), {1e3 * rest:.4f} mm deep")
+    assert rest < DEPTH and abs(box.pose()[0][2] - 0.0325) < DEPTH  # held by the slab's held nodes
+    assert not [str(w.message) for w in said if "intersect" in str(w.message)]
+
+
+def test_a_sphere_driven_through_a_held_slab_between_its_nodes_is_said_but_not_a_sheet_resting_on_one():
+    """A sphere (radius 80 mm) driven down at 5 cm/s through a coarse held slab (200 mm cells) into the middle of a
+    facet, no node of the slab inside it: the check warns naming both. A sheet resting on a sphere, whose facets
+    sag through it between the nodes on it by the mesh's discretisation (R - sqrt(R^2 - L^2/4), not modelled),
+    is not warned about: the canonical sheet-on-sphere scene (tet10 6 x 6 x 2) after 1 s."""
+    world = World(dt=0.01, gravity=(0, 0, 0))
+    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
+    slab.fix(np.arange(slab.n_nodes))
+    world.add_sphere(0.08, motion=lambda t: ((0.1, 0.1, 0.101 - 0.05 * t), (0, 0, 0, 1)), name="ball")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run(world, 0.3)
+    ball = next(rb for rb in world.rigids.values() if rb.name == "ball")
+    x, tris = surface(slab)
+    depth = geo.rigid_penetration(world.client, ball.id, x, tris)
+    messages = [str(w.message) for w in said if "intersect" in str(w.message)]
+    print(f"measured: ball {1e3 * depth:.2f} mm deep, nearest node {np.linalg.norm(x - ball.pose()[0], axis=1).min():.3f} "
+          f"m from its centre; warnings: {messages}")
+    assert depth > 0.005 and np.linalg.norm(x - ball.pose()[0], axis=1).min() > 0.08  # the premise
+    assert any("'ball'" in m and "soft body 0" in m for m in messages), messages
+
+    from experiments.scenes import sheet_on_sphere
+
+    scene = sheet_on_sphere()
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run(scene.world, 1.0)
+    assert not [str(w.message) for w in said if "intersect" in str(w.message)]

@@ -25,7 +25,7 @@ def test_closed_form_distances_match_pybullets_query(kind):
     body = p.createMultiBody(0, col, basePosition=[0.1, -0.2, 0.3], baseOrientation=p.getQuaternionFromEuler([0.3, -0.5, 0.9]),
                              physicsClientId=cid)
     rb = world.rigid(body)
-    assert rb.primitive_parts()[0][0] == kind  # the link's shape data, read back from pybullet
+    assert rb.primitive_parts()[0].shape.kind == kind  # the link's shape data, read back from pybullet
     lo, hi = rb.aabb()
     rng = np.random.default_rng(5)
     x = rng.uniform(lo - 0.05, hi + 0.05, size=(1500, 3))

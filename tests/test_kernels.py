@@ -248,7 +248,7 @@ def test_compiled_primitive_distances_equal_numpys(monkeypatch):
     body = p.createMultiBody(0, col, basePosition=[0.1, 0.2, 0.3],
                              baseOrientation=p.getQuaternionFromEuler([0.4, -0.2, 0.7]), physicsClientId=cid)
     links = [world.rigid(body), world.add_plane(normal=(0.3, -0.2, 1.0), point=(0, 0, -0.1))]
-    assert [k for k, *_ in links[0].primitive_parts()] == ["sphere", "box", "capsule", "cylinder"]
+    assert [part.shape.kind for part in links[0].primitive_parts()] == ["sphere", "box", "capsule", "cylinder"]
     for rb in links:
         lo, hi = rb.aabb()
         lo, hi = np.maximum(lo, -1.0), np.minimum(hi, 1.0)
