@@ -1133,12 +1133,14 @@ class World:
                             crossed -= float(np.max(sag[ends <= sag], initial=0.0))
                         depth = max(depth, crossed)
                 if depth > INTERSECTING:
+                    hint = ("; a coarse soft surface's facets dip through a round part next to the nodes resting on "
+                            "it (not modelled): a finer mesh dips less" if any(any(part.shape.round) for part in
+                                                                                rb.parts) else "")
                     self._warn_once(("rigid intersect", k, rb.key), (
                         f"rigid body {rb.name!r} and soft body {k} intersect {1e3 * depth:.2f} mm deep (beyond "
-                        f"the mesh's sag over round parts) at t = "
-                        f"{self.t:.4g} s: their contacts did not separate them (a feature the contact search "
-                        "does not model, see docs/contact.md, or a body driven through the other); they may "
-                        "pass through each other"))
+                        f"the mesh's sag over round parts) at t = {self.t:.4g} s: their contacts did not separate "
+                        "them (a feature the contact search does not model, see docs/contact.md 'What is not "
+                        f"modelled', or a body driven through the other); they may pass through each other{hint}"))
 
     def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""
