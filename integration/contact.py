@@ -577,7 +577,8 @@ def _groups(count: int, pairs: PairContacts | None) -> np.ndarray:
     label = np.arange(count)
     if pairs is None or not len(pairs):
         return label
-    links = np.unique(pairs.parts[:, :2], axis=0)
+    links = np.unique(pairs.parts[:, [0, -1]], axis=0)  # the first slot is body a's, the last body b's (an edge-edge
+    # row's second slot is a's too)
     changed = True
     while changed:  # label propagation: as many rounds as the longest chain of touching bodies
         changed = False

@@ -244,9 +244,64 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     t_off = np.concatenate([[0], np.cumsum(t_of)[:-1]])
     tri_b = np.repeat(np.arange(B), t_of)
     # broad phase: per body q, the nodes of the bodies searched against it that lie in its grown box, against a
-    # k-d tree of its triangles' bounding spheres (bodies with no such nodes cost nothing more)
+    # k-d tree of its triangles' bounding spheres (bodies with no such nodes cost nothing more), in two passes.
+    # The first reaches a node's own margin and closing only (rho: the triangles within rho of it, all of them);
+    # where it finds a triangle whose prism holds the node within rho, that triangle is the node's nearest (any
+    # nearer lies within rho too). Only the nodes left, inside q's box (a node outside it cannot be inside q),
+    # are searched again as deep as a node may lie inside (depth): in a pile, the few that are.
     travel_a = SOFT_SLACK * h * np.sqrt(speed2)
-    parts_i, parts_t = [], []
+    tb_max = np.zeros(B)  # per body, its triangles' largest travel
+    R = np.concatenate([r for _, _, _, r in data])
+    rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
+    vnormals = None
+
+    def query(q: int, sel: np.ndarray, first: bool, centre, radius, travel_b) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates (node, triangle) of nodes sel against q's triangles: within the reach of a contact as deep as
+        depth; in the first pass also within rho (+ q's travel) of the triangle (1.1 radius: the prism's slack)."""
+        reach = margin + depth + radius.max() + travel_a[sel].max() + travel_b.max()
+        if first:
+            rho = margin + travel_a[sel] + travel_b.max()
+            reach = min(reach, rho.max() + 1.1 * radius.max())
+        found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre), reach, output_type="ndarray")
+        k, t = found["i"], found["j"].astype(np.int64)
+        i = sel[k]
+        ok = found["v"] <= margin + depth + radius[t] + travel_a[i] + travel_b[t]
+        if first:
+            ok &= found["v"] <= rho[k] + 1.1 * radius[t]
+        return i[ok], t[ok] + t_off[q]
+
+    def nearest(i: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per node and other body, the nearest triangle whose prism holds it (facing, within one body)."""
+        nonlocal vnormals
+        pb, qb = node_b[i], tri_b[t]
+        same = pb == qb
+        if same.any():  # self-contact: not against the node's own surroundings
+            rn, rt = R[nodes[i[same]]], R[tris[t[same]]]
+            gap = rn - np.clip(rn, rt.min(axis=1), rt.max(axis=1))
+            far = np.ones(len(i), dtype=bool)
+            far[same] = np.einsum("ij,ij->i", gap, gap) > (1.01 * rest_edge[t[same]]) ** 2
+            i, t, pb, qb, same = i[far], t[far], pb[far], qb[far], same[far]
+        P = X[tris[t]]
+        A, Bv, C = P[:, 0], P[:, 1], P[:, 2]
+        nrm = cross(Bv - A, C - A)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        xi = xs[i]
+        d = np.einsum("ij,ij->i", xi - A, nrm)
+        w = barycentric(xi - d[:, None] * nrm, A, Bv, C)
+        inside = (w >= -PRISM_TOL).all(axis=1)
+        w = np.clip(w, 0.0, None)
+        w /= w.sum(axis=1, keepdims=True)
+        if vnormals is None:
+            vnormals = vertex_normals(X, tris)
+        facing = np.einsum("ij,ij->i", vnormals[nodes[i]], nrm) < FACING
+        ok = inside & (facing | ~same)
+        i, t, pb, qb, same, w, nrm, d, facing = (a[ok] for a in (i, t, pb, qb, same, w, nrm, d, facing))
+        order = np.lexsort((t, np.abs(d), qb, i))  # per node and other body, the nearest triangle (the first of equals)
+        first = order[run_starts(i[order], qb[order])]
+        return tuple(a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
+
+    first_i, first_t, deep_i, deep_q = [], [], [], []
+    tri_data = {}
     for q in reached.tolist():
         near = np.flatnonzero(meet[:, q])  # the bodies whose nodes may lie in q's grown box, and those nodes
         sel = np.concatenate([np.arange(starts[p], starts[p] + s_of[p]) for p in near.tolist()])
@@ -258,46 +313,36 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         centre = Pq.mean(axis=1)
         radius = np.sqrt(((Pq - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
         travel_b = SOFT_SLACK * h * np.sqrt((V[tq] ** 2).sum(axis=2).max(axis=1))
-        reach = margin + depth + radius.max() + travel_a[sel].max() + travel_b.max()
-        found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre), reach, output_type="ndarray")
-        i, t = sel[found["i"]], found["j"].astype(np.int64)
-        ok = found["v"] <= margin + depth + radius[t] + travel_a[i] + travel_b[t]
-        parts_i.append(i[ok])
-        parts_t.append(t[ok] + t_off[q])
-    if not parts_i:
+        tri_data[q] = (centre, radius, travel_b)
+        tb_max[q] = travel_b.max()
+        i, t = query(q, sel, True, centre, radius, travel_b)
+        first_i.append(i)
+        first_t.append(t)
+        inbox = sel[(node_b[sel] != q) & ((xs[sel] >= plo[q] - margin) & (xs[sel] <= phi[q] + margin)).all(axis=1)]
+        deep_i.append(inbox)
+        deep_q.append(np.full(len(inbox), q))
+    if not first_i:
         return SoftHits.empty()
-    i, t = np.concatenate(parts_i), np.concatenate(parts_t)
-    pb, qb = node_b[i], tri_b[t]
-    same = pb == qb
-    if same.any():  # self-contact: not against the node's own surroundings
-        R = np.concatenate([r for _, _, _, r in data])
-        rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
-        rn, rt = R[nodes[i[same]]], R[tris[t[same]]]
-        gap = rn - np.clip(rn, rt.min(axis=1), rt.max(axis=1))
-        far = np.ones(len(i), dtype=bool)
-        far[same] = np.einsum("ij,ij->i", gap, gap) > (1.01 * rest_edge[t[same]]) ** 2
-        i, t, pb, qb, same = i[far], t[far], pb[far], qb[far], same[far]
+    i, t, pb, qb, same, w, nrm, d, facing = nearest(np.concatenate(first_i), np.concatenate(first_t))
+    # the nodes to search again: inside a body's box and not settled by the first pass (a first-pass nearest
+    # farther than rho is no contact: outside the box the node is not inside the body, and beyond its reach)
+    deep_i, deep_q = np.concatenate(deep_i), np.concatenate(deep_q)
+    settled = np.abs(d) <= margin + travel_a[i] + tb_max[qb]
+    i, t, pb, qb, same, w, nrm, d, facing = (a[settled] for a in (i, t, pb, qb, same, w, nrm, d, facing))
+    if len(deep_i):
+        deep = ~np.isin(deep_i * (B + 1) + deep_q, i * (B + 1) + qb)
+        deep_i, deep_q = deep_i[deep], deep_q[deep]
+    if len(deep_i):
+        again_i, again_t = [], []
+        for q in np.unique(deep_q).tolist():
+            a2, t2 = query(q, deep_i[deep_q == q], False, *tri_data[q])
+            again_i.append(a2)
+            again_t.append(t2)
+        second = nearest(np.concatenate(again_i), np.concatenate(again_t))
+        i, t, pb, qb, same, w, nrm, d, facing = (np.concatenate([a, b]) for a, b in
+                                                 zip((i, t, pb, qb, same, w, nrm, d, facing), second))
     if not len(i):
         return SoftHits.empty()
-    # narrow phase, as in pair_contacts_reference
-    P = X[tris[t]]
-    A, Bv, C = P[:, 0], P[:, 1], P[:, 2]
-    nrm = cross(Bv - A, C - A)
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    xi = xs[i]
-    d = np.einsum("ij,ij->i", xi - A, nrm)
-    w = barycentric(xi - d[:, None] * nrm, A, Bv, C)
-    inside = (w >= -PRISM_TOL).all(axis=1)
-    w = np.clip(w, 0.0, None)
-    w /= w.sum(axis=1, keepdims=True)
-    facing = np.einsum("ij,ij->i", vertex_normals(X, tris)[nodes[i]], nrm) < FACING
-    ok = inside & (facing | ~same)
-    i, t, pb, qb, same, w, nrm, d, facing = (a[ok] for a in (i, t, pb, qb, same, w, nrm, d, facing))
-    if not len(i):
-        return SoftHits.empty()
-    order = np.lexsort((t, np.abs(d), qb, i))  # per node and other body, the nearest triangle (the first of equals)
-    first = order[run_starts(i[order], qb[order])]
-    i, t, pb, qb, same, w, nrm, d, facing = (a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
     v_rel = V[nodes[i]] - np.einsum("ms,msi->mi", w, V[tris[t]])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)
     ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > np.where(same, -margin, -depth))
@@ -395,19 +440,28 @@ class EdgeHits:
         return len(self.a)
 
 
-def _node_gaps(explained: SoftHits | None, node: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _node_gaps(explained: SoftHits | tuple[np.ndarray, np.ndarray] | None, node: np.ndarray, a: np.ndarray,
+               b: np.ndarray) -> np.ndarray:
     """The signed gaps [m] of nodes ``node`` of bodies ``a`` to bodies ``b`` (broadcast together) that
-    node-against-face contacts in ``explained`` hold, inf where there is none."""
+    node-against-face contacts in ``explained`` hold, inf where there is none (``explained`` may be given as its
+    keys sorted and their distances, :func:`_gap_table`, when asked many times)."""
     want = np.asarray(node | ((a * 1024 + b) << NODE_BITS), dtype=np.int64)
     out = np.full(want.shape, np.inf)
-    if explained is None or not len(explained) or not want.size:
+    if explained is None or not want.size:
         return out
-    order = np.argsort(explained.key, kind="stable")
-    keys = explained.key[order]
+    keys, dist = explained if isinstance(explained, tuple) else _gap_table(explained)
+    if not len(keys):
+        return out
     at = np.clip(np.searchsorted(keys, want), 0, len(keys) - 1)
     found = keys[at] == want
-    out[found] = explained.distance[order[at[found]]]
+    out[found] = dist[at[found]]
     return out
+
+
+def _gap_table(explained: SoftHits) -> tuple[np.ndarray, np.ndarray]:
+    """The keys of the contacts ``explained`` sorted, and their distances in that order (for _node_gaps)."""
+    order = np.argsort(explained.key, kind="stable")
+    return explained.key[order], explained.distance[order]
 
 
 def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
@@ -433,6 +487,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
     if not len(layout.used):
         return EdgeHits.empty()
+    explained = None if explained is None or not len(explained) else _gap_table(explained)
     # every body's box grown by what it may close within the step (one pass over all of them; a crossing already
     # made lies in both boxes)
     data = [bodies[k] for k in layout.used.tolist()]
@@ -462,7 +517,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         near = np.zeros(len(e0), dtype=bool)
         for o in set(others):
             inside = np.flatnonzero(((elo <= hi[o]) & (ehi >= lo[o])).all(axis=1) & ~near)
-            if len(inside) and explained is not None and len(explained):
+            if len(inside) and explained is not None:
                 # not where an end has a node contact with o already (the final filter below drops those pairs
                 # with o): in a stack or a pile, most edges near a neighbour lie in the faces that touch it
                 free = np.isinf(_node_gaps(explained, sf.edges[inside], np.full((len(inside), 1), k),
@@ -530,14 +585,24 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         keep = np.ones(len(i), dtype=bool)
         keep[k[near]] = False
         i, j = i[keep], j[keep]
-    if not len(i):
-        return EdgeHits.empty()
-    s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
+    # what costs nothing first: a node of either edge already in contact with the other body (its faces and nodes
+    # are in touch there, and the node contacts hold the crossing: rows for crossings next to them gained energy in
+    # settling stacks), edges nearly parallel, or whose outward normals cannot both face the normal between them
+    a, b = body_of[i], body_of[j]
+    ok = (np.isinf(_node_gaps(explained, ends[i], a[:, None], b[:, None])).all(axis=1)
+          & np.isinf(_node_gaps(explained, ends[j], b[:, None], a[:, None])).all(axis=1))
+    i, j = i[ok], j[ok]
     da, db = P1[i] - P0[i], P1[j] - P0[j]
     cr = cross(da, db)
     crn = np.sqrt(np.einsum("ij,ij->i", cr, cr))
-    ok = ((s > EDGE_END) & (s < 1 - EDGE_END) & (t > EDGE_END) & (t < 1 - EDGE_END)
-          & (crn > EDGE_SIN * 4.0 * half[i] * half[j]))
+    ci, cj = np.einsum("ij,ij->i", cr, N[i]), np.einsum("ij,ij->i", cr, N[j])
+    ok = ((crn > EDGE_SIN * 4.0 * half[i] * half[j]) & (ci * cj < 0)
+          & (np.abs(ci) > 0.05 * crn) & (np.abs(cj) > 0.05 * crn))
+    i, j, da, db, cr, crn = (z[ok] for z in (i, j, da, db, cr, crn))
+    if not len(i):
+        return EdgeHits.empty()
+    s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
+    ok = (s > EDGE_END) & (s < 1 - EDGE_END) & (t > EDGE_END) & (t < 1 - EDGE_END)
     i, j, s, t, da, db, cr, crn = (z[ok] for z in (i, j, s, t, da, db, cr, crn))
     if not len(i):
         return EdgeHits.empty()
@@ -553,11 +618,5 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not len(i):
         return EdgeHits.empty()
     a, b = body_of[i], body_of[j]
-    ga = _node_gaps(explained, ends[i], a[:, None], b[:, None])
-    gb = _node_gaps(explained, ends[j], b[:, None], a[:, None])
-    # a node of either edge already in contact with the other body: its faces and nodes are in touch there, and the
-    # node contacts hold the crossing (rows for crossings next to them gained energy in settling stacks)
-    ok = np.isinf(ga).all(axis=1) & np.isinf(gb).all(axis=1)
-    i, j, s, t, n, d, a, b = (z[ok] for z in (i, j, s, t, n, d, a, b))
     key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (edge_of[i] << EDGE_BITS) | edge_of[j]).astype(np.int64)
     return EdgeHits(a, b, np.column_stack([ends[i], ends[j]]), np.column_stack([1 - s, s, -(1 - t), -t]), n, d, key)

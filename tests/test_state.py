@@ -186,9 +186,11 @@ def test_a_state_saved_while_the_stacks_regroup_keeps_the_last_results():
 
 def test_a_refused_restore_changes_nothing():
     """A state of a scene whose soft bodies stack otherwise (another friction), of another time step, or with a
-    pybullet body more: refused with what differs, the World untouched (rigid poses, soft states, time)."""
+    pybullet body more: refused with what differs, the World untouched (rigid poses, soft states, time). Saved
+    after 2 steps, before anything touches (then the three cubes step as one stack; in contact, each alone)."""
     world, cubes, box, kuka = _scene()
-    _run(world, cubes, box, kuka, 20)
+    _run(world, cubes, box, kuka, 2)
+    assert any(len(getattr(s, "members", ())) == 3 for s in world.sim.bodies)  # the premise: one stack of three
     state = world.save_state()
     other, cubes2, box2, kuka2 = _scene(friction=(0.4, 0.1, 0.4))  # cube 1 no longer stacks with cube 0
     _run(other, cubes2, box2, kuka2, 3)
