@@ -49,3 +49,19 @@ def test_of_two_mirror_contacts_the_deeper_stays():
                         np.array([d_first, d_second]), key)
         kept = without_mirrors(hits)
         assert len(kept) == 1 and kept.distance[0] == min(d_first, d_second)
+
+
+def test_bodies_joined_only_by_edge_edge_rows_solve_together():
+    """contact._groups: an edge-edge row's slots are (a, a, b, b), a node-face row's (a, b, b, b); both join a and b
+    (reading the first two slots only left bodies joined by edge rows in different solves)."""
+    from integration.contact import _groups
+
+    class Rows:
+        parts = np.array([[0, 0, 2, 2], [3, 1, 1, 1]])
+
+        def __len__(self):
+            return len(self.parts)
+
+    label = _groups(5, Rows())
+    assert label[0] == label[2] and label[1] == label[3]
+    assert len({label[0], label[1], label[4]}) == 3
