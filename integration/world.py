@@ -1090,7 +1090,7 @@ class World:
         soft surface's chords sag through a round part they rest on by both ends (RigidShape.chord_sag: the
         mesh's discretisation, not modelled). A link holding supported nodes inside it (an embedded clamp) is
         checked by its free nodes only."""
-        if self.sim.steps % CHECK_EVERY or not self.rigids:
+        if self.sim.steps % CHECK_EVERY or not self.rigids or not self._members:
             return
         members = self._members
         surfs = [self._soft_surface[id(b)] for b in members]

@@ -485,3 +485,13 @@ def test_a_sphere_driven_through_a_held_slab_between_its_nodes_is_said_but_not_a
         warnings.simplefilter("always")
         run(scene.world, 1.0)
     assert not [str(w.message) for w in said if "intersect" in str(w.message)]
+
+
+def test_a_world_of_rigid_bodies_only_steps_past_the_checks():
+    """No soft body at all: the checks after the step (every CHECK_EVERY-th) have nothing to check; a box falls
+    onto the plane as in plain pybullet (free fall to the plane's contact, then at rest on it)."""
+    world = World(dt=0.01)
+    world.add_plane()
+    box = world.add_box((0.05, 0.05, 0.05), position=(0, 0, 0.3), mass=1.0)
+    run(world, 1.0)
+    assert world.sim.steps == 100 and abs(box.pose()[0][2] - 0.05) < 2e-3
