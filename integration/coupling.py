@@ -109,19 +109,23 @@ class Rows:
                    np.concatenate([pad(r.weight, 0.0) for r in parts]), np.concatenate([r.direction for r in parts]),
                    np.concatenate([r.g for r in parts]), np.concatenate([r.target for r in parts]))
 
-    def values(self, part: int, v: np.ndarray) -> np.ndarray:
-        """C_part v: (m,) for the soft velocities v (N, 3) of one part, (m, k) for k of them (k, N, 3)."""
+    def values(self, part: int, v: np.ndarray, only: np.ndarray | None = None) -> np.ndarray:
+        """C_part v: (m,) for the soft velocities v (N, 3) of one part, (m, k) for k of them (k, N, 3); of the rows
+        ``only`` (indices), if given."""
+        rp, rn, rw, rd = self.part, self.node, self.weight, self.direction
+        if only is not None:
+            rp, rn, rw, rd = rp[only], rn[only], rw[only], rd[only]
         if kernels.ENABLED:  # row by row, compiled (integration.kernels)
             V = np.ascontiguousarray(v, dtype=float)
-            out = np.empty((len(self.target), 1 if V.ndim == 2 else len(V)))
-            kernels.row_values(part, self.part, self.node, np.ascontiguousarray(self.weight, dtype=float),
-                               np.ascontiguousarray(self.direction, dtype=float), V[None] if V.ndim == 2 else V, out)
+            out = np.empty((len(rp), 1 if V.ndim == 2 else len(V)))
+            kernels.row_values(part, rp, rn, np.ascontiguousarray(rw, dtype=float), np.ascontiguousarray(rd, dtype=float),
+                               V[None] if V.ndim == 2 else V, out)
             return out[:, 0] if V.ndim == 2 else out
-        on = self.part == part
-        w = np.where(on, self.weight, 0.0)
+        on = rp == part
+        w = np.where(on, rw, 0.0)
         if v.ndim == 2:
-            return np.einsum("ms,msi,mi->m", w, v[np.where(on, self.node, 0)], self.direction)
-        return np.einsum("ms,kmsi,mi->mk", w, v[:, np.where(on, self.node, 0)], self.direction)
+            return np.einsum("ms,msi,mi->m", w, v[np.where(on, rn, 0)], rd)
+        return np.einsum("ms,kmsi,mi->mk", w, v[:, np.where(on, rn, 0)], rd)
 
     def loads(self, ks: np.ndarray, part: int, n_nodes: int) -> np.ndarray:
         """C_part^T e_k (len(ks), N, 3): the unit impulses of rows ks on the nodes of ``part``."""
@@ -239,8 +243,9 @@ class CoupledSolver:
             if len(cols):
                 if coupled:
                     H[:n, cols] += generalized(part.cons, R, part.G)
-                if m:
-                    H[n:, cols] += rows.values(i, Y)
+                if m:  # only the rows touching part i are not zero: their block alone (a pile: m / parts rows)
+                    touch = np.flatnonzero((rows.part == i).any(axis=1))
+                    H[np.ix_(n + touch, cols)] += rows.values(i, Y, touch)
         if m:
             # a row whose soft points cannot move (all held by eliminated constraints) is no constraint of
             # its own: its multiplier is zero; a tiny compliance on the others keeps H regular where rows
@@ -263,7 +268,8 @@ class CoupledSolver:
                 k = n + np.flatnonzero(held)
                 H[k, :], H[:, k], rhs[k] = 0.0, 0.0, 0.0
                 H[k, k] = 1.0
-            H[n:, n:] += np.diag(ROW_COMPLIANCE * free)
+            k = np.arange(n, n + m)
+            H[k, k] += ROW_COMPLIANCE * free  # on the diagonal only (np.diag would add a whole m x m matrix)
         return CoupledSystem(H, rhs, out, columns, n)
 
     def _base(self, i: int, part: CoupledPart) -> tuple[np.ndarray, np.ndarray]:
