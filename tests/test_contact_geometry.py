@@ -419,6 +419,21 @@ def test_an_intersection_that_cannot_be_resolved_is_said_naming_both_bodies():
     assert both, f"no warning names soft bodies 0 and 1: {messages}"
 
 
+def held_slab(world: World) -> sb.FemBody:
+    """A coarse soft slab (0.4 x 0.4 x 0.04 m, 200 mm tet4 cells, E = 1e6) held by all its nodes, top at z = 0.02."""
+    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
+    slab.fix(np.arange(slab.n_nodes))
+    return slab
+
+
+def intersect_warnings(world: World, duration: float) -> list[str]:
+    """Run the world for ``duration`` [s]; the warnings said about intersecting bodies."""
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        run(world, duration)
+    return [str(w.message) for w in said if "intersect" in str(w.message)]
+
+
 def test_a_rigid_edge_driven_through_a_held_slab_between_its_nodes_is_said_naming_both():
     """A coarse slab (200 mm tet4 cells) held by all its nodes and a thin kinematic blade (4 mm) driven down
     through it between its nodes at 5 cm/s: no contact can stop either (supports win; the blade's path is
@@ -427,34 +442,27 @@ def test_a_rigid_edge_driven_through_a_held_slab_between_its_nodes_is_said_namin
     warning names the blade and the soft body. A box dropped on such a slab rests on it (rows on held nodes that
     move a rigid body: the support is a rigid surface to it) and is not warned about."""
     world = World(dt=0.01, gravity=(0, 0, 0))
-    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
-    slab.fix(np.arange(slab.n_nodes))
+    slab = held_slab(world)
     world.add_box((0.002, 0.3, 0.05), motion=lambda t: ((0.05, 0.0, 0.071 - 0.05 * t), (0, 0, 0, 1)), name="blade")
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        run(world, 0.3)
+    messages = intersect_warnings(world, 0.3)
     blade = world.rigids[next(k for k, rb in world.rigids.items() if rb.name == "blade")]
     x, tris = surface(slab)
     depth = geo.rigid_penetration(world.client, blade.id, x, tris)
     inside = geo.inside(blade.to_world(geo.box_surface((0.002, 0.3, 0.05))[0]), x, tris)
-    messages = [str(w.message) for w in said if "intersect" in str(w.message)]
     print(f"measured: blade {1e3 * depth:.2f} mm deep, blade corners inside: {int(inside.sum())}; warnings: {messages}")
     assert depth > 0.005  # the premise: the blade is through the slab's top
     assert any("'blade'" in m and "soft body 0" in m for m in messages), messages
 
     world = World(dt=0.01)
-    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
-    slab.fix(np.arange(slab.n_nodes))
+    slab = held_slab(world)
     world.add_box((0.0125, 0.0125, 0.0125), position=(0.05, 0.03, 0.0326), mass=0.05, name="box")
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        run(world, 0.3)
+    messages = intersect_warnings(world, 0.3)
     box = next(rb for rb in world.rigids.values() if rb.name == "box")
     x, tris = surface(slab)
     rest = geo.rigid_penetration(world.client, box.id, x, tris)
     print(f"measured: box on the held slab at z {box.pose()[0][2]:.5f} m (resting: 0.0325), {1e3 * rest:.4f} mm deep")
     assert rest < DEPTH and abs(box.pose()[0][2] - 0.0325) < DEPTH  # held by the slab's held nodes
-    assert not [str(w.message) for w in said if "intersect" in str(w.message)]
+    assert not messages
 
 
 def test_a_sphere_driven_through_a_held_slab_between_its_nodes_is_said_but_not_a_sheet_resting_on_one():
@@ -463,16 +471,12 @@ def test_a_sphere_driven_through_a_held_slab_between_its_nodes_is_said_but_not_a
     sag through it between the nodes on it by the mesh's discretisation (R - sqrt(R^2 - L^2/4), not modelled),
     is not warned about: the canonical sheet-on-sphere scene (tet10 6 x 6 x 2) after 1 s."""
     world = World(dt=0.01, gravity=(0, 0, 0))
-    slab = soft(world, sb.box_mesh((0.4, 0.4, 0.04), (2, 2, 1), "tet4", center=(0, 0, 0)), 1e6)
-    slab.fix(np.arange(slab.n_nodes))
+    slab = held_slab(world)
     world.add_sphere(0.08, motion=lambda t: ((0.1, 0.1, 0.101 - 0.05 * t), (0, 0, 0, 1)), name="ball")
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        run(world, 0.3)
+    messages = intersect_warnings(world, 0.3)
     ball = next(rb for rb in world.rigids.values() if rb.name == "ball")
     x, tris = surface(slab)
     depth = geo.rigid_penetration(world.client, ball.id, x, tris)
-    messages = [str(w.message) for w in said if "intersect" in str(w.message)]
     print(f"measured: ball {1e3 * depth:.2f} mm deep, nearest node {np.linalg.norm(x - ball.pose()[0], axis=1).min():.3f} "
           f"m from its centre; warnings: {messages}")
     assert depth > 0.005 and np.linalg.norm(x - ball.pose()[0], axis=1).min() > 0.08  # the premise
@@ -481,10 +485,7 @@ def test_a_sphere_driven_through_a_held_slab_between_its_nodes_is_said_but_not_a
     from experiments.scenes import sheet_on_sphere
 
     scene = sheet_on_sphere()
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        run(scene.world, 1.0)
-    assert not [str(w.message) for w in said if "intersect" in str(w.message)]
+    assert not intersect_warnings(scene.world, 1.0)
 
 
 def test_a_world_of_rigid_bodies_only_steps_past_the_checks():
