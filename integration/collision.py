@@ -673,46 +673,70 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
         def f(t):  # the distance, ties (a flat stretch) going to the point farthest below the ends' chord
             return shape.distance(la + t[:, None] * (lb - la))[2] - TIE * ((1 - t) * d_a + t * d_b)
 
-        g = 0.5 * (math.sqrt(5.0) - 1.0)
-        t_lo, t_hi = np.zeros(len(e_near)), np.ones(len(e_near))
-        t1, t2 = t_hi - g, t_lo + g
-        f1, f2 = f(t1), f(t2)
-        for _ in range(GOLDEN_STEPS):
-            left = f1 < f2  # the minimum lies in [t_lo, t2]
-            t_hi = np.where(left, t2, t_hi)
-            t_lo = np.where(left, t_lo, t1)
-            t_new = np.where(left, t_hi - g * (t_hi - t_lo), t_lo + g * (t_hi - t_lo))
-            f_new = f(t_new)
-            t1, t2, f1, f2 = (np.where(left, t_new, t2), np.where(left, t1, t_new), np.where(left, f_new, f2),
-                              np.where(left, f1, f_new))
-        t = 0.5 * (t_lo + t_hi)
+        t = _golden(f, len(e_near))
         closest, normal, d = shape.distance(la + t[:, None] * (lb - la))
+        which = np.zeros(len(e_near), np.int64)
+        outward = edge_normals(positions, triangles, edge_tris[e_near]) @ Rw  # the edges' outward normals, part frame
+        span = shape.face_span(la, lb, la + t[:, None] * (lb - la), outward)
+        if span is not None:  # across a flat face: rows at both its rims, held by the face's plane
+            (lo_t, hi_t), face_n, offset = span[0].T, span[1], span[2]
+            across = np.flatnonzero(np.isfinite(lo_t) & (hi_t - lo_t > 2 * EDGE_END))
+            if len(across):
+                keep = np.setdiff1d(np.arange(len(t)), across)
+                t2 = np.concatenate([lo_t[across], hi_t[across]])
+                idx = np.concatenate([across, across])
+                pts = la[idx] + t2[:, None] * (lb[idx] - la[idx])
+                d2 = np.einsum("ij,ij->i", pts, face_n[idx]) - offset[idx]
+                t = np.concatenate([t[keep], t2])
+                d = np.concatenate([d[keep], d2])
+                normal = np.concatenate([normal[keep], face_n[idx]])
+                closest = np.concatenate([closest[keep], pts - d2[:, None] * face_n[idx]])
+                which = np.concatenate([which[keep], np.zeros(len(across), np.int64), np.ones(len(across), np.int64)])
+                e_near, la, lb, d_a, d_b = (np.concatenate([v[keep], v[idx]]) for v in (e_near, la, lb, d_a, d_b))
         held = held_gap(np.column_stack([1 - t, t]), node_gap[E[e_near]])
         # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
         ok = (t > EDGE_END) & (t < 1 - EDGE_END) & (d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED)
         if not ok.any():
             continue
-        e, t, d = e_near[ok], t[ok], d[ok]
+        e, t, d, which = e_near[ok], t[ok], d[ok], which[ok]
         point, normal = closest[ok] @ Rw.T + origin, normal[ok] @ Rw.T
         v_soft = (1 - t)[:, None] * sweep.velocities[E[e, 0]] + t[:, None] * sweep.velocities[E[e, 1]]
         near = d < sweep.reach(point, normal, v_soft)
         facing = np.einsum("ij,ij->i", normal, edge_normals(positions, triangles, edge_tris[e])) < FACING
         ok = near & facing  # inside, too: near a rim the nearest face may be a side, which would push it sideways
         if ok.any():
-            out.append((k, e[ok], t[ok], d[ok], point[ok], normal[ok]))
+            out.append((k, e[ok], t[ok], d[ok], point[ok], normal[ok], which[ok]))
     if not out:
         return FaceHits.empty()
     part = np.concatenate([np.full(len(o[1]), o[0]) for o in out])
-    e, t, d, point, normal = (np.concatenate([o[i] for o in out]) for i in range(1, 6))
+    e, t, d, point, normal, which = (np.concatenate([o[i] for o in out]) for i in range(1, 7))
     m = len(e)
     tri = triangles[edge_tris[e, 0]]  # the edge's nodes first, the triangle's third node (weight 0) last
     third = np.where((tri != E[e, 0:1]) & (tri != E[e, 1:2]), tri, -1).max(axis=1)
     nodes = np.column_stack([E[e, 0], E[e, 1], third])
-    key = ((1 << 62) | (e.astype(np.int64) << 28) | ((part % 4096) << 16)
+    key = ((1 << 62) | (which << 61) | (e.astype(np.int64) << 28) | ((part % 4096) << 16)
            | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)).astype(np.int64)
     return FaceHits(np.full(m, body_index), edge_tris[e, 0], nodes, np.column_stack([1 - t, t, np.zeros(m)]), point,
                     normal, d, np.full(m, rigid.id), np.full(m, rigid.link), np.arange(m), np.ones(m, dtype=bool), key,
                     np.ones(m, dtype=bool))
+
+
+def _golden(f, m: int) -> np.ndarray:
+    """The minimisers t (m,) in [0, 1] of m convex functions evaluated together, f(t (m,)) -> (m,): golden-section
+    search, GOLDEN_STEPS steps."""
+    g = 0.5 * (math.sqrt(5.0) - 1.0)
+    t_lo, t_hi = np.zeros(m), np.ones(m)
+    t1, t2 = t_hi - g, t_lo + g
+    f1, f2 = f(t1), f(t2)
+    for _ in range(GOLDEN_STEPS):
+        left = f1 < f2  # the minimum lies in [t_lo, t2]
+        t_hi = np.where(left, t2, t_hi)
+        t_lo = np.where(left, t_lo, t1)
+        t_new = np.where(left, t_hi - g * (t_hi - t_lo), t_lo + g * (t_hi - t_lo))
+        f_new = f(t_new)
+        t1, t2, f1, f2 = (np.where(left, t_new, t2), np.where(left, t1, t_new), np.where(left, f_new, f2),
+                          np.where(left, f1, f_new))
+    return 0.5 * (t_lo + t_hi)
 
 
 def primitive_distances(rigid: RigidLink, parts: list, x: np.ndarray, pose: tuple | None = None

@@ -24,22 +24,23 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from softbody.integrator import Constraints, LinearSystem
 
 from . import kernels
 from .collision import barycentric, closest_on_triangles
+from .convex import ConvexSolver, Rows as ConvexRows, SoftPart
 from .coupling import CoupledPart, CoupledSolver, Rows
 from .distance import cross
-from .frictional import ContactState, solve_contacts
 
 
 # cosine above which two face contacts of one rigid point hold the same face (nearly the same constraint)
 SAME_FACE = 0.9
 # penetration [m] a soft contact leaves where it is (_ContactSet.tolerate)
 SOFT_SLOP = 5e-5
+# a rigid point counts on a soft triangle in the convex problem while it lies over it to within this fraction of
+# the triangle beyond its edges (barycentric coordinates >= -FACE_BAND)
+FACE_BAND = 0.02
 
 
 def _in_set(keys: np.ndarray, members: set | dict) -> np.ndarray:
@@ -284,27 +285,6 @@ class _ContactSet:
         gap = np.where(self.gap < 0, np.minimum(self.gap + slop, 0.0), self.gap)
         self.target[:, 0] += (self.gap - gap) / self.h
         self.gap = gap
-
-    def remember_warm_start(self) -> None:
-        """Keep the warm start (active, stick, sliding directions) apart, for a solver that sets the contact
-        state itself (ContactSolver._solve_dense)."""
-        self.warm_active, self.warm_stick = self.active.copy(), self.stick.copy()
-        ft = self.slip_force[:, 1:]
-        norm = np.linalg.norm(ft, axis=1, keepdims=True)
-        self.warm_direction = np.where(norm > 0, ft / np.maximum(norm, 1e-300), 0.0)
-
-    def finish(self, rl: np.ndarray, w: np.ndarray, active: np.ndarray, stick: np.ndarray,
-               direction: np.ndarray) -> None:
-        """Take a state found by another solver: forces rl (m, 3) [N] and relative velocities w (m, 3) in the
-        contact frames, the active and sticking contacts, sliding directions (m, 2); then :meth:`result`."""
-        self.active, self.stick = active.copy(), stick & active & self.friction
-        self.rl = np.where(active[:, None], rl, 0.0)
-        self.gap_rate = w[:, 0] + self.gap / self.h
-        sliding = active & self.friction & ~self.stick
-        self.slip_force = np.zeros_like(self.slip_force)
-        self.slip_force[sliding, 1:] = self.rl[sliding, 1:]
-        self.new_slip = self.slip_force[:, 1:].copy()
-        self.want_slip = self.want_stick = np.zeros(len(active), dtype=bool)
 
     def mask(self) -> np.ndarray:
         """(m, 3): the constrained local components (normal if active, tangents if also sticking)."""
@@ -622,6 +602,12 @@ class ContactSolver:
         self.cone_tol = cone_tol
         # (kind, id(body)) -> (active keys, sticking keys, {slipping key: friction force (3,) world [N]})
         self.previous: dict[tuple[str, int], tuple[set, set, dict]] = {}
+        # the coupled problem of bodies touching movable rigid bodies, each other or frictional faces (convex.py):
+        # keeps its sparse patterns and their analyses from step to step
+        self.convex = ConvexSolver()
+        # (kind, id(body)) -> {contact key: its normal impulse [N s] in the last convex solve}: the friction bounds of
+        # the next step's same contacts start lagged on them
+        self.lagged: dict[tuple[str, int], dict[int, float]] = {}
 
     def _set(self, kind: str, body, c, make):
         if c is None or not len(c):
@@ -684,7 +670,7 @@ class ContactSolver:
         coupled = [i for i in range(len(steps)) if dense[i]]
         du, iterations, pair_results = np.zeros(n), 0, []
         self._pair_previous = (set(), set(), {})
-        for index, solve in ((simple, self._solve_sparse), (coupled, self._solve_dense)):
+        for index, solve in ((simple, self._solve_sparse), (coupled, self._solve_convex)):
             if not index:
                 continue
             sub = None
@@ -695,7 +681,7 @@ class ContactSolver:
                 sub = sub.relabel(local) if len(sub) else None
             out, its, res = solve([steps[i] for i in index], [prepared[i] for i in index], h, index, results, sub,
                                   *(() if solve == self._solve_sparse else (mass_matrix,)))
-            if solve == self._solve_dense:
+            if solve == self._solve_convex:
                 du = out
             iterations = max(iterations, its)
             if res is not None:
@@ -834,138 +820,119 @@ class ContactSolver:
             results[j] = (v, r, node_result, None)
         return None, it, None
 
-    def _solve_components(self, D: np.ndarray, w0: np.ndarray, bias: np.ndarray, mu: np.ndarray, state: ContactState,
-                          eligible) -> tuple[np.ndarray, ContactState, int]:
-        """frictional.solve_contacts on each set of contacts that D couples (its connected components: contacts
-        on bodies that touch neither each other nor a common movable rigid body, such as the members of a
-        BodyStack, are independent problems), the same solution at a fraction of the cost of one dense problem
-        of them all. Returns gamma (m, 3), the state and the Newton steps (summed)."""
-        m = len(bias)
-        coupled = (D.reshape(m, 3, m, 3) != 0).any(axis=(1, 3))
-        count, label = connected_components(sp.csr_matrix(coupled), directed=False)
-        if count == 1:
-            return solve_contacts(D, w0, bias, mu, state, eligible, self.velocity_tol, self.cone_tol)
-        gamma, solves = np.zeros((m, 3)), 0
-        for c in range(count):
-            idx = np.flatnonzero(label == c)
-            rows = (3 * idx[:, None] + np.arange(3)).ravel()
-            sub = ContactState(state.active[idx].copy(), state.stick[idx].copy(), state.direction[idx].copy())
-
-            def sub_eligible(g, idx=idx):  # the others' impulses are zero: they do not move these contacts
-                full = np.zeros((m, 3))
-                full[idx] = g
-                return eligible(full)[idx]
-
-            g, sub, k = solve_contacts(D[np.ix_(rows, rows)], w0[rows], bias[idx], mu[idx], sub,
-                                       None if eligible is None else sub_eligible, self.velocity_tol, self.cone_tol)
-            gamma[idx] = g
-            state.active[idx], state.stick[idx], state.direction[idx] = sub.active, sub.stick, sub.direction
-            solves += k
-        return gamma, state, solves
-
-    def _solve_dense(self, steps, prepared, h, index, results, pairs=None, M=None
-                     ) -> tuple[np.ndarray, int, ContactResult | None]:
-        """Bodies touching movable rigid bodies, together: every contact (node, face or soft, ``pairs`` with
-        parts local to ``steps``) is three rows with multipliers; the responses of the soft bodies to every
-        candidate row and to du are solved once, the contact problem then on the dense system
-        (frictional.solve_contacts). Returns (du, Newton steps, the soft contacts' result)."""
-        coupled = CoupledSolver(M)
-        n = coupled.n
-        sets = []  # (step index, kind, row set)
-        for i, (st, (b_cons, b_G, c, f)) in enumerate(zip(steps, prepared)):
-            body = st.system.body
-            if c is not None and len(c):
-                sets.append((i, "node", self._set("node", body, c, lambda prev: _RowSet(
-                    self, c, c.node[:, None], np.ones((len(c), 1)), i, prev, h, {i: body.n_nodes}))))
-            else:
-                self._set("node", body, c, None)
-            if f is not None and len(f):
-                sets.append((i, "face", self._set("face", body, f, lambda prev: _FaceSet(self, f, i, prev, h,
-                                                                                          body.positions))))
-            else:
-                self._set("face", body, f, None)
-        pset = self._pair_set(pairs, steps, h)
-        if pset is not None:
-            sets.append((None, "soft", pset))
-        # every candidate contact's three rows, at du = 0 and without the gap (w: the relative velocity)
+    def _solve_convex(self, steps, prepared, h, index, results, pairs=None, M=None
+                      ) -> tuple[np.ndarray, int, ContactResult | None]:
+        """Bodies touching movable rigid bodies, each other or frictional faces, together: every contact and two-way
+        attachment a row of one convex problem (convex.py) over their velocities and the rigid velocity change du,
+        solved by Newton on sparse systems. Returns (du, Newton iterations, the soft contacts' result)."""
+        n = 0 if M is None else len(M)
+        parts, kinds = [], []  # kinds: (step index, kind, contacts, row slice, selected (m,) bool)
         row_parts = []
-        for _, _, rs in sets:
-            rs.remember_warm_start()
-            rs.slip_force[:] = 0.0
-            r, _ = rs.rows(n, every=True)
-            r.target = rs.vr_free[rs.row_index]  # rows of (contact, axis), contact-major
-            row_parts.append(r)
-        rows = Rows.concat(row_parts, n) if row_parts else None
-        parts = [CoupledPart(st.system, b_cons, b_G, None, False) for st, (b_cons, b_G, _, _) in zip(steps, prepared)]
-        system = coupled.assemble(parts, rows)
-        m = 0 if rows is None else len(rows) // 3
-        H, rhs = system.H, system.rhs
-        if n:
-            K, B = H[:n, :n], H[:n, n:]
-            try:
-                KiB = np.linalg.solve(K, np.column_stack([B, rhs[:n]]))
-            except np.linalg.LinAlgError:
-                KiB = np.linalg.lstsq(K, np.column_stack([B, rhs[:n]]), rcond=None)[0]
-            D = H[n:, n:] - H[n:, :n] @ KiB[:, :-1]
-            w0 = H[n:, :n] @ KiB[:, -1] - rhs[n:]
-        else:
-            D, w0 = H[n:, n:], -rhs[n:]
-        D = 0.5 * (D + D.T)  # symmetric by reciprocity, up to round-off
-        gamma = np.zeros((m, 3))
-        solves = 0
-        if m:
-            cat = lambda f: np.concatenate([f(rs) for _, _, rs in sets])  # noqa: E731
-            bias = cat(lambda rs: rs.gap) / h
-            mu = cat(lambda rs: rs.c.mu)
-            # the warm start: last step's active and sticking contacts (kept by the row sets' constructors)
-            state = ContactState(cat(lambda rs: rs.warm_active), cat(lambda rs: rs.warm_stick),
-                                 cat(lambda rs: rs.warm_direction))
-            offsets = np.cumsum([0] + [len(rs.c) for _, _, rs in sets])
+        count = 0
 
-            def gamma_to_z(g):
-                z = np.zeros(n + 3 * m)
-                z[n:] = g.ravel()
-                if n:
-                    z[:n] = KiB[:, -1] - KiB[:, :-1] @ g.ravel()
-                return z
+        lag_parts = []  # the normal impulses the rows' friction starts lagged on (last step's; NaN: none)
 
-            def eligible(g):
-                ok = np.ones(m, dtype=bool)
-                faces_in = [(o, rs) for o, (_, kind, rs) in zip(offsets, sets) if kind == "face"]
-                if not faces_in:
-                    return ok
-                z = gamma_to_z(g)
-                vs = [v for v, _ in system.combine(z)]
-                for o, rs in faces_in:
-                    ok[o:o + len(rs.c)] = rs.eligible(vs, z[:n], g[o:o + len(rs.c), 0] > 0)
-                return ok
+        def add(i, kind, c, rows, keep):
+            nonlocal count
+            kinds.append((i, kind, c, slice(count, count + len(rows)), keep))
+            row_parts.append(rows)
+            count += len(rows)
+            held = self.lagged.get((kind, 0 if kind == "soft" else id(steps[i].system.body)), {})
+            keys = () if kind == "attach" else (c.node if keep is None else c.node[keep]).tolist()
+            lag_parts.append(np.array([held.get(k, np.nan) for k in keys]) if kind != "attach"
+                             else np.full(len(rows), np.nan))
 
-            gamma, state, solves = self._solve_components(D, w0, bias, mu, state, eligible)
-        z = np.zeros(n + 3 * m)
-        if m:
-            z = gamma_to_z(gamma)
-        elif n:
-            z[:n] = KiB[:, -1]
-        out = system.combine(z)
-        du = z[:n]
-        # results per body, through the row sets' bookkeeping
-        per_body = {i: [None, None] for i in range(len(steps))}
-        pair_result = None
-        k = 0
-        for i, kind, rs in sets:
-            mk = len(rs.c)
-            g = gamma[k:k + mk]
-            sl = slice(k, k + mk)
-            w = (w0 + D @ gamma.ravel()).reshape(-1, 3)[sl] if m else np.zeros((0, 3))
-            rs.finish(g / h, w, state.active[sl], state.stick[sl], state.direction[sl])
-            if kind == "soft":
-                pair_result, pair_state = rs.result(solves)
-                self._keep_pair_state(pair_state)
+        for i, (st, (_, _, c, f)) in enumerate(zip(steps, prepared)):
+            system, sup = st.system, st.supports
+            body = system.body
+            A = system.assemble() if hasattr(system, "assemble") else system.A
+            held = np.zeros((body.n_nodes, 3), dtype=bool)
+            value = np.zeros((body.n_nodes, 3))
+            if len(sup):
+                held[sup.nodes] = sup.mask
+                value[sup.nodes] = np.where(sup.mask, sup.value, 0.0)
+            parts.append(SoftPart(body, A, system.b, held, value, body.velocities))
+            if c is not None and len(c):
+                add(i, "node", c, self._contact_rows(c, i, c.node[:, None], np.ones((len(c), 1)), h, n), None)
             else:
-                result, self.previous[(kind, id(steps[i].system.body))] = rs.result(solves)
+                self.previous[("node", id(body))] = (set(), set(), {})
+            if f is not None and len(f):
+                # a rigid point holds on the triangles it lies over (within FACE_BAND beyond their edges: a point on
+                # the edge between two is over both), on an edge it was found on, and on its primary triangle
+                x = body.positions[f.nodes]
+                over = barycentric(f.point, x[:, 0], x[:, 1], x[:, 2]).min(axis=1) >= -FACE_BAND
+                keep = f.primary | over if f.edge is None else (f.primary | f.edge | over)
+                sel = f.select(keep)
+                add(i, "face", f, self._contact_rows(sel, i, sel.nodes, sel.weights, h, n), keep)
+            else:
+                self.previous[("face", id(body))] = (set(), set(), {})
+            a = st.attachments
+            if a is not None and len(a):
+                kept = ~np.isin(a.node, sup.nodes)
+                m = int(kept.sum())
+                eye = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+                add(i, "attach", a, ConvexRows(np.full((m, 1), i), a.node[kept][:, None], np.ones((m, 1)), eye,
+                                               a.target[kept], a.jacobian[kept] if n else None, np.zeros(m),
+                                               np.zeros(m), np.ones(m, dtype=bool)), kept)
+        if pairs is not None and len(pairs):
+            add(None, "soft", pairs, self._contact_rows(pairs, pairs.parts, pairs.nodes, pairs.weights, h, n), None)
+        rows = ConvexRows.concat(row_parts, n)
+        lag = np.concatenate(lag_parts) if lag_parts else np.zeros(0)
+        sol = self.convex.solve(parts, rows, M, h, None if np.isnan(lag).all() else lag)
+        F = rows.frames
+        force = np.einsum("mij,mj->mi", F, sol.gamma) / h  # on the weighted (soft) point [N]
+        gap_end = h * (sol.vc[:, 0] - rows.v_hat)  # the normal gap at the end of the step (of its bounded target)
+        per_body = {i: [None, None] for i in range(len(steps))}
+        reactions = [np.zeros((st.system.body.n_nodes, 3)) for st in steps]
+        lagged_soft = {}
+        pair_result = None
+        for i, kind, c, sl, keep in kinds:
+            g, fr, stick = sol.gamma[sl], force[sl], sol.stiction[sl]
+            if kind == "attach":
+                np.add.at(reactions[i], c.node[keep], g)  # identity frames: the impulse on the node [N s]
+                continue
+            mc = len(c)
+            full_force, active, sticking = np.zeros((mc, 3)), np.zeros(mc, bool), np.zeros(mc, bool)
+            where = np.arange(mc) if keep is None else np.flatnonzero(keep)
+            full_force[where] = fr
+            active[where] = g[:, 0] > 0
+            sticking[where] = stick & (g[:, 0] > 0) & (c.mu[where] > 0)
+            viol = max(0.0, -float(gap_end[sl].min(initial=0.0)))
+            result = ContactResult(full_force, active, sticking, sol.iterations, sol.factorizations, viol,
+                                   {"converged": sol.converged, "residual": sol.residual})
+            keys = c.node
+            sliding = active & ~sticking & (c.mu > 0)
+            state = (set(keys[active].tolist()), set(keys[sticking].tolist()),
+                     {int(k): full_force[j] - (full_force[j] @ c.normal[j]) * c.normal[j]
+                      for j, k in zip(np.flatnonzero(sliding), keys[sliding].tolist())})
+            impulses = {int(k): float(gn) for k, gn in zip(keys[where].tolist(), g[:, 0])}
+            if kind == "soft":
+                pair_result = result
+                self._keep_pair_state(state)
+                lagged_soft.update(impulses)
+            else:
+                self.previous[(kind, id(steps[i].system.body))] = state
+                self.lagged[(kind, id(steps[i].system.body))] = impulses
                 per_body[i][0 if kind == "node" else 1] = result
-            k += mk
+        self.lagged[("soft", 0)] = lagged_soft
         for j, i in zip(index, range(len(steps))):
-            v, r = out[i]
-            results[j] = (v, r, *per_body[i])
-        return du, solves, pair_result
+            results[j] = (sol.velocities[i], reactions[i], *per_body[i])
+        return sol.du, sol.iterations, pair_result
+
+    def _contact_rows(self, c: NodeContacts, parts, nodes: np.ndarray, weights: np.ndarray, h: float, n: int,
+                      slop: float = 0.0) -> ConvexRows:
+        """The convex problem's rows of contacts ``c`` (node, face or soft) over ``nodes`` (m, S) of ``parts`` (an index,
+        or (m, S)) with ``weights`` (m, S): the gap closes within the step, a penetration at most at push_speed (unless
+        the contact was carried back from the end of the step), ``slop`` [m] of it left where it is."""
+        m = len(c)
+        gap = c.distance
+        if slop:
+            gap = np.where(gap < 0, np.minimum(gap + slop, 0.0), gap)
+        bounded = np.maximum(gap, -self.push_speed * h)
+        if c.carried is not None:
+            bounded = np.where(c.carried, gap, bounded)
+        parts = np.broadcast_to(np.asarray(parts, dtype=np.int64), nodes.shape).copy()
+        jac = c.jacobian if (n and c.jacobian is not None) else (np.zeros((m, 3, n)) if n else None)
+        return ConvexRows(parts, np.asarray(nodes, dtype=np.int64), np.asarray(weights, dtype=float),
+                          tangent_frames(c.normal), np.asarray(c.rigid_velocity, dtype=float), jac, -bounded / h,
+                          np.asarray(c.mu, dtype=float), np.zeros(m, dtype=bool))

@@ -85,6 +85,16 @@ class RigidShape:
         deepest at an end (collision.edge_contacts skips them); none known by default."""
         return np.zeros(len(a), dtype=bool)
 
+    def face_span(self, a: np.ndarray, b: np.ndarray, points: np.ndarray, facing: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Where segments a + t (b - a) (m, 3 each, the shape's frame) lie across one of its flat faces: the face near
+        ``points`` (m, 3) on them whose outward normal faces the segments' outward normals ``facing`` (m, 3) (an
+        edge lying across a face rests on the face, not on the side it may be as near to at a rim). Returns
+        (span (m, 2): the parameters where each segment enters and leaves the region over that face, NaN for none;
+        normal (m, 3): the face's outward unit normal; offset (m,): its plane's distance from the centre), or None
+        for a shape without flat faces."""
+        return None
+
     @classmethod
     def from_size(cls, size) -> RigidShape:
         """The shape of a :attr:`size`."""
@@ -209,6 +219,11 @@ class Sphere(RigidShape):
                          albedo_factor=color)
 
 
+#: a box face counts as facing a soft edge whose outward normal makes a dot product below this with its own
+#: (collision.FACING's rule)
+FACING_FACES = -0.1
+
+
 @dataclass(frozen=True, eq=False)
 class Box(RigidShape):
     """A box of ``half_extents`` (3,) [m] about the origin."""
@@ -255,6 +270,35 @@ class Box(RigidShape):
 
     def extent(self) -> np.ndarray:
         return self.half_extents
+
+    def face_span(self, a: np.ndarray, b: np.ndarray, points: np.ndarray, facing: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The face nearest to ``points`` (where they stand out furthest beyond the half extents, or lie least deep
+        inside) among those facing ``facing``, and the stretch of each segment over it: within the face's extents
+        along the other two axes."""
+        e = self.half_extents
+        m = len(a)
+        rows = np.arange(m)
+        side = np.where(points >= 0.0, 1.0, -1.0)  # the faces on the points' sides
+        faces = side * facing < FACING_FACES  # ... whose normals face the segments
+        beyond = np.where(faces, np.abs(points) - e, -np.inf)
+        axis = np.argmax(beyond, axis=1)
+        d = b - a
+        lo, hi = np.zeros(m), np.ones(m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for k in range(3):
+                other = axis != k  # the slab |x_k| <= e_k, for the two axes across the face
+                t1, t2 = (-e[k] - a[:, k]) / d[:, k], (e[k] - a[:, k]) / d[:, k]
+                parallel = d[:, k] == 0
+                inside = np.abs(a[:, k]) <= e[k]
+                enter = np.where(parallel, np.where(inside, -np.inf, np.inf), np.minimum(t1, t2))
+                leave = np.where(parallel, np.where(inside, np.inf, -np.inf), np.maximum(t1, t2))
+                lo = np.where(other, np.maximum(lo, enter), lo)
+                hi = np.where(other, np.minimum(hi, leave), hi)
+        ok = (lo <= hi) & np.isfinite(beyond[rows, axis])
+        normal = np.zeros((m, 3))
+        normal[rows, axis] = side[rows, axis]
+        return np.where(ok[:, None], np.column_stack([lo, hi]), np.nan), normal, e[axis]
 
     def linear_between(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Both ends in one face's region (over that face, or inside nearest to it: a convex region where the

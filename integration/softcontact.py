@@ -5,13 +5,15 @@ along the triangle's outward normal n; d = n . (x_a - sum_i w_i x_bi) is the sig
 node is inside b). The condition at the end of the step, n . (v_a - sum_i w_i v_bi) >= -d / h, and Coulomb
 friction are those of the rigid contacts (contact.py); the impulse acts on both bodies, equal and opposite.
 Both directions are searched (a's nodes on b's triangles, b's nodes on a's), so a corner pressing into a face
-is caught from either side. Edge-against-edge crossings between nodes are not modelled.
+is caught from either side, and both contacts are kept (rows beside rows share a force in the coupled problem,
+convex.py). Edges crossing between nodes: :func:`edge_contacts`.
 
 A node counts against a triangle only inside the triangle's prism (its projection falls on the triangle,
 not on the plane of an extended one), within reach (the margin plus what the two sides close along the
-normal within the step, as collision.Sweep), and against the nearest such triangle of each other body.
-Only surfaces that face each other count (a node lying in the plane of the other body's face, beside its
-edge, is no contact with the side face beyond). Self-contact (a == b) also leaves out the node's own
+normal within the step, as collision.Sweep), and against the nearest such triangle of each other body that
+faces it (a node lying in the plane of the other body's face, beside its edge, is no contact with the side face
+beyond; a node of a face resting rim on rim on a face of the same size is held by that face, not by the side face
+beyond the rim that lies nearer once the rims press in). Self-contact (a == b) also leaves out the node's own
 surroundings (triangles within one rest edge length of it), and never pulls a node through the body: only
 nodes on the outer side of a triangle count.
 
@@ -155,21 +157,35 @@ def node_triangle_contacts(xa: np.ndarray, va: np.ndarray, nodes: np.ndarray, su
     w = np.clip(w, 0.0, None)
     w /= w.sum(axis=1, keepdims=True)
     # surfaces facing each other only: a node on a face lying in the plane of the other body's face, next to
-    # its edge (a block sliding over another's surface), is no contact with the side face beyond that edge.
-    # Between two bodies the nearest triangle decides first whether the node is inside; within one body
-    # (self-contact) only facing triangles are candidates, the node's own neighbourhood being near too.
+    # its edge (a block sliding over another's surface), is no contact with the side face beyond that edge; and a
+    # node of a face resting on a face of the same size, rim on rim, is held by that face, not by the side face
+    # beyond the rim that may lie nearer once the rims press into each other
     facing = np.einsum("ij,ij->i", surface_a.node_normals(xa)[nodes[i]], nrm) < FACING
-    ok = inside & facing if rest is not None else inside
+    ok = inside & facing if rest is not None else inside  # self-contact: facing triangles only
     i, t, w, nrm, d, facing = i[ok], t[ok], w[ok], nrm[ok], d[ok], facing[ok]
     if not len(i):
         return none
-    order = np.lexsort((t, np.abs(d), i))  # per node the nearest triangle (the first of equals): inside or not
-    first = order[run_starts(i[order])]
+    first = nearest_facing(i, t, d, facing, margin)
     i, t, w, nrm, d, facing = i[first], t[first], w[first], nrm[first], d[first], facing[first]
     v_rel = va[nodes[i]] - np.einsum("ms,msi->mi", w, vb[tris[t]])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, nrm), 0.0)
     ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > (-margin if rest is not None else -depth))
     return nodes[i[ok]], t[ok], w[ok], nrm[ok], d[ok]
+
+
+def nearest_facing(group: np.ndarray, t: np.ndarray, d: np.ndarray, facing: np.ndarray, margin: float) -> np.ndarray:
+    """Per group (a node, against one other body) of candidate triangles t with signed distances d and whether they
+    face the node: the index of the nearest facing one, if it lies within ``margin`` of the nearest of all (which
+    decides whether the node is inside: a node below a body is no contact with its far top face; a node of a face
+    resting rim on rim on another is held by that face, not by the side face beyond the rim that may lie nearer once
+    the rims press in). Ties go to the smaller triangle index."""
+    order = np.lexsort((t, np.abs(d), group))
+    starts = run_starts(group[order])
+    run = np.cumsum(starts) - 1
+    nearest = np.abs(d[order])[starts][run]  # the nearest of its group, for each candidate in order
+    ok = facing[order] & (np.abs(d[order]) <= nearest + margin)
+    cand = order[ok]
+    return cand[run_starts(group[cand])] if len(cand) else cand
 
 
 @dataclass(frozen=True)
@@ -271,7 +287,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         return i[ok], t[ok] + t_off[q]
 
     def nearest(i: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
-        """Per node and other body, the nearest triangle whose prism holds it (facing, within one body)."""
+        """Per node and other body, the nearest facing triangle whose prism holds it."""
         nonlocal vnormals
         pb, qb = node_b[i], tri_b[t]
         same = pb == qb
@@ -294,10 +310,9 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         if vnormals is None:
             vnormals = vertex_normals(X, tris)
         facing = np.einsum("ij,ij->i", vnormals[nodes[i]], nrm) < FACING
-        ok = inside & (facing | ~same)
+        ok = inside & (facing | ~same)  # self-contact: facing triangles only
         i, t, pb, qb, same, w, nrm, d, facing = (a[ok] for a in (i, t, pb, qb, same, w, nrm, d, facing))
-        order = np.lexsort((t, np.abs(d), qb, i))  # per node and other body, the nearest triangle (the first of equals)
-        first = order[run_starts(i[order], qb[order])]
+        first = nearest_facing(i.astype(np.int64) * len(bodies) + qb, t, d, facing, margin)
         return tuple(a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
 
     first_i, first_t, deep_i, deep_q = [], [], [], []
@@ -354,7 +369,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # a contact is a node against the other body (its nearest triangle may change from step to step as it
     # slides; its friction state goes on)
     key = node | ((a * 1024 + b) << NODE_BITS)
-    return without_mirrors(SoftHits(a, node, b, t - t_off[qb], tris[t] - off[qb][:, None], w, nrm, d, key))
+    return SoftHits(a, node, b, t - t_off[qb], tris[t] - off[qb][:, None], w, nrm, d, key)
 
 
 def pair_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]],
@@ -376,33 +391,7 @@ def pair_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurfa
             if m:
                 key = node | (np.int64(p * 1024 + q) << NODE_BITS)
                 out.append(SoftHits(np.full(m, p), node, np.full(m, q), tri, sq.triangles[tri], w, nrm, d, key))
-    return without_mirrors(SoftHits.concat(out))
-
-
-def without_mirrors(hits: SoftHits) -> SoftHits:
-    """The contacts without mirror images: where node i of one surface holds against a triangle point at node
-    j (most of its weight on j) and node j against a point at node i, both hold the same gap, and two such rows
-    only split their forces arbitrarily (large and opposite, with sticking friction); the deeper one stays (the
-    smaller key of two equally deep): the shallower one's linearisation (its triangle's plane) lets the node sit
-    inside the other body by the difference for good."""
-    if len(hits) < 2:
-        return hits
-    top = hits.weights.argmax(axis=1)
-    dominant = hits.weights[np.arange(len(hits)), top] > 0.5
-    code_a = hits.a << NODE_BITS | hits.node  # the node, over all bodies
-    code_b = hits.b << NODE_BITS | hits.nodes[np.arange(len(hits)), top]  # the triangle's node nearest the point
-    idx = np.flatnonzero(dominant)
-    pair = code_a[idx] << 32 | code_b[idx]
-    order = np.argsort(pair, kind="stable")
-    pair, owner = pair[order], idx[order]
-    mirror = code_b[idx] << 32 | code_a[idx]  # the same two nodes the other way round
-    at = np.clip(np.searchsorted(pair, mirror), 0, len(pair) - 1)
-    found = pair[at] == mirror
-    drop = np.zeros(len(hits), dtype=bool)
-    me, other = idx[found], owner[at[found]]
-    d_me, d_other = hits.distance[me], hits.distance[other]
-    drop[me] = (d_other < d_me) | ((d_other == d_me) & (hits.key[other] < hits.key[me]))
-    return hits.select(~drop)
+    return SoftHits.concat(out)
 
 
 # an edge crossing counts between the ends of both edges only (within this fraction of an end it is the node's own

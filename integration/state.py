@@ -10,7 +10,7 @@ BulletAdapter.restore_world, in this process or another). What pybullet does not
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,8 @@ class WorldState:
     results: dict[str, Any]
     bullet: bytes
     format: int = FORMAT
+    impulses: dict[tuple, Any] = field(default_factory=dict)  # the contacts' last normal impulses (friction's lag)
+    patterns: dict[tuple, Any] = field(default_factory=dict)  # the coupled problem's sparse patterns (their extra blocks)
 
     def write(self, path: str | Path) -> Path:
         """Write this state to ``path`` (pickle); ``World.restore_state(path)`` reads it back, also in a new process

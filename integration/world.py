@@ -1259,6 +1259,8 @@ class World:
         previous = {(kind, key if kind == "soft" else by_id[key]): copy.deepcopy(value)
                     for (kind, key), value in self.contact_solver.previous.items()
                     if kind == "soft" or key in by_id}
+        impulses = {(kind, key if kind == "soft" else by_id[key]): dict(value)
+                    for (kind, key), value in self.contact_solver.lagged.items() if kind == "soft" or key in by_id}
         attachment = {id(a): k for k, a in enumerate(self.attachments)}
         results = {
             "contacts": self.contacts, "face_hits": self.face_hits, "soft_hits": self.soft_hits, "edge_hits": self.edge_hits,
@@ -1270,7 +1272,9 @@ class World:
         state = WorldState(self.sim.save_state(), self._scene_summary(), len(self.attachments), layout,
                            {index[k]: index[g] for k, g in self._dense_group.items() if k in index and g in index},
                            self._restack_due, sorted(index[k] for k in self._started if k in index),
-                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), self.adapter.save_world())
+                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), self.adapter.save_world(),
+                           impulses=impulses,
+                           patterns=self.contact_solver.convex.patterns.save_state(lambda b: by_id.get(id(b))))
         if path is not None:
             state.write(path)
         return state
@@ -1348,6 +1352,9 @@ class World:
         stepped = {h: s for h, s in zip(self._handles()[1], self.sim.bodies)}
         self.contact_solver.previous = {(kind, key if kind == "soft" else id(stepped[key])): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
+        self.contact_solver.lagged = {(kind, key if kind == "soft" else id(stepped[key])): dict(value)
+                                      for (kind, key), value in state.impulses.items()}
+        self.contact_solver.convex.patterns.load_state(state.patterns, lambda h: stepped[h])
         self._started = {id(members[k]) for k in state.started}
         self._lagged = copy.deepcopy(state.lagged)
         r = copy.deepcopy(state.results)

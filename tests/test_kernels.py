@@ -518,42 +518,6 @@ def test_direct_solve_with_constrained_products_equals_numpys(monkeypatch):
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
-def test_compiled_bounded_quadratic_equals_numpys_and_is_optimal(monkeypatch):
-    """Random bound-constrained quadratic programs (the frictional solve's form: some variables >= 0, others free),
-    positive definite and rank-deficient: the compiled projected Newton method (kernels.bounded_quadratic) gives
-    numpy's minimiser (frictional.bounded_quadratic) and its objective, and the result meets the optimality
-    conditions (bounds held, the gradient zero on the free and interior variables and >= 0 on those at a bound)."""
-    from integration import frictional
-    from integration import kernels as contact_kernels
-
-    rng = np.random.default_rng(47)
-    at_bound = 0
-    for trial in range(60):
-        n = int(rng.integers(1, 60))
-        A = rng.standard_normal((n, n if trial % 4 else max(1, n // 2)))  # every fourth: rank deficient
-        Q = A @ A.T + (1e-3 * np.eye(n) if trial % 4 else 0.0)
-        c = rng.standard_normal(n)
-        bounded = rng.random(n) < 0.6
-        x0 = rng.standard_normal(n)
-        x, _ = frictional.bounded_quadratic(Q, c, bounded, x0)
-        with monkeypatch.context() as m:
-            m.setattr(contact_kernels, "ENABLED", False)
-            x_ref, _ = frictional.bounded_quadratic(Q, c, bounded, x0)
-        f = lambda y: 0.5 * y @ Q @ y + c @ y  # noqa: E731
-        assert f(x) == pytest.approx(f(x_ref), rel=1e-9, abs=1e-9)
-        if trial % 4:  # strictly convex: one minimiser
-            np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-8 * max(1.0, np.abs(x_ref).max()))
-            g = Q @ x + c
-            tol = 1e-7 * max(1.0, np.abs(c).max())
-            assert np.all(x[bounded] >= 0)
-            interior = ~bounded | (x > 1e-9)
-            assert np.abs(g[interior]).max(initial=0.0) < tol
-            assert np.all(g[~interior] > -tol)
-            at_bound += int((~interior).sum())
-    assert at_bound > 100  # the bounds were active in the comparison
-
-
-@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
 def test_compiled_face_eligibility_equals_numpys(monkeypatch):
     """Face contacts after a solve: which may carry an impulse (their rigid point inside its triangle at the end of
     the step, the nearest of its group, not nearly parallel to an active contact of that point, the first per
@@ -649,45 +613,6 @@ def test_compiled_closest_points_on_triangles_equal_numpys():
     ref = np.sqrt(((closest_on_triangles(q[:100, None], x[None, :, 0], x[None, :, 1], x[None, :, 2])
                     - q[:100, None]) ** 2).sum(axis=2)).min(axis=1)
     np.testing.assert_array_equal(dist, ref)
-
-
-@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
-def test_compiled_friction_subproblems_solve_contacts_as_numpy(monkeypatch):
-    """frictional.solve_contacts on random contact problems (Delassus matrices of random contact Jacobians, random
-    free velocities, gaps, friction coefficients and warm starts), with its convex subproblems compiled
-    (kernels.friction_subproblem, kernels.bounded_quadratic) and with numpy: the same impulses and final states;
-    and the impulses meet the contact conditions (no pull, no penetration, Coulomb's cone)."""
-    from integration import frictional
-    from integration import kernels as contact_kernels
-
-    rng = np.random.default_rng(67)
-    sliding = sticking = 0
-    for trial in range(30):
-        m = int(rng.integers(2, 25))
-        J = rng.standard_normal((3 * m, 2 * m))
-        D = J @ J.T + 1e-3 * np.eye(3 * m)
-        w0 = rng.standard_normal(3 * m)
-        bias = 0.1 * rng.standard_normal(m)
-        mu = np.where(rng.random(m) < 0.2, 0.0, rng.uniform(0.1, 1.0, m))
-        d = rng.standard_normal((m, 2))
-
-        def start():
-            return frictional.ContactState(rng2.random(m) < 0.5, rng2.random(m) < 0.5, d / np.linalg.norm(d, axis=1,
-                                                                                                      keepdims=True))
-        rng2 = np.random.default_rng(trial)
-        gamma, state, _ = frictional.solve_contacts(D, w0, bias, mu, start())
-        rng2 = np.random.default_rng(trial)
-        with monkeypatch.context() as mp:
-            mp.setattr(contact_kernels, "ENABLED", False)
-            ref, ref_state, _ = frictional.solve_contacts(D, w0, bias, mu, start())
-        np.testing.assert_allclose(gamma, ref, rtol=0, atol=1e-9 * max(1.0, np.abs(ref).max()))
-        np.testing.assert_array_equal(state.active, ref_state.active)
-        np.testing.assert_array_equal(state.stick, ref_state.stick)
-        w = (w0 + D @ gamma.ravel()).reshape(m, 3)
-        assert np.all(gamma[:, 0] >= 0) and np.all(w[:, 0] + bias >= -1e-7)
-        sliding += int((state.active & ~state.stick & (mu > 0)).sum())
-        sticking += int((state.active & state.stick).sum())
-    assert sliding > 10 and sticking > 10  # both friction states were compared
 
 
 @pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")

@@ -33,24 +33,6 @@ def test_one_pass_search_finds_what_the_pairwise_search_finds():
     assert found > 200  # the piles overlap: the comparison is not between two empty sets
 
 
-def test_of_two_mirror_contacts_the_deeper_stays():
-    """Node 3 of body 0 on a face of body 1 next to its node 7, and node 7 on a face of body 0 next to node 3: the
-    same gap twice; the deeper of the two stays, whichever has the smaller key (the shallower's plane would let the
-    node sit inside the other body by the difference)."""
-    from integration.softcontact import NODE_BITS, SoftHits, without_mirrors
-
-    for d_first, d_second in ((-2e-3, -1e-4), (-1e-4, -2e-3)):
-        a, b = np.array([0, 1]), np.array([1, 0])
-        node = np.array([3, 7])
-        nodes = np.array([[7, 8, 9], [3, 4, 5]])
-        weights = np.array([[0.9, 0.05, 0.05], [0.9, 0.05, 0.05]])
-        key = node | ((a * 1024 + b) << NODE_BITS)
-        hits = SoftHits(a, node, b, np.array([0, 0]), nodes, weights, np.tile([0.0, 0.0, 1.0], (2, 1)),
-                        np.array([d_first, d_second]), key)
-        kept = without_mirrors(hits)
-        assert len(kept) == 1 and kept.distance[0] == min(d_first, d_second)
-
-
 def test_bodies_joined_only_by_edge_edge_rows_solve_together():
     """contact._groups: an edge-edge row's slots are (a, a, b, b), a node-face row's (a, b, b, b); both join a and b
     (reading the first two slots only left bodies joined by edge rows in different solves)."""

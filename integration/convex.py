@@ -1,0 +1,733 @@
+"""The coupled step of soft bodies, movable rigid bodies and their contacts as one convex problem.
+
+The unknowns of a step are the soft bodies' velocities v (3N per body, the supported components fixed) and the
+movable rigid bodies' velocity change du (n, against their free motion over the step). With each soft body's step
+system A v = b (softbody.integrator: A = M + h C + h^2 K', SPD) and the rigid mass matrix M_r, the step minimises
+
+    l(v, du) = sum_b (1/2 v_b^T A_b v_b - b_b^T v_b) + 1/2 du^T M_r du + sum_c l_c(vc_c)
+
+over all of them at once, where vc_c = F_c^T (sum_s w_s v[node_s] - v_rigid,c - J_c du) is row c's relative velocity
+in its frame F_c = (n, t1, t2) (a soft node or a point of a soft triangle or edge, with weights w, against a rigid
+material point, or against another soft body's point with negative weights) and l_c the regularised cost of its
+contact law (Castro et al. 2022, "An unconstrained convex formulation of compliant contact", SAP):
+
+    y = R^-1 (v_hat - vc),   gamma = P_F(y) (projection on the Coulomb cone |g_t| <= mu g_n in the R norm),
+    l_c = 1/2 gamma^T R gamma,   dl_c/dvc = -gamma,   G = d^2 l_c / dvc^2 (3 x 3, positive semi-definite).
+
+The cone is exact (a second-order cone, not a pyramid); R = diag(R_n, R_t, R_t) makes the contact "near rigid":
+R_n = beta^2 / (4 pi^2) w (w: an estimate of the row's Delassus diagonal, so that the contact's period is beta h,
+resolved by the step), R_t = sigma w (stiction creeps at sigma w |gamma_t|), and v_hat_n = -phi / h closes the gap
+phi (speculative contacts, phi > 0, act only when the step would close them). A bilateral row (an attachment) is
+a cost 1/2 |y|_R^2 with gamma = y. Minimising l is the implicit step of one mechanical system whose contact
+impulses act on both sides alike: momentum is exchanged exactly, energy cannot grow, and rows beside rows (a
+node and a face holding the same point) only share a force.
+
+Newton's method with an exact line search minimises l: each iteration solves
+
+    (A + J_s^T G J_s) dv + J_s^T G J_r ddu = -grad_v,   (M_r + J_r^T G J_r) ddu + J_r^T G J_s dv = -grad_du
+
+by one sparse Cholesky factorisation of the soft part, on the bodies' own block patterns extended by the blocks that
+contacts between different bodies (or distant nodes of one) create (:class:`GroupPattern`, analysed once per
+pattern and kept while the contacts stay within it), and a Schur complement for the few rigid unknowns. Its cost
+follows the contacts linearly: a contact adds a few 3 x 3 blocks, never a dense row of the others.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from softbody.assembly import BlockPattern
+from softbody.body import FemBody
+from softbody.errors import SolverError
+from softbody.linsolve import SpdSolver
+
+#: the contact period in steps (Castro et al.'s beta): R_n = BETA^2 / (4 pi^2) w
+BETA = 0.03
+#: the regularisation of friction relative to the Delassus diagonal: stiction creeps at SIGMA w |gamma_t|
+SIGMA = 1e-3
+#: Newton stops when the scaled gradient is below REL_TOL times the scaled momentum or impulses
+REL_TOL = 1e-8
+#: ... or below this absolute scaled gradient [sqrt(kg) m/s]
+ABS_TOL = 1e-14
+#: at most this many Newton iterations per solve
+MAX_ITER = 60
+#: a Newton system is solved by conjugate gradients preconditioned by the last factorisation on its pattern in at most
+#: this many iterations (each costs a pair of triangular solves and a sparse product), else factorised anew
+REUSE_ITERATIONS = 8
+#: ... to this residual, relative to the right-hand side's
+REUSE_TOL = 1e-10
+#: ... or when a step no longer lowers the cost by more than this (relative): round-off
+COST_TOL = 1e-14
+#: the friction bounds are lagged on the normal impulses until these change by at most LAG_TOL (relative to the
+#: largest), in at most LAG_ROUNDS rounds of Newton's method
+LAG_TOL = 1e-4
+LAG_ROUNDS = 8
+
+
+@dataclass
+class Rows:
+    """The rows of the convex problem: one per contact or attached node, three equations each.
+
+    parts (m, S): the index of the soft part (problem order) of each slot, -1 for an unused slot; nodes (m, S);
+    weights (m, S): the soft point's velocity is sum_s w_s v[node_s] (negative weights: the other side of a soft
+    pair); frames (m, 3, 3): columns n, t1, t2 (n out of the other side, towards the weighted point);
+    rigid_velocity (m, 3) [m/s]: the other side's point velocity under the free motion (an attachment: the node
+    velocity that keeps it on its rigid point); jacobian (m, 3, n): that point's velocity per unit du (None: no
+    rigid unknowns); v_hat (m,) [m/s]: the normal velocity at which the row exerts nothing (-phi / h);
+    mu (m,); bilateral (m,) bool: all three components held, no cone (attachments)."""
+
+    parts: np.ndarray
+    nodes: np.ndarray
+    weights: np.ndarray
+    frames: np.ndarray
+    rigid_velocity: np.ndarray
+    jacobian: np.ndarray | None
+    v_hat: np.ndarray
+    mu: np.ndarray
+    bilateral: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.v_hat)
+
+    @classmethod
+    def concat(cls, parts: list["Rows"], n: int) -> "Rows":
+        parts = [r for r in parts if r is not None and len(r)]
+        slots = max([r.parts.shape[1] for r in parts], default=1)
+
+        def pad(a, fill):
+            return np.pad(a, ((0, 0), (0, slots - a.shape[1])), constant_values=fill)
+
+        if not parts:
+            return cls(np.zeros((0, 1), np.int64), np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 3, 3)),
+                       np.zeros((0, 3)), np.zeros((0, 3, n)) if n else None, np.zeros(0), np.zeros(0),
+                       np.zeros(0, bool))
+        jac = None
+        if n:
+            jac = np.concatenate([r.jacobian if r.jacobian is not None else np.zeros((len(r), 3, n)) for r in parts])
+        return cls(np.concatenate([pad(r.parts, -1) for r in parts]), np.concatenate([pad(r.nodes, 0) for r in parts]),
+                   np.concatenate([pad(r.weights, 0.0) for r in parts]), np.concatenate([r.frames for r in parts]),
+                   np.concatenate([r.rigid_velocity for r in parts]), jac,
+                   np.concatenate([r.v_hat for r in parts]), np.concatenate([r.mu for r in parts]),
+                   np.concatenate([r.bilateral for r in parts]))
+
+
+@dataclass
+class SoftPart:
+    """One soft body of the problem: its step system's matrix A (block data (nnzb, 3, 3) on body.pattern) and load b
+    (N, 3), the supported components ``held`` (N, 3) bool with their velocities ``value`` (N, 3) (identity frames),
+    and the starting guess (N, 3) [m/s]."""
+
+    body: FemBody
+    A: np.ndarray
+    b: np.ndarray
+    held: np.ndarray
+    value: np.ndarray
+    guess: np.ndarray
+
+
+@dataclass
+class Solution:
+    """velocities: per part (N, 3) [m/s]; du (n,); gamma (m, 3) [N s]: each row's impulse in its frame (on the weighted
+    point; the other side takes minus it); stiction (m,) bool; iterations: Newton iterations; factorizations; cost:
+    l at the solution; residual: the scaled gradient relative to its scale at the end; rounds: how many times the
+    friction bounds were lagged."""
+
+    velocities: list[np.ndarray]
+    du: np.ndarray
+    gamma: np.ndarray
+    vc: np.ndarray
+    stiction: np.ndarray
+    iterations: int
+    factorizations: int
+    cost: float
+    residual: float
+    converged: bool
+    rounds: int = 1
+
+
+# ------------------------------------------------------------------ the contact law of one row
+
+
+def regularization(w: np.ndarray, bilateral: np.ndarray) -> np.ndarray:
+    """R (m, 3) [s/kg] in the rows' frames from the Delassus diagonal estimates w (m, 3) [1/kg] of their three
+    directions: near rigid in the normal (period BETA h), SIGMA w in the tangents; a bilateral row near rigid in all
+    three. Bounded below by the rows' rms (Drake's choice), so that no direction is stiffer than the others allow."""
+    rms = np.sqrt((w * w).sum(axis=1) / 3.0)
+    rigid = BETA * BETA / (4.0 * math.pi * math.pi)
+    wn = np.maximum(w[:, 0], rms)
+    wt = np.maximum(0.5 * (w[:, 1] + w[:, 2]), rms)
+    R = np.empty_like(w)
+    R[:, 0] = rigid * wn
+    R[:, 1] = R[:, 2] = np.where(bilateral, rigid * wt, SIGMA * wt)
+    return np.maximum(R, 1e-300)
+
+
+def contact_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, bound: np.ndarray, bilateral: np.ndarray,
+                hessian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """The law of rows with relative velocities vc (m, 3) (frames n, t1, t2) [m/s], regularisation R (m, 3) (equal
+    tangential entries), normal bias v_hat (m,) and friction bound (m,) [N s] (mu times the normal impulse it is
+    lagged on): impulses gamma (m, 3) [N s], the cost's Hessian G = -d gamma / d vc (m, 3, 3) (None unless
+    ``hessian``), the costs (m,) and whether each row sticks (m,) (bilateral, or tangentially within its bound).
+
+    Normal: gamma_n = max(y_n, 0), y_n = (v_hat - vc_n) / R_n, cost 1/2 R_n gamma_n^2 (a bilateral row: gamma = y in
+    all three, y = R^-1 (v_hat e_n - vc)). Tangents, separate from the normal so that sliding lifts nothing:
+    stiction gamma_t = -vc_t / R_t while |gamma_t| <= bound (cost 1/2 R_t |gamma_t|^2), else sliding
+    gamma_t = -bound vc_t / |vc_t| (cost bound |vc_t| - 1/2 R_t bound^2): a convex function of vc_t whose
+    gradient is minus the impulse, Coulomb's maximal dissipation for the given bound."""
+    m = len(vc)
+    inv = 1.0 / R
+    yn = (v_hat - vc[:, 0]) * inv[:, 0]
+    pushing = bilateral | (yn > 0)
+    gamma = np.zeros((m, 3))
+    gamma[:, 0] = np.where(pushing, yn, 0.0)
+    vt = vc[:, 1:]
+    speed = np.sqrt(vt[:, 0] * vt[:, 0] + vt[:, 1] * vt[:, 1])
+    stick = bilateral | ((bound > 0) & (speed * inv[:, 1] <= bound))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slide_scale = np.where(speed > 0, bound / speed, 0.0)  # |gamma_t| / |vc_t| when sliding
+    t_scale = np.where(stick, inv[:, 1], slide_scale)
+    gamma[:, 1:] = -t_scale[:, None] * vt
+    cost = 0.5 * R[:, 0] * gamma[:, 0] ** 2 + np.where(stick, 0.5 * R[:, 1] * (gamma[:, 1] ** 2 + gamma[:, 2] ** 2),
+                                                       bound * speed - 0.5 * R[:, 1] * bound * bound)
+    if not hessian:
+        return gamma, None, cost, stick
+    G = np.zeros((m, 3, 3))
+    G[:, 0, 0] = np.where(pushing, inv[:, 0], 0.0)
+    G[:, 1, 1] = G[:, 2, 2] = t_scale
+    sliding = ~stick & (speed > 0)
+    if sliding.any():  # curvature across the sliding direction only: (bound / |vc_t|) (I - t t^T)
+        t = vt[sliding] / speed[sliding, None]
+        G[sliding, 1:, 1:] -= slide_scale[sliding, None, None] * t[:, :, None] * t[:, None, :]
+    return gamma, G, cost, stick
+
+
+# ------------------------------------------------------------------ the sparse Newton system
+
+
+def _pattern_of_pairs(rows: np.ndarray, cols: np.ndarray, n_nodes: int) -> BlockPattern:
+    """The symmetric block pattern holding the blocks (rows, cols) (and their mirrors) and every diagonal block."""
+    E = np.column_stack([rows, cols])
+    pattern = BlockPattern.from_elements(np.concatenate([E, E[:, ::-1]]), n_nodes)
+    return pattern
+
+
+@dataclass
+class Factor:
+    """The last factorisation made on a group pattern: the values factorised (upper data) and the components they
+    eliminated, kept from Newton iteration to iteration and from step to step. A later Newton system on the same
+    pattern and eliminated components is solved by conjugate gradients preconditioned by it (the system changes
+    little from one iteration or step to the next: contacts switching state, the bodies turning), up to
+    REUSE_ITERATIONS iterations, else factorised anew: a fixed count, not a timing, so that runs repeat anywhere."""
+
+    values: np.ndarray | None = None
+    held: np.ndarray | None = None
+    made: int = 0  # factorisations
+    reused: int = 0  # solves by the kept factor
+    iterations: int = 0  # conjugate gradient iterations, over all reuses
+
+    def usable(self, held: np.ndarray) -> bool:
+        return self.values is not None and self.held is not None and np.array_equal(self.held, held)
+
+
+@dataclass
+class GroupPattern:
+    """The block pattern of the problem's soft unknowns: the parts' own patterns side by side (``offsets`` (P+1,) their
+    first nodes) and the ``extra`` blocks (k, 2) (global node pairs, i < j) that rows between parts or between nodes
+    no element joins create; ``maps[p]`` (nnzb_p,) places part p's blocks; ``solver`` factorises on it."""
+
+    pattern: BlockPattern
+    offsets: np.ndarray
+    extra: np.ndarray
+    maps: list[np.ndarray]
+    solver: SpdSolver
+    keys: np.ndarray  # the pattern's blocks as sorted row * N + col
+    factor: Factor = field(default_factory=Factor)
+
+    @classmethod
+    def of(cls, patterns: list[BlockPattern], extra: np.ndarray, backend: str) -> "GroupPattern":
+        offsets = np.concatenate([[0], np.cumsum([p.n_nodes for p in patterns])]).astype(np.int64)
+        N = int(offsets[-1])
+        rows = np.concatenate([p.block_row + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 0], extra[:, 1]])
+        cols = np.concatenate([p.indices + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 1], extra[:, 0]])
+        pattern = _pattern_of_pairs(rows, cols, N)
+        keys = pattern.block_row * N + pattern.indices
+        maps = [np.searchsorted(keys, (p.block_row + o) * N + (p.indices + o)) for p, o in zip(patterns, offsets[:-1])]
+        solver = SpdSolver(pattern.up_indptr, pattern.up_indices, 3 * N, backend)
+        return cls(pattern, offsets, extra, maps, solver, keys)
+
+    def holds(self, pairs: np.ndarray) -> bool:
+        """Whether the block pairs (k, 2) (global nodes) all lie in this pattern."""
+        if not len(pairs):
+            return True
+        N = self.pattern.n_nodes
+        key = pairs[:, 0] * N + pairs[:, 1]
+        at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
+        return bool(np.all(self.keys[at] == key))
+
+    def blocks(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The block indices of (rows, cols) (global nodes, every pair in the pattern)."""
+        return np.searchsorted(self.keys, rows * self.pattern.n_nodes + cols)
+
+
+class GroupPatterns:
+    """The group patterns kept from step to step, keyed by the parts (the bodies themselves, held so that they stay
+    alive while keyed): a pattern is reused while a step's extra blocks lie within it, else made anew with the union
+    of its extra blocks and the new ones (so that contacts coming and going settle on one pattern), unless that union
+    has grown to more than GROW times what the step needs."""
+
+    GROW = 4
+
+    def __init__(self, backend: str = "auto"):
+        self.backend = backend
+        self._held: dict[tuple, GroupPattern] = {}
+        self.analyses = 0
+
+    def get(self, bodies: tuple[FemBody, ...], extra: np.ndarray) -> GroupPattern:
+        key = tuple(id(b) for b in bodies)
+        held = self._held.get(key)
+        if held is not None and held.holds(extra):
+            return held
+        if held is not None and len(held.extra) + len(extra) <= self.GROW * max(len(extra), 16):
+            extra = np.unique(np.concatenate([held.extra, extra]), axis=0)
+        made = GroupPattern.of([b.pattern for b in bodies], extra, self.backend)
+        made.bodies = bodies  # kept alive with its key
+        self._held = {k: v for k, v in self._held.items() if k != key}
+        self._held[key] = made
+        self.analyses += 1
+        return made
+
+    def save_state(self, handle) -> dict[tuple, np.ndarray]:
+        """The extra blocks of every kept pattern, keyed by its bodies' handles (``handle(body)``, None: not saved):
+        a pattern depends on the contacts of earlier steps, and its factorisation's round-off on the pattern."""
+        out = {}
+        for held in self._held.values():
+            key = tuple(handle(b) for b in held.bodies)
+            if None not in key:
+                f = held.factor
+                out[key] = (held.extra.copy(), None if f.values is None else (f.values.copy(), f.held.copy()))
+        return out
+
+    def load_state(self, state: dict[tuple, np.ndarray], body) -> None:
+        """Make the patterns of :meth:`save_state` again (``body(handle)``: the body of a handle) in place of the kept
+        ones."""
+        self._held = {}
+        for key, (extra, kept) in state.items():
+            bodies = tuple(body(k) for k in key)
+            made = GroupPattern.of([b.pattern for b in bodies], np.asarray(extra, dtype=np.int64).reshape(-1, 2),
+                                   self.backend)
+            made.bodies = bodies
+            if kept is not None:  # the same factor again, from the same values
+                made.solver.factorize(kept[0].copy())
+                made.factor = Factor(kept[0].copy(), kept[1].copy())
+            self._held[tuple(id(b) for b in bodies)] = made
+
+    def retain(self, keep: list[tuple[FemBody, ...]]) -> None:
+        """Drop the patterns of every group not in ``keep``."""
+        keys = {tuple(id(b) for b in bodies) for bodies in keep}
+        self._held = {k: v for k, v in self._held.items() if k in keys}
+
+
+# ------------------------------------------------------------------ the solver
+
+
+class ConvexSolver:
+    """Newton's method on the convex problem of the module doc, for soft parts coupled through rows and rigid unknowns.
+
+    Keeps, from step to step, the group patterns and their symbolic analyses (GroupPatterns). ``rel_tol``,
+    ``max_iter``: the stopping rule (the gradient scaled by diag(A)^-1/2 below rel_tol times the scaled momentum or
+    impulses)."""
+
+    def __init__(self, rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, backend: str = "auto",
+                 lag_tol: float = LAG_TOL, lag_rounds: int = LAG_ROUNDS):
+        self.rel_tol = rel_tol
+        self.max_iter = max_iter
+        self.lag_tol = lag_tol
+        self.lag_rounds = lag_rounds
+        self.patterns = GroupPatterns(backend)
+
+    def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float,
+              lag: np.ndarray | None = None) -> Solution:
+        """Minimise the step's cost for the soft ``parts``, the ``rows`` and the rigid mass matrix M (n, n) (None: no
+        rigid unknowns), the friction lagged from the normal impulses ``lag`` (m,) [N s] (the last step's of the same
+        contacts; NaN or None: none). Returns the Solution."""
+        return _Newton(self, parts, rows, M, h).run(lag)
+
+
+class _Newton:
+    """One solve: the problem's fixed data (offsets, global slots, the rows' regularisation) and its iterations."""
+
+    def __init__(self, owner: ConvexSolver, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float):
+        self.owner, self.parts, self.rows, self.h = owner, parts, rows, h
+        self.n = 0 if M is None else len(M)
+        self.M = M
+        self.offsets = np.concatenate([[0], np.cumsum([p.body.n_nodes for p in parts])]).astype(np.int64)
+        self.N = int(self.offsets[-1])
+        used = rows.parts >= 0
+        self.gnodes = np.where(used, self.offsets[np.maximum(rows.parts, 0)] + rows.nodes, 0)
+        self.w = np.where(used, rows.weights, 0.0)
+        self.held = np.concatenate([p.held for p in parts]) if parts else np.zeros((0, 3), bool)
+        self.Minv = None if not self.n else np.linalg.pinv(M)
+        self.R = regularization(self._delassus_diagonal(), rows.bilateral)
+        self.factorizations = 0
+
+    # -- the rows' geometry
+    def _delassus_diagonal(self) -> np.ndarray:
+        """(m, 3) an estimate of the Delassus operator's diagonal in the rows' directions: the soft slots through the
+        inverses of their nodes' diagonal blocks of A (a held component moves not), the rigid side exactly."""
+        rows = self.rows
+        m = len(rows)
+        out = np.zeros((m, 3))
+        if not m:
+            return out
+        # the inverses of the diagonal blocks of the nodes the rows touch, the held components fixed (zero)
+        touched = np.unique(self.gnodes[self.w != 0])
+        part = np.searchsorted(self.offsets, touched, side="right") - 1
+        D = np.empty((len(touched), 3, 3))
+        free = np.empty((len(touched), 3), bool)
+        for p in np.unique(part).tolist():
+            on = part == p
+            local = touched[on] - self.offsets[p]
+            D[on] = self.parts[p].A[self.parts[p].body.pattern.diag[local]]
+            free[on] = ~self.parts[p].held[local]
+        both = free[:, :, None] & free[:, None, :]
+        Dinv = np.linalg.inv(np.where(both, D, 0.0) + (~free)[:, :, None] * np.eye(3)) * both
+        inv_blocks = np.zeros((self.N, 3, 3))
+        inv_blocks[touched] = Dinv
+        F = rows.frames
+        for s in range(self.gnodes.shape[1]):
+            B = inv_blocks[self.gnodes[:, s]]
+            out += (self.w[:, s] ** 2)[:, None] * np.einsum("mik,mij,mjk->mk", F, B, F)
+        if self.n and rows.jacobian is not None:
+            JF = np.einsum("mij,mik->mkj", rows.jacobian, F)  # (m, 3 directions, n)
+            out += np.einsum("mkj,jl,mkl->mk", JF, self.Minv, JF)
+        return out
+
+    def _point_velocities(self, V: np.ndarray) -> np.ndarray:
+        """sum_s w_s V[node_s] (m, 3) for global soft velocities V (N, 3)."""
+        return np.einsum("ms,msi->mi", self.w, V[self.gnodes])
+
+    def velocities(self, V: np.ndarray, du: np.ndarray) -> np.ndarray:
+        """vc (m, 3) in the rows' frames for soft velocities V (N, 3) and du (n,)."""
+        rel = self._point_velocities(V) - self.rows.rigid_velocity
+        if self.n and self.rows.jacobian is not None:
+            rel -= self.rows.jacobian @ du
+        return np.einsum("mji,mj->mi", self.rows.frames, rel)
+
+    def _impulses_on_soft(self, gamma: np.ndarray) -> np.ndarray:
+        """J_s^T gamma (N, 3): the rows' impulses on the soft nodes."""
+        f = np.einsum("mij,mj->mi", self.rows.frames, gamma)
+        out = np.zeros((self.N, 3))
+        for s in range(self.gnodes.shape[1]):
+            np.add.at(out, self.gnodes[:, s], self.w[:, s, None] * f)
+        return out
+
+    def _impulse_on_rigid(self, gamma: np.ndarray) -> np.ndarray:
+        """J_r^T gamma (n,): the impulse the rows exert on the rigid unknowns (minus the soft side's)."""
+        if not self.n or self.rows.jacobian is None:
+            return np.zeros(self.n)
+        f = np.einsum("mij,mj->mi", self.rows.frames, gamma)
+        return -np.einsum("mi,min->n", f, self.rows.jacobian)
+
+    # -- the soft parts' own terms
+    def _split(self, V: np.ndarray) -> list[np.ndarray]:
+        return [V[o:o2] for o, o2 in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def _A_products(self, V: np.ndarray) -> np.ndarray:
+        return np.concatenate([p.body.pattern.product(p.A, v) for p, v in zip(self.parts, self._split(V))]) \
+            if self.parts else np.zeros((0, 3))
+
+    def _loads(self) -> np.ndarray:
+        return np.concatenate([p.b for p in self.parts]) if self.parts else np.zeros((0, 3))
+
+    # -- the Newton system
+    def _slot_pairs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every row's pairs of used slots: (row (k,), node a (k,), node b (k,) (global nodes, both orders), the
+        product of their weights (k,))."""
+        used = self.w != 0
+        r, s, t = np.nonzero(used[:, :, None] & used[:, None, :])
+        return r, self.gnodes[r, s], self.gnodes[r, t], self.w[r, s] * self.w[r, t]
+
+    def _extra_pairs(self) -> np.ndarray:
+        """The block pairs (k, 2) i < j (global nodes) that rows create beyond the parts' own patterns."""
+        if not len(self.rows) or self.gnodes.shape[1] < 2:
+            return np.zeros((0, 2), np.int64)
+        _, a, b, _ = self._slot_pairs()
+        keep = a < b
+        pairs = np.unique(a[keep] * self.N + b[keep])
+        if not len(pairs):
+            return np.zeros((0, 2), np.int64)
+        i, j = pairs // self.N, pairs % self.N
+        # those in a part's own pattern need nothing: its blocks' keys row * n + col are sorted (block CSR)
+        part_i = np.searchsorted(self.offsets, i, side="right") - 1
+        part_j = np.searchsorted(self.offsets, j, side="right") - 1
+        inside = np.zeros(len(pairs), bool)
+        for p in np.unique(part_i[part_i == part_j]).tolist():
+            sel = np.flatnonzero((part_i == p) & (part_j == p))
+            pat, o = self.parts[p].body.pattern, self.offsets[p]
+            keys = pat.block_row * pat.n_nodes + pat.indices
+            want = (i[sel] - o) * pat.n_nodes + (j[sel] - o)
+            at = np.minimum(np.searchsorted(keys, want), len(keys) - 1)
+            inside[sel] = keys[at] == want
+        return np.column_stack([i[~inside], j[~inside]])
+
+    def _system(self, group: GroupPattern, G: np.ndarray) -> tuple[np.ndarray, float]:
+        """The upper values of A + J_s^T G J_s on the group pattern with the held components eliminated (their rows and
+        columns zeroed, ``scale`` on the diagonal), and the scale."""
+        pat = group.pattern
+        data = np.zeros((pat.nnzb, 9))
+        for p, where in zip(self.parts, group.maps):
+            data[where] += p.A.reshape(-1, 9)
+        if len(self.rows):
+            if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
+                r, a, b, ww = self._slot_pairs()
+                self._blocks = (group, r, group.blocks(a, b), ww)
+            _, r, idx, ww = self._blocks
+            FGF = np.einsum("mij,mjk,mlk->mil", self.rows.frames, G, self.rows.frames).reshape(-1, 9)
+            contrib = ww[:, None] * FGF[r]
+            for k in range(9):
+                data[:, k] += np.bincount(idx, weights=contrib[:, k], minlength=pat.nnzb)
+        up = data.reshape(-1)[pat.up_gather]
+        scale = float(np.mean(up[pat.up_diag])) if len(pat.up_diag) else 1.0
+        mflat = self.held.ravel()
+        if mflat.any():
+            up = up.copy()
+            up[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
+            up[pat.up_diag[mflat]] = scale
+        return up, scale
+
+    def _rigid_blocks(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """H_sr (3N, n) = J_s^T G J_r-part and H_rr (n, n) = M + J_r^T G J_r of the Newton system (held rows zeroed)."""
+        n, rows = self.n, self.rows
+        Hsr = np.zeros((self.N, 3, n))
+        Hrr = self.M.copy()
+        if len(rows) and rows.jacobian is not None:
+            FGF = np.einsum("mij,mjk,mlk->mil", rows.frames, G, rows.frames)
+            C = -np.einsum("mij,mjn->min", FGF, rows.jacobian)  # d (J_s^T gamma-gradient) / d du per row, (m, 3, n)
+            for s in range(self.gnodes.shape[1]):
+                np.add.at(Hsr, self.gnodes[:, s], self.w[:, s, None, None] * C)
+            Hrr = Hrr + np.einsum("min,mij,mjk->nk", rows.jacobian, FGF, rows.jacobian)
+        Hsr = Hsr.reshape(3 * self.N, n)
+        Hsr[self.held.ravel()] = 0.0
+        return Hsr, Hrr
+
+    def _direction(self, group: GroupPattern, G: np.ndarray, gV: np.ndarray, gu: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """The Newton step (dV (N, 3), ddu (n,)) for the gradients gV (N, 3) (held components zero) and gu (n,): by
+        conjugate gradients preconditioned by the pattern's kept factorisation where it serves (Factor), else by a
+        new factorisation of the soft part and a Schur complement for the rigid unknowns."""
+        up, _ = self._system(group, G)
+        Hsr, Hrr = self._rigid_blocks(G) if self.n else (np.zeros((3 * self.N, 0)), np.zeros((0, 0)))
+        rhs = np.concatenate([-gV.reshape(-1), -gu])
+        factor = group.factor
+        if factor.usable(self.held):
+            z = self._reuse(group, up, Hsr, Hrr, rhs)
+            if z is not None:
+                factor.reused += 1
+                return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+        group.solver.factorize(up)
+        factor.values, factor.held = up, self.held.copy()
+        factor.made += 1
+        self.factorizations += 1
+        z = self._schur_solve(group.solver, Hsr, Hrr, rhs[:, None])[:, 0]
+        return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+
+    def _schur_solve(self, solver: SpdSolver, Hsr: np.ndarray, Hrr: np.ndarray, R: np.ndarray,
+                     Y: np.ndarray | None = None, S: np.ndarray | None = None) -> np.ndarray:
+        """Solve [[F, Hsr], [Hsr^T, Hrr]] z = R (3N + n, k) with F the soft part ``solver`` factorised (held
+        components eliminated) by the Schur complement S = Hrr - Hsr^T F^-1 Hsr (Y = F^-1 Hsr and S given, or made)."""
+        n3 = 3 * self.N
+        held = self.held.ravel()
+        if not self.n:
+            x = solver.solve(R[:n3]).reshape(n3, -1)
+            x[held] = 0.0
+            return x
+        if Y is None:
+            Y = solver.solve(Hsr).reshape(n3, -1)
+            Y[held] = 0.0
+            S = Hrr - Hsr.T @ Y
+            S = 0.5 * (S + S.T)
+        y = solver.solve(R[:n3]).reshape(n3, -1)
+        y[held] = 0.0
+        r = R[n3:] - Hsr.T @ y
+        try:
+            du = np.linalg.solve(S, r)
+        except np.linalg.LinAlgError:
+            du = np.linalg.lstsq(S, r, rcond=None)[0]
+        return np.concatenate([y - Y @ du, du])
+
+    def _reuse(self, group: GroupPattern, up: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
+               ) -> np.ndarray | None:
+        """The Newton system H z = rhs solved by conjugate gradients preconditioned by the kept factorisation (with the
+        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL."""
+        pat, n3 = group.pattern, 3 * self.N
+        U = sp.csr_matrix((up, pat.up_indices, pat.up_indptr), shape=(n3, n3))
+        diag = up[pat.up_diag]
+        free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
+
+        def H(z):
+            x = z[:n3]
+            out = np.empty_like(z)
+            out[:n3] = U @ x + U.T @ x - diag * x
+            if self.n:
+                out[:n3] += Hsr @ z[n3:]
+                out[n3:] = Hsr.T @ x + Hrr @ z[n3:]
+            return np.where(free, out, 0.0)
+
+        Y = S = None
+        if self.n:
+            Y = group.solver.solve(Hsr).reshape(n3, -1)
+            Y[self.held.ravel()] = 0.0
+            S = Hrr - Hsr.T @ Y
+            S = 0.5 * (S + S.T)
+
+        def precondition(r):
+            return self._schur_solve(group.solver, Hsr, Hrr, r[:, None], Y, S)[:, 0]
+
+        b = np.where(free, rhs, 0.0)
+        target = REUSE_TOL * float(np.linalg.norm(b))
+        z = np.zeros_like(b)
+        r = b.copy()
+        y = precondition(r)
+        d = y.copy()
+        ry = float(r @ y)
+        for it in range(1, REUSE_ITERATIONS + 1):
+            Hd = H(d)
+            dHd = float(d @ Hd)
+            if not dHd > 0:
+                return None
+            a = ry / dHd
+            z += a * d
+            r -= a * Hd
+            group.factor.iterations += 1
+            if float(np.linalg.norm(r)) <= target:
+                return z
+            y = precondition(r)
+            ry_new = float(r @ y)
+            d = y + (ry_new / ry) * d
+            ry = ry_new
+        return None
+
+    # -- the iteration
+    def run(self, lag: np.ndarray | None) -> Solution:
+        """Newton's method with the friction bounds mu * lag (m,) [N s] (None: lagged on nothing yet, so the first
+        round is frictionless), then again with the bounds lagged on the normal impulses found, until they agree to
+        LAG_TOL (Coulomb's law at the fixed point) or LAG_ROUNDS rounds; each round starts from the last one's
+        velocities."""
+        parts, rows = self.parts, self.rows
+        V = np.concatenate([np.where(p.held, p.value, p.guess) for p in parts]) if parts else np.zeros((0, 3))
+        du = np.zeros(self.n)
+        lag = np.zeros(len(rows)) if lag is None else np.where(np.isfinite(lag), np.maximum(lag, 0.0), 0.0)
+        self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs())
+        self.b = self._loads()
+        free = ~self.held
+        # diag(A)^-1/2, the stopping rule's scaling (SAP's)
+        dA = (np.concatenate([p.A[p.body.pattern.diag][:, [0, 1, 2], [0, 1, 2]] for p in parts]) if parts
+              else np.zeros((0, 3)))
+        self.scale_s = np.where(free, 1.0 / np.sqrt(np.maximum(dA, 1e-300)), 0.0)
+        self.scale_r = 1.0 / np.sqrt(np.maximum(np.diag(self.M), 1e-300)) if self.n else np.zeros(0)
+        friction = rows.mu > 0
+        iterations, rounds = 0, 0
+        for rounds in range(1, self.owner.lag_rounds + 1):
+            self.bound = rows.mu * lag
+            V, du, gamma, vc, stick, its, converged, residual, cost = self._newton(V, du)
+            iterations += its
+            gn = gamma[:, 0]
+            change = np.abs(gn - lag)[friction].max(initial=0.0)
+            lag = gn.copy()
+            if change <= self.owner.lag_tol * max(np.abs(gn).max(initial=0.0), 1e-300):
+                break
+        return Solution(self._split(V), du, gamma, vc, stick, iterations, self.factorizations, cost, residual,
+                        converged, rounds)
+
+    def _evaluate(self, V: np.ndarray, du: np.ndarray, hessian: bool = True):
+        """(vc, gamma, G, stick, A V, cost) at (V, du) under the current friction bounds."""
+        rows = self.rows
+        vc = self.velocities(V, du)
+        gamma, G, cost_c, stick = contact_law(vc, self.R, rows.v_hat, self.bound, rows.bilateral, hessian)
+        AV = self._A_products(V)
+        cost = 0.5 * float(np.vdot(V, AV)) - float(np.vdot(self.b, V)) + float(cost_c.sum())
+        if self.n:
+            cost += 0.5 * float(du @ self.M @ du)
+        return vc, gamma, G, stick, AV, cost
+
+    def _newton(self, V: np.ndarray, du: np.ndarray):
+        """Newton's method from (V, du) under the current bounds; returns (V, du, gamma, vc, stick, iterations,
+        converged, residual, cost). Stops when the scaled gradient is below rel_tol times the scaled momentum or
+        impulses, or when a full-length step no longer lowers the cost beyond round-off."""
+        free = ~self.held
+        vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
+        it, converged, residual = 0, False, np.inf
+        for it in range(self.owner.max_iter + 1):
+            jc = self._impulses_on_soft(gamma)
+            jr = self._impulse_on_rigid(gamma)
+            gV = np.where(free, AV - self.b - jc, 0.0)
+            gu = self.M @ du - jr if self.n else np.zeros(0)
+            grad = math.hypot(float(np.linalg.norm(gV * self.scale_s)), float(np.linalg.norm(gu * self.scale_r)))
+            mom = math.hypot(float(np.linalg.norm(AV * self.scale_s)),
+                             float(np.linalg.norm(self.M @ du * self.scale_r)) if self.n else 0.0)
+            imp = math.hypot(float(np.linalg.norm(jc * self.scale_s)), float(np.linalg.norm(jr * self.scale_r)))
+            residual = grad / max(mom, imp, 1e-300)
+            if grad <= ABS_TOL + self.owner.rel_tol * max(mom, imp) or (not len(self.rows) and it > 0):
+                converged = True
+                break
+            if it == self.owner.max_iter:
+                break
+            dV, ddu = self._direction(self.group, G, gV, gu)
+            alpha = self._line_search(V, du, dV, ddu, AV, gamma)
+            V = V + alpha * dV
+            du = du + alpha * ddu
+            previous = cost
+            vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
+            if alpha > 0.5 and abs(previous - cost) <= COST_TOL * max(abs(cost), abs(previous), 1e-300):
+                converged = True  # at round-off: the cost no longer falls
+                residual = min(residual, grad / max(mom, imp, 1e-300))
+                it += 1
+                break
+        return V, du, gamma, vc, stick, it, converged, residual, cost
+
+    def _line_search(self, V, du, dV, ddu, AV, gamma) -> float:
+        """The exact minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step: Newton on
+        dl/dalpha safeguarded by bisection (Castro et al.'s line search)."""
+        rows = self.rows
+        AdV = self._A_products(dV)
+        dAd = float(np.vdot(dV, AdV)) + (float(ddu @ self.M @ ddu) if self.n else 0.0)
+        g0 = float(np.vdot(dV, AV - self.b)) + (float(ddu @ self.M @ du) if self.n else 0.0)
+        if not len(rows):
+            return 1.0
+        vc0 = self.velocities(V, du)
+        # velocities() is affine in (V, du): its constant part, the rigid side's free motion, added back
+        dvc = self.velocities(dV, ddu) + np.einsum("mji,mj->mi", rows.frames, rows.rigid_velocity)
+
+        def derivatives(alpha):
+            gamma_a, G_a, _, _ = contact_law(vc0 + alpha * dvc, self.R, rows.v_hat, self.bound, rows.bilateral)
+            d1 = g0 + alpha * dAd - float(np.sum(dvc * gamma_a))
+            d2 = dAd + float(np.einsum("mi,mij,mj->", dvc, G_a, dvc))
+            return d1, d2
+
+        d0 = g0 - float(np.sum(dvc * gamma))
+        lo, hi = 0.0, 1.5
+        d_hi, _ = derivatives(hi)
+        if d_hi <= 0:
+            return hi
+        d1, d2 = derivatives(1.0)
+        if abs(d1) <= 1e-10 * abs(d0):
+            return 1.0
+        alpha = 1.0
+        if d1 < 0:
+            lo = 1.0
+        else:
+            hi = 1.0
+        for _ in range(100):
+            step = alpha - d1 / d2 if d2 > 0 else 0.5 * (lo + hi)
+            alpha = step if lo < step < hi else 0.5 * (lo + hi)
+            d1, d2 = derivatives(alpha)
+            if abs(d1) <= 1e-10 * abs(d0) or hi - lo <= 1e-12:
+                break
+            if d1 < 0:
+                lo = alpha
+            else:
+                hi = alpha
+        return alpha

@@ -1,0 +1,203 @@
+"""The coupled step as one convex problem (integration/convex.py): its contact law against finite differences of its
+own cost, and its Newton solver against a general-purpose minimiser (scipy's) of the same cost written out densely
+here, for soft bodies coupled by rows to each other and to a free rigid body."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.optimize as so
+
+import softbody as sb
+from integration import convex
+from integration.contact import tangent_frames
+from softbody.solvers import new_solver
+from softbody.integrator import step_system
+
+
+def _random_rows(rng, m):
+    vc = rng.normal(size=(m, 3))
+    R = np.exp(rng.normal(size=(m, 3)))
+    R[:, 2] = R[:, 1]  # isotropic in the tangent plane, as convex.regularization makes it
+    v_hat = rng.normal(size=m)
+    bound = np.where(rng.random(m) < 0.2, 0.0, np.exp(rng.normal(size=m)))
+    bilateral = rng.random(m) < 0.1
+    return vc, R, v_hat, bound, bilateral
+
+
+def test_contact_law_is_the_gradient_and_hessian_of_its_cost():
+    """gamma = -d cost / d vc and G = -d gamma / d vc by central differences, at random rows in every regime (apart,
+    pushing and sticking, pushing and sliding, frictionless, bilateral); G symmetric positive semi-definite; the
+    impulses never pull (unilateral) and never exceed their friction bound."""
+    rng = np.random.default_rng(3)
+    m = 4000
+    vc, R, v_hat, bound, bilateral = _random_rows(rng, m)
+    gamma, G, cost, stick = convex.contact_law(vc, R, v_hat, bound, bilateral)
+    eps = 1e-7
+    for k in range(3):
+        step = np.zeros((m, 3))
+        step[:, k] = eps
+        gp, _, cp, _ = convex.contact_law(vc + step, R, v_hat, bound, bilateral, hessian=False)
+        gm, _, cm, _ = convex.contact_law(vc - step, R, v_hat, bound, bilateral, hessian=False)
+        scale = 1.0 + np.abs(gamma).max(axis=1)
+        # away from the kinks (a regime's boundary within eps), the differences are exact to round-off
+        smooth = np.isclose((cp - cm) / (2 * eps), -gamma[:, k], rtol=1e-5, atol=1e-5 * scale)
+        assert smooth.mean() > 0.999
+        dG = -(gp - gm) / (2 * eps)
+        assert (np.abs(dG - G[:, :, k]).max(axis=1) <= 1e-4 * (1.0 + np.abs(G).max(axis=(1, 2)))).mean() > 0.999
+    assert np.allclose(G, np.swapaxes(G, 1, 2))
+    assert np.linalg.eigvalsh(G).min() >= -1e-9 * np.abs(G).max()
+    assert (gamma[~bilateral, 0] >= 0).all()
+    assert (np.hypot(gamma[~bilateral, 1], gamma[~bilateral, 2]) <= bound[~bilateral] * (1 + 1e-12) + 1e-15).all()
+    # the regimes are all there
+    sliding = ~bilateral & (bound > 0) & ~stick & (gamma[:, 0] > 0)
+    assert sliding.sum() > 100 and (stick & ~bilateral & (gamma[:, 0] > 0)).sum() > 100 and (gamma[:, 0] == 0).sum() > 100
+
+
+def _cube(center, kind="tet4"):
+    mesh = sb.box_mesh((0.04, 0.04, 0.04), (1, 1, 1), kind, center=center)
+    return sb.FemBody(mesh, sb.LinearElastic(2e4, 0.3, 800.0), damping=(0.1, 0.001))
+
+
+def _problem(rng):
+    """Two soft cubes and a free rigid body (6 unknowns) coupled by random rows: node-face rows between the cubes,
+    node rows against the rigid body, an attachment, random friction; the lower cube held at two nodes."""
+    h = 0.01
+    bodies = [_cube((0, 0, 0.02)), _cube((0.005, 0.003, 0.061))]
+    parts = []
+    for b in bodies:
+        b.velocities = 0.05 * rng.normal(size=b.velocities.shape)
+        system = step_system(b, h, np.tile([0, 0, -9.81], (b.n_nodes, 1)) * b.node_mass[:, None], new_solver(b),
+                             "direct")
+        held = np.zeros((b.n_nodes, 3), bool)
+        value = np.zeros((b.n_nodes, 3))
+        parts.append(convex.SoftPart(b, system.A, system.b, held, value, b.velocities.copy()))
+    parts[0].held[[0, 1]] = True
+    n = 6
+    m = 14
+    P, N, W = np.full((m, 4), -1), np.zeros((m, 4), np.int64), np.zeros((m, 4))
+    for r in range(m):
+        if r < 8:  # node of the upper cube against a point of the lower cube's top
+            P[r] = [1, 0, 0, 0]
+            N[r] = [rng.integers(8), *rng.choice(8, 3, replace=False)]
+            w = rng.dirichlet(np.ones(3))
+            W[r] = [1.0, -w[0], -w[1], -w[2]]
+        else:  # a node of either against the rigid body
+            P[r, 0] = rng.integers(2)
+            N[r, 0] = rng.integers(8)
+            W[r, 0] = 1.0
+    normals = rng.normal(size=(m, 3))
+    normals[:, 2] = np.abs(normals[:, 2]) + 1.0
+    J = np.zeros((m, 3, n))
+    J[8:] = rng.normal(size=(m - 8, 3, n))
+    rows = convex.Rows(P, N, W, tangent_frames(normals), 0.1 * rng.normal(size=(m, 3)), J, 0.05 * rng.normal(size=m),
+                       rng.uniform(0.0, 0.8, m), np.zeros(m, bool))
+    rows.bilateral[-1] = True
+    L = rng.normal(size=(n, n))
+    M = L @ L.T + n * np.eye(n)
+    return parts, rows, M, h
+
+
+def _dense_cost(parts, rows, M, R, bound):
+    """The convex problem's cost and gradient over z = (free soft velocities, du), written out densely: the reference
+    for the sparse Newton solver."""
+    offs = np.concatenate([[0], np.cumsum([p.body.n_nodes for p in parts])])
+    N3 = 3 * offs[-1]
+    A = np.zeros((N3, N3))
+    b = np.zeros(N3)
+    for p, o in zip(parts, offs[:-1]):
+        Ab = p.body.pattern.to_csr(p.A).toarray()
+        A[3 * o:3 * o + Ab.shape[0], 3 * o:3 * o + Ab.shape[0]] = Ab
+        b[3 * o:3 * o + Ab.shape[0]] = p.b.ravel()
+    held = np.concatenate([p.held.ravel() for p in parts])
+    value = np.concatenate([p.value.ravel() for p in parts])
+    free = ~held
+    m, n = len(rows), len(M)
+    Js = np.zeros((m, 3, N3))
+    for r in range(m):
+        for s in range(rows.parts.shape[1]):
+            if rows.parts[r, s] < 0:
+                continue
+            g = 3 * (offs[rows.parts[r, s]] + rows.nodes[r, s])
+            Js[r, :, g:g + 3] += rows.weights[r, s] * rows.frames[r].T
+    Jr = -np.einsum("rji,rjn->rin", rows.frames, rows.jacobian)
+    c = -np.einsum("rji,rj->ri", rows.frames, rows.rigid_velocity)
+
+    def split(z):
+        V = value.copy()
+        V[free] = z[:free.sum()]
+        return V, z[free.sum():]
+
+    def f(z):
+        V, du = split(z)
+        vc = Js @ V + Jr @ du + c
+        yn = (rows.v_hat - vc[:, 0]) / R[:, 0]
+        gn = np.where(rows.bilateral, yn, np.maximum(yn, 0.0))
+        cost = 0.5 * V @ A @ V - b @ V + 0.5 * du @ M @ du + 0.5 * np.sum(R[:, 0] * gn ** 2)
+        vt = vc[:, 1:]
+        speed = np.linalg.norm(vt, axis=1)
+        stick = rows.bilateral | (speed / R[:, 1] <= bound)
+        gt = np.where(stick[:, None], -vt / R[:, 1:], -bound[:, None] * vt / np.maximum(speed, 1e-300)[:, None])
+        cost += np.sum(np.where(stick, 0.5 * R[:, 1] * (gt ** 2).sum(axis=1), bound * speed - 0.5 * R[:, 1] * bound ** 2))
+        gamma = np.column_stack([gn, gt])
+        grad_V = A @ V - b - np.einsum("rin,ri->n", Js, gamma)
+        grad_u = M @ du - np.einsum("rin,ri->n", Jr, gamma)
+        return cost, np.concatenate([grad_V[free], grad_u])
+
+    def z0():
+        return np.concatenate([np.concatenate([p.guess.ravel() for p in parts])[free], np.zeros(n)])
+
+    return f, z0, split
+
+
+def test_newton_finds_the_minimiser_a_general_solver_finds():
+    """The sparse Newton solve of two soft bodies and a rigid body coupled by random rows (cross-body blocks, rigid
+    Schur complement, supports, friction, an attachment) reaches the minimum that scipy's L-BFGS finds for the same
+    cost written out densely (with the friction bounds the solver ended on), to the tolerance of the comparison."""
+    rng = np.random.default_rng(11)
+    parts, rows, M, h = _problem(rng)
+    solver = convex.ConvexSolver(rel_tol=1e-12)
+    sol = solver.solve(parts, rows, M, h)
+    assert sol.converged and sol.iterations >= 2
+    newton = convex._Newton(solver, parts, rows, M, h)
+    bound = rows.mu * sol.gamma[:, 0]  # the friction bounds of the final round (Coulomb at the fixed point)
+    f, z0, split = _dense_cost(parts, rows, M, newton.R, bound)
+    ref = so.minimize(f, z0(), jac=True, method="L-BFGS-B", options={"maxiter": 20000, "ftol": 1e-16, "gtol": 1e-12})
+    V_ref, du_ref = split(ref.x)
+    V = np.concatenate(sol.velocities).ravel()
+    # no higher than the reference's minimum, the points agree as far as the (stiff) reference resolves them, and
+    # the dense gradient vanishes at the solution: the minimum of a convex function
+    z = np.concatenate([V[np.concatenate([~p.held.ravel() for p in parts])], sol.du])
+    cost, grad = f(z)
+    assert cost <= ref.fun + 1e-9 * abs(ref.fun)
+    assert np.abs(V - V_ref).max() < 1e-4 and np.abs(sol.du - du_ref).max() < 1e-4
+    assert np.abs(grad).max() < 1e-7 * np.abs(f(z0())[1]).max()
+    # supports stay as prescribed
+    assert np.array_equal(sol.velocities[0][parts[0].held], parts[0].value[parts[0].held])
+
+
+def test_friction_is_lagged_to_coulombs_law():
+    """At the solution each row's tangential impulse is within mu times its own normal impulse (not merely the lagged
+    bound), and sliding rows slide against their impulse (maximal dissipation)."""
+    rng = np.random.default_rng(5)
+    parts, rows, M, h = _problem(rng)
+    sol = convex.ConvexSolver().solve(parts, rows, M, h)
+    g = sol.gamma
+    unilateral = ~rows.bilateral
+    gt = np.hypot(g[:, 1], g[:, 2])
+    assert (gt[unilateral] <= rows.mu[unilateral] * g[unilateral, 0] * (1 + 1e-3) + 1e-12).all()
+    sliding = unilateral & ~sol.stiction & (g[:, 0] > 0) & (rows.mu > 0)
+    assert (np.einsum("mi,mi->m", sol.vc[sliding, 1:], g[sliding, 1:]) <= 1e-12).all()
+
+
+def test_a_kept_factorisation_solves_the_next_steps_alike():
+    """The same problem solved twice by one solver: the second time (mostly) by conjugate gradients preconditioned by
+    the first solve's factorisation (Factor), to the same velocities within the Newton tolerance."""
+    rng = np.random.default_rng(7)
+    parts, rows, M, h = _problem(rng)
+    solver = convex.ConvexSolver(rel_tol=1e-12)
+    first = solver.solve(parts, rows, M, h)
+    second = solver.solve(parts, rows, M, h)
+    factor = next(iter(solver.patterns._held.values())).factor
+    assert factor.reused > 0 and factor.iterations > 0
+    for a, b in zip(first.velocities, second.velocities):
+        assert np.abs(a - b).max() < 1e-9
