@@ -104,7 +104,7 @@ def tray(count: int, steps: int) -> dict:
     world = World(client=cid)
     cubes = [cube(world, (0.05 * (k % 3 - 1), 0.05 * ((k // 3) % 3 - 1), 0.08 + 0.05 * (k // 9))) for k in range(count)]
     times = [timed(world) for _ in tqdm(range(steps), desc=f"{count} cubes in the tray")]
-    surfaces = [world._soft_surface[id(c)] for c in cubes]
+    surfaces = [world.entry(c).surface for c in cubes]
     depth = 0.0
     for a in range(count):
         for b in range(a + 1, count):

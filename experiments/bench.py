@@ -417,10 +417,10 @@ def capture_floor(world, body) -> Floor:
     the analysis, for reference).
     """
     captured = {}
-    solve_velocities = world.sim.velocity_solver
+    solve_velocities = world._solve_velocities  # the World's contact solve, which the step hands its systems
 
-    def capture(bodies, systems, supports, t_next):
-        for b, system in zip(bodies, systems):
+    def capture(record, systems, supports):
+        for b, system in zip(record.bodies, systems):
             inner = system.solve
 
             def solve(cons, *a, _b=b, _system=system, _inner=inner, **kw):
@@ -429,15 +429,13 @@ def capture_floor(world, body) -> Floor:
                 return _inner(cons, *a, **kw)
 
             system.solve = solve
-        if solve_velocities is None:
-            return [system.solve(cons)[0] for system, cons in zip(systems, supports)]
-        return solve_velocities(bodies, systems, supports, t_next)
+        return solve_velocities(record, systems, supports)
 
-    world.sim.velocity_solver = capture
+    world._solve_velocities = capture  # for this one step (an attribute of the instance over the method)
     try:
         world.step()
     finally:
-        world.sim.velocity_solver = solve_velocities
+        del world._solve_velocities
     system, cons = captured[id(body)]
     A = getattr(system, "A", None)  # DirectSystem: the assembled block data
     if A is None:  # IterativeSystem: its assembled c_m M + c_k K'(R)
@@ -620,7 +618,7 @@ def measure_pybullet(spec: dict) -> dict:
     sphere = next(rb for rb in scene.world.rigids.values() if rb.shape == "sphere")
     run_spec = dict(spec, E=mat.E, nu=mat.nu, density=mat.density, volume=float(body.mesh.volume()),
                     sphere_radius=float(sphere.params["radius"]), dt=scene.world.dt,
-                    friction=float(scene.world.friction[id(body)]))
+                    friction=float(scene.world.entry(body).friction))
     scene.world.close()
     n_steps = spec["warmup"] + spec["steps"] * spec["repeats"]
     tried, k = [], 1

@@ -209,7 +209,7 @@ class CollisionDetector:
         between nodes (face contacts; a node within ``touch`` of a link rests on it) and, given the surface's
         ``edges`` (E, 2) with the triangles each bounds (E, 2), the points of its edges deepest into immovable
         links of primitive parts, between nodes (edge_contacts; not yet for links the coupled solve moves, whose
-        rows at a box's rim gained energy in the frictional solve). A supported node has contacts only with movable links (a
+        rows at a box's rim gained energy in the former dense frictional solve). A supported node has contacts only with movable links (a
         support wins over contact, but a rigid body resting on it must be held). Far links cost no query (broad
         phase on boxes). ``incidence``: the triangles' node_incidence, if at hand (for the surface normals)."""
         if not len(surface):

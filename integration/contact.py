@@ -600,20 +600,17 @@ class ContactSolver:
         # Non-penetration stays exact in every iteration.
         self.friction_switches = friction_switches
         self.cone_tol = cone_tol
-        # (kind, id(body)) -> (active keys, sticking keys, {slipping key: friction force (3,) world [N]})
-        self.previous: dict[tuple[str, int], tuple[set, set, dict]] = {}
+        # (kind, body) -> (active keys, sticking keys, {slipping key: friction force (3,) world [N]})
+        self.previous: dict[tuple[str, object], tuple[set, set, dict]] = {}
         # the coupled problem of bodies touching movable rigid bodies, each other or frictional faces (convex.py):
         # keeps its sparse patterns and their analyses from step to step
         self.convex = ConvexSolver()
-        # (kind, id(body)) -> {contact key: its normal impulse [N s] in the last convex solve}: the friction bounds of
-        # the next step's same contacts start lagged on them
-        self.lagged: dict[tuple[str, int], dict[int, float]] = {}
 
     def _set(self, kind: str, body, c, make):
         if c is None or not len(c):
-            self.previous[(kind, id(body))] = (set(), set(), {})
+            self.previous[(kind, body)] = (set(), set(), {})
             return None
-        return make(self.previous.get((kind, id(body)), (set(), set(), {})))
+        return make(self.previous.get((kind, body), (set(), set(), {})))
 
     def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None,
               pairs: PairContacts | None = None) -> StepSolution:
@@ -622,11 +619,11 @@ class ContactSolver:
         between the soft bodies (their parts index ``steps``).
 
         A body in touch with a movable rigid body (a contact or attachment whose Jacobian is not zero) is
-        solved in the dense mode with all others like it (:meth:`_solve_dense`); so are bodies in soft contact
-        (with each other or themselves), whose contacts come and go as the surfaces slide over each other:
-        the dense mode settles stick and slip within the step, where the active set carries a contact's
-        change to the next step. The others are solved by the active set on eliminated node contacts
-        (:meth:`_solve_sparse`)."""
+        solved in the coupled convex problem with all others like it (:meth:`_solve_convex`, convex.py); so are
+        bodies in soft contact (with each other or themselves), whose contacts come and go as the surfaces slide
+        over each other, and bodies with frictional face contacts: the convex problem settles stick and slip within
+        the step, where the active set carries a contact's change to the next step. The others are solved by the
+        active set on eliminated node contacts (:meth:`_solve_sparse`)."""
         n = 0 if mass_matrix is None else len(mass_matrix)
         prepared, dense, held_by = [], [], []
         for st in steps:
@@ -659,7 +656,7 @@ class ContactSolver:
                 on = pairs.parts == i
                 free |= on & (~np.isin(pairs.nodes, held) if len(held) else True)
             pairs = pairs.select(free.any(axis=1))
-        if pairs is not None and len(pairs):  # bodies in soft contact go to the dense mode with all they touch
+        if pairs is not None and len(pairs):  # bodies in soft contact go to the convex problem with all they touch
             group = _groups(len(steps), pairs)
             for g in np.unique(group):
                 members = np.flatnonzero(group == g)
@@ -784,7 +781,7 @@ class ContactSolver:
                 if cset is None:
                     res.append(None)
                 else:
-                    result, self.previous[(kind, id(body))] = cset.result(it)
+                    result, self.previous[(kind, body)] = cset.result(it)
                     res.append(result)
             results[j] = (v, r, *res)
         pair_result = None
@@ -816,7 +813,7 @@ class ContactSolver:
         for j, st, nset, (v, r) in zip(index, steps, nodes, out):
             node_result = None
             if nset is not None:
-                node_result, self.previous[("node", id(st.system.body))] = nset.result(it)
+                node_result, self.previous[("node", st.system.body)] = nset.result(it)
             results[j] = (v, r, node_result, None)
         return None, it, None
 
@@ -830,17 +827,11 @@ class ContactSolver:
         row_parts = []
         count = 0
 
-        lag_parts = []  # the normal impulses the rows' friction starts lagged on (last step's; NaN: none)
-
         def add(i, kind, c, rows, keep):
             nonlocal count
             kinds.append((i, kind, c, slice(count, count + len(rows)), keep))
             row_parts.append(rows)
             count += len(rows)
-            held = self.lagged.get((kind, 0 if kind == "soft" else id(steps[i].system.body)), {})
-            keys = () if kind == "attach" else (c.node if keep is None else c.node[keep]).tolist()
-            lag_parts.append(np.array([held.get(k, np.nan) for k in keys]) if kind != "attach"
-                             else np.full(len(rows), np.nan))
 
         for i, (st, (_, _, c, f)) in enumerate(zip(steps, prepared)):
             system, sup = st.system, st.supports
@@ -855,7 +846,7 @@ class ContactSolver:
             if c is not None and len(c):
                 add(i, "node", c, self._contact_rows(c, i, c.node[:, None], np.ones((len(c), 1)), h, n), None)
             else:
-                self.previous[("node", id(body))] = (set(), set(), {})
+                self.previous[("node", body)] = (set(), set(), {})
             if f is not None and len(f):
                 # a rigid point holds on the triangles it lies over (within FACE_BAND beyond their edges: a point on
                 # the edge between two is over both), on an edge it was found on, and on its primary triangle
@@ -865,7 +856,7 @@ class ContactSolver:
                 sel = f.select(keep)
                 add(i, "face", f, self._contact_rows(sel, i, sel.nodes, sel.weights, h, n), keep)
             else:
-                self.previous[("face", id(body))] = (set(), set(), {})
+                self.previous[("face", body)] = (set(), set(), {})
             a = st.attachments
             if a is not None and len(a):
                 kept = ~np.isin(a.node, sup.nodes)
@@ -877,14 +868,12 @@ class ContactSolver:
         if pairs is not None and len(pairs):
             add(None, "soft", pairs, self._contact_rows(pairs, pairs.parts, pairs.nodes, pairs.weights, h, n), None)
         rows = ConvexRows.concat(row_parts, n)
-        lag = np.concatenate(lag_parts) if lag_parts else np.zeros(0)
-        sol = self.convex.solve(parts, rows, M, h, None if np.isnan(lag).all() else lag)
+        sol = self.convex.solve(parts, rows, M, h)
         F = rows.frames
         force = np.einsum("mij,mj->mi", F, sol.gamma) / h  # on the weighted (soft) point [N]
         gap_end = h * (sol.vc[:, 0] - rows.v_hat)  # the normal gap at the end of the step (of its bounded target)
         per_body = {i: [None, None] for i in range(len(steps))}
         reactions = [np.zeros((st.system.body.n_nodes, 3)) for st in steps]
-        lagged_soft = {}
         pair_result = None
         for i, kind, c, sl, keep in kinds:
             g, fr, stick = sol.gamma[sl], force[sl], sol.stiction[sl]
@@ -905,16 +894,12 @@ class ContactSolver:
             state = (set(keys[active].tolist()), set(keys[sticking].tolist()),
                      {int(k): full_force[j] - (full_force[j] @ c.normal[j]) * c.normal[j]
                       for j, k in zip(np.flatnonzero(sliding), keys[sliding].tolist())})
-            impulses = {int(k): float(gn) for k, gn in zip(keys[where].tolist(), g[:, 0])}
             if kind == "soft":
                 pair_result = result
                 self._keep_pair_state(state)
-                lagged_soft.update(impulses)
             else:
-                self.previous[(kind, id(steps[i].system.body))] = state
-                self.lagged[(kind, id(steps[i].system.body))] = impulses
+                self.previous[(kind, steps[i].system.body)] = state
                 per_body[i][0 if kind == "node" else 1] = result
-        self.lagged[("soft", 0)] = lagged_soft
         for j, i in zip(index, range(len(steps))):
             results[j] = (sol.velocities[i], reactions[i], *per_body[i])
         return sol.du, sol.iterations, pair_result

@@ -41,8 +41,9 @@ import scipy.sparse as sp
 
 from softbody.assembly import BlockPattern
 from softbody.body import FemBody
-from softbody.errors import SolverError
 from softbody.linsolve import SpdSolver
+
+from . import kernels
 
 #: the contact period in steps (Castro et al.'s beta): R_n = BETA^2 / (4 pi^2) w
 BETA = 0.03
@@ -57,14 +58,23 @@ MAX_ITER = 60
 #: a Newton system is solved by conjugate gradients preconditioned by the last factorisation on its pattern in at most
 #: this many iterations (each costs a pair of triangular solves and a sparse product), else factorised anew
 REUSE_ITERATIONS = 8
-#: ... to this residual, relative to the right-hand side's
-REUSE_TOL = 1e-10
+#: ... to this residual, relative to the right-hand side's (an inexact Newton direction: the line search is exact)
+REUSE_TOL = 1e-6
+#: ... in systems of at least this many soft unknowns: a smaller one is factorised anew at less cost than the products
+#: and triangular solves of the iterations
+REUSE_MIN = 3000
+#: the line search stops where the cost's slope along the step is this small relative to its slope at the start
+LINE_TOL = 1e-4
 #: ... or when a step no longer lowers the cost by more than this (relative): round-off
 COST_TOL = 1e-14
-#: the friction bounds are lagged on the normal impulses until these change by at most LAG_TOL (relative to the
-#: largest), in at most LAG_ROUNDS rounds of Newton's method
+#: where rows slide, the friction bounds are lagged on the normal impulses until Coulomb's law holds with the impulses
+#: found to LAG_TOL (relative to the largest friction bound), in at most LAG_ROUNDS rounds of Newton's method
 LAG_TOL = 1e-4
 LAG_ROUNDS = 8
+#: ... and only where the cone's solution would lift a sliding row off its surface by more than this in the step
+#: (mu |v_t| h) [m]: a slow slide's lift-off stays below it (a grasp's: under 1 um in 9 steps of 10)
+GLIDE_TOL = 1e-6
+
 
 
 @dataclass
@@ -165,6 +175,59 @@ def regularization(w: np.ndarray, bilateral: np.ndarray) -> np.ndarray:
     return np.maximum(R, 1e-300)
 
 
+def cone_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, mu: np.ndarray, bilateral: np.ndarray,
+             hessian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """Castro et al.'s law (SAP) of rows with relative velocities vc (m, 3) (frames n, t1, t2) [m/s], regularisation R
+    (m, 3) (equal tangential entries), normal bias v_hat (m,), friction mu (m,): gamma = P_F(y), the projection of
+    y = R^-1 (v_hat e_n - vc) on the Coulomb cone |g_t| <= mu g_n in the R norm, the cost's Hessian G (None unless
+    ``hessian``), the costs 1/2 gamma^T R gamma (m,) and whether each row sticks (m,).
+
+    Regions (y_r = |y_t|, mu_hat = mu R_t / R_n): stiction y_r <= mu y_n (gamma = y), sliding -mu_hat y_r < y_n
+    < y_r / mu (gamma_n = (y_n + mu_hat y_r) / (1 + mu mu_hat), gamma_t = mu gamma_n y_t / y_r), apart otherwise.
+    Normal and tangents are coupled where a row slides: Newton's model sees the slip resisted, and converges in a few
+    iterations, but a sliding row lifts off its surface by about mu |v_t| h per step (the convex relaxation of
+    Coulomb's law): the solve refines such rows with :func:`contact_law` (ConvexSolver)."""
+    m = len(vc)
+    inv = 1.0 / R
+    y = -vc * inv
+    y[:, 0] += v_hat * inv[:, 0]
+    yn, yt = y[:, 0], y[:, 1:]
+    yr = np.sqrt(yt[:, 0] * yt[:, 0] + yt[:, 1] * yt[:, 1])
+    mu_hat = mu * R[:, 1] * inv[:, 0]
+    factor = 1.0 / (1.0 + mu * mu_hat)
+    rough = ~bilateral & (mu > 0)
+    smooth = ~bilateral & (mu == 0) & (yn > 0)  # frictionless: along the normal only
+    stick = bilateral | (rough & (yr <= mu * yn))
+    slide = rough & ~stick & (yn > -mu_hat * yr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_hat = np.where(yr[:, None] > 0, yt / yr[:, None], 0.0)
+    gn = (yn + mu_hat * yr) * factor
+    gamma = np.zeros((m, 3))
+    gamma[stick] = y[stick]
+    gamma[slide, 0] = gn[slide]
+    gamma[slide, 1:] = (mu * gn)[slide, None] * t_hat[slide]
+    gamma[smooth, 0] = yn[smooth]
+    cost = 0.5 * np.einsum("mi,mi,mi->m", gamma, R, gamma)
+    if not hessian:
+        return gamma, None, cost, stick
+    G = np.zeros((m, 3, 3))
+    for k in range(3):
+        G[stick, k, k] = inv[stick, k]
+    G[smooth, 0, 0] = inv[smooth, 0]
+    s = np.flatnonzero(slide)
+    if len(s):
+        f, th, ms, mh = factor[s], t_hat[s], mu[s], mu_hat[s]
+        P = th[:, :, None] * th[:, None, :]
+        dP = np.empty((len(s), 3, 3))  # d gamma / d y, rows and columns (n, t1, t2)
+        dP[:, 0, 0] = f
+        dP[:, 0, 1:] = (mh * f)[:, None] * th
+        dP[:, 1:, 0] = (ms * f)[:, None] * th
+        dP[:, 1:, 1:] = ms[:, None, None] * ((gn[s] / yr[s])[:, None, None] * (np.eye(2) - P) + (mh * f)[:, None, None] * P)
+        Gs = dP * inv[s, None, :]  # times R^-1 from the right: symmetric in exact arithmetic
+        G[s] = 0.5 * (Gs + np.swapaxes(Gs, 1, 2))
+    return gamma, G, cost, stick
+
+
 def contact_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, bound: np.ndarray, bilateral: np.ndarray,
                 hessian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
     """The law of rows with relative velocities vc (m, 3) (frames n, t1, t2) [m/s], regularisation R (m, 3) (equal
@@ -227,9 +290,11 @@ class Factor:
     made: int = 0  # factorisations
     reused: int = 0  # solves by the kept factor
     iterations: int = 0  # conjugate gradient iterations, over all reuses
+    failed: bool = False  # the last reuse did not converge: the next system is factorised at once
 
     def usable(self, held: np.ndarray) -> bool:
-        return self.values is not None and self.held is not None and np.array_equal(self.held, held)
+        return (not self.failed and self.values is not None and self.held is not None
+                and np.array_equal(self.held, held))
 
 
 @dataclass
@@ -273,8 +338,7 @@ class GroupPattern:
 
 
 class GroupPatterns:
-    """The group patterns kept from step to step, keyed by the parts (the bodies themselves, held so that they stay
-    alive while keyed): a pattern is reused while a step's extra blocks lie within it, else made anew with the union
+    """The group patterns kept from step to step, keyed by the parts' bodies: a pattern is reused while a step's extra blocks lie within it, else made anew with the union
     of its extra blocks and the new ones (so that contacts coming and going settle on one pattern), unless that union
     has grown to more than GROW times what the step needs."""
 
@@ -286,7 +350,7 @@ class GroupPatterns:
         self.analyses = 0
 
     def get(self, bodies: tuple[FemBody, ...], extra: np.ndarray) -> GroupPattern:
-        key = tuple(id(b) for b in bodies)
+        key = tuple(bodies)
         held = self._held.get(key)
         if held is not None and held.holds(extra):
             return held
@@ -322,11 +386,11 @@ class GroupPatterns:
             if kept is not None:  # the same factor again, from the same values
                 made.solver.factorize(kept[0].copy())
                 made.factor = Factor(kept[0].copy(), kept[1].copy())
-            self._held[tuple(id(b) for b in bodies)] = made
+            self._held[tuple(bodies)] = made
 
     def retain(self, keep: list[tuple[FemBody, ...]]) -> None:
         """Drop the patterns of every group not in ``keep``."""
-        keys = {tuple(id(b) for b in bodies) for bodies in keep}
+        keys = {tuple(bodies) for bodies in keep}
         self._held = {k: v for k, v in self._held.items() if k in keys}
 
 
@@ -341,19 +405,18 @@ class ConvexSolver:
     impulses)."""
 
     def __init__(self, rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, backend: str = "auto",
-                 lag_tol: float = LAG_TOL, lag_rounds: int = LAG_ROUNDS):
+                 lag_tol: float = LAG_TOL, lag_rounds: int = LAG_ROUNDS, reuse_min: int = REUSE_MIN):
         self.rel_tol = rel_tol
+        self.reuse_min = reuse_min  # the kept factorisation serves systems of at least this many soft unknowns
         self.max_iter = max_iter
         self.lag_tol = lag_tol
         self.lag_rounds = lag_rounds
         self.patterns = GroupPatterns(backend)
 
-    def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float,
-              lag: np.ndarray | None = None) -> Solution:
+    def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float) -> Solution:
         """Minimise the step's cost for the soft ``parts``, the ``rows`` and the rigid mass matrix M (n, n) (None: no
-        rigid unknowns), the friction lagged from the normal impulses ``lag`` (m,) [N s] (the last step's of the same
-        contacts; NaN or None: none). Returns the Solution."""
-        return _Newton(self, parts, rows, M, h).run(lag)
+        rigid unknowns). Returns the Solution."""
+        return _Newton(self, parts, rows, M, h).run()
 
 
 class _Newton:
@@ -368,6 +431,10 @@ class _Newton:
         used = rows.parts >= 0
         self.gnodes = np.where(used, self.offsets[np.maximum(rows.parts, 0)] + rows.nodes, 0)
         self.w = np.where(used, rows.weights, 0.0)
+        # the slots' weights as a sparse (N, m) matrix: a row quantity q (m, k) on the nodes is scatter @ q
+        m, slots = len(rows), self.gnodes.shape[1] if self.gnodes.ndim == 2 else 0
+        self.scatter = sp.csr_matrix((self.w.ravel(), (self.gnodes.ravel(), np.repeat(np.arange(m), slots))),
+                                     shape=(self.N, m))
         self.held = np.concatenate([p.held for p in parts]) if parts else np.zeros((0, 3), bool)
         self.Minv = None if not self.n else np.linalg.pinv(M)
         self.R = regularization(self._delassus_diagonal(), rows.bilateral)
@@ -419,10 +486,7 @@ class _Newton:
     def _impulses_on_soft(self, gamma: np.ndarray) -> np.ndarray:
         """J_s^T gamma (N, 3): the rows' impulses on the soft nodes."""
         f = np.einsum("mij,mj->mi", self.rows.frames, gamma)
-        out = np.zeros((self.N, 3))
-        for s in range(self.gnodes.shape[1]):
-            np.add.at(out, self.gnodes[:, s], self.w[:, s, None] * f)
-        return out
+        return np.asarray(self.scatter @ f)
 
     def _impulse_on_rigid(self, gamma: np.ndarray) -> np.ndarray:
         """J_r^T gamma (n,): the impulse the rows exert on the rigid unknowns (minus the soft side's)."""
@@ -477,18 +541,19 @@ class _Newton:
         """The upper values of A + J_s^T G J_s on the group pattern with the held components eliminated (their rows and
         columns zeroed, ``scale`` on the diagonal), and the scale."""
         pat = group.pattern
-        data = np.zeros((pat.nnzb, 9))
-        for p, where in zip(self.parts, group.maps):
-            data[where] += p.A.reshape(-1, 9)
-        if len(self.rows):
-            if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
+        if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
+            base = np.zeros((pat.nnzb, 9))
+            for p, where in zip(self.parts, group.maps):
+                base[where] += p.A.reshape(-1, 9)
+            blocks = None
+            if len(self.rows):  # the rows' slot pairs onto the pattern's blocks, as a sparse (nnzb, m) matrix
                 r, a, b, ww = self._slot_pairs()
-                self._blocks = (group, r, group.blocks(a, b), ww)
-            _, r, idx, ww = self._blocks
-            FGF = np.einsum("mij,mjk,mlk->mil", self.rows.frames, G, self.rows.frames).reshape(-1, 9)
-            contrib = ww[:, None] * FGF[r]
-            for k in range(9):
-                data[:, k] += np.bincount(idx, weights=contrib[:, k], minlength=pat.nnzb)
+                blocks = sp.csr_matrix((ww, (group.blocks(a, b), r)), shape=(pat.nnzb, len(self.rows)))
+            self._blocks = (group, base, blocks)
+        _, base, blocks = self._blocks
+        data = base.copy()
+        if blocks is not None:
+            data += blocks @ self._frame_hessians(G).reshape(-1, 9)
         up = data.reshape(-1)[pat.up_gather]
         scale = float(np.mean(up[pat.up_diag])) if len(pat.up_diag) else 1.0
         mflat = self.held.ravel()
@@ -498,17 +563,23 @@ class _Newton:
             up[pat.up_diag[mflat]] = scale
         return up, scale
 
+    def _frame_hessians(self, G: np.ndarray) -> np.ndarray:
+        """F G F^T (m, 3, 3): the rows' Hessians in world axes (F: the rows' frames), once per G."""
+        if getattr(self, "_fgf", None) is None or self._fgf[0] is not G:
+            F = self.rows.frames
+            self._fgf = (G, F @ G @ np.swapaxes(F, 1, 2))
+        return self._fgf[1]
+
     def _rigid_blocks(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """H_sr (3N, n) = J_s^T G J_r-part and H_rr (n, n) = M + J_r^T G J_r of the Newton system (held rows zeroed)."""
         n, rows = self.n, self.rows
         Hsr = np.zeros((self.N, 3, n))
         Hrr = self.M.copy()
         if len(rows) and rows.jacobian is not None:
-            FGF = np.einsum("mij,mjk,mlk->mil", rows.frames, G, rows.frames)
-            C = -np.einsum("mij,mjn->min", FGF, rows.jacobian)  # d (J_s^T gamma-gradient) / d du per row, (m, 3, n)
-            for s in range(self.gnodes.shape[1]):
-                np.add.at(Hsr, self.gnodes[:, s], self.w[:, s, None, None] * C)
-            Hrr = Hrr + np.einsum("min,mij,mjk->nk", rows.jacobian, FGF, rows.jacobian)
+            FGF = self._frame_hessians(G)
+            C = -(FGF @ rows.jacobian)  # d (J_s^T gamma-gradient) / d du per row, (m, 3, n)
+            Hsr = np.asarray(self.scatter @ C.reshape(len(rows), -1)).reshape(self.N, 3, n)
+            Hrr = Hrr + np.einsum("min,mik->nk", rows.jacobian, FGF @ rows.jacobian)
         Hsr = Hsr.reshape(3 * self.N, n)
         Hsr[self.held.ravel()] = 0.0
         return Hsr, Hrr
@@ -522,13 +593,14 @@ class _Newton:
         Hsr, Hrr = self._rigid_blocks(G) if self.n else (np.zeros((3 * self.N, 0)), np.zeros((0, 0)))
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
-        if factor.usable(self.held):
+        if 3 * self.N >= self.owner.reuse_min and factor.usable(self.held):
             z = self._reuse(group, up, Hsr, Hrr, rhs)
             if z is not None:
                 factor.reused += 1
                 return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+            factor.failed = True
         group.solver.factorize(up)
-        factor.values, factor.held = up, self.held.copy()
+        factor.values, factor.held, factor.failed = up, self.held.copy(), False
         factor.made += 1
         self.factorizations += 1
         z = self._schur_solve(group.solver, Hsr, Hrr, rhs[:, None])[:, 0]
@@ -564,13 +636,13 @@ class _Newton:
         current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL."""
         pat, n3 = group.pattern, 3 * self.N
         U = sp.csr_matrix((up, pat.up_indices, pat.up_indptr), shape=(n3, n3))
-        diag = up[pat.up_diag]
+        full = (U + U.T - sp.diags(up[pat.up_diag])).tocsr()  # the whole symmetric matrix, once: one product each
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):
             x = z[:n3]
             out = np.empty_like(z)
-            out[:n3] = U @ x + U.T @ x - diag * x
+            out[:n3] = full @ x
             if self.n:
                 out[:n3] += Hsr @ z[n3:]
                 out[n3:] = Hsr.T @ x + Hrr @ z[n3:]
@@ -611,15 +683,14 @@ class _Newton:
         return None
 
     # -- the iteration
-    def run(self, lag: np.ndarray | None) -> Solution:
-        """Newton's method with the friction bounds mu * lag (m,) [N s] (None: lagged on nothing yet, so the first
-        round is frictionless), then again with the bounds lagged on the normal impulses found, until they agree to
-        LAG_TOL (Coulomb's law at the fixed point) or LAG_ROUNDS rounds; each round starts from the last one's
-        velocities."""
+    def run(self) -> Solution:
+        """Newton's method on Castro et al.'s cone (:func:`cone_law`); where rows slide fast enough to lift off by more
+        than GLIDE_TOL in the step, again on Coulomb's law with the friction bounds lagged on the normal impulses
+        (:func:`contact_law`), until the bounds hold with the impulses found (to LAG_TOL) or LAG_ROUNDS rounds, each
+        round from the last one's velocities."""
         parts, rows = self.parts, self.rows
         V = np.concatenate([np.where(p.held, p.value, p.guess) for p in parts]) if parts else np.zeros((0, 3))
         du = np.zeros(self.n)
-        lag = np.zeros(len(rows)) if lag is None else np.where(np.isfinite(lag), np.maximum(lag, 0.0), 0.0)
         self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs())
         self.b = self._loads()
         free = ~self.held
@@ -628,39 +699,63 @@ class _Newton:
               else np.zeros((0, 3)))
         self.scale_s = np.where(free, 1.0 / np.sqrt(np.maximum(dA, 1e-300)), 0.0)
         self.scale_r = 1.0 / np.sqrt(np.maximum(np.diag(self.M), 1e-300)) if self.n else np.zeros(0)
-        friction = rows.mu > 0
-        iterations, rounds = 0, 0
-        for rounds in range(1, self.owner.lag_rounds + 1):
-            self.bound = rows.mu * lag
-            V, du, gamma, vc, stick, its, converged, residual, cost = self._newton(V, du)
-            iterations += its
-            gn = gamma[:, 0]
-            change = np.abs(gn - lag)[friction].max(initial=0.0)
-            lag = gn.copy()
-            if change <= self.owner.lag_tol * max(np.abs(gn).max(initial=0.0), 1e-300):
-                break
+        friction = (rows.mu > 0) & ~rows.bilateral
+        # first Castro et al.'s cone (Newton converges in a few iterations): where no row slides, its solution is
+        # Coulomb's (a sticking row's impulse is the same under both laws)
+        self.law = lambda vc, R, hessian=True: cone_law(vc, R, rows.v_hat, rows.mu, rows.bilateral, hessian)
+        self.cone = True
+        V, du, gamma, vc, stick, its, converged, residual, cost = self._newton(V, du, self.owner.rel_tol,
+                                                                              self.owner.max_iter)
+        iterations, rounds = its, 1
+        sliding = friction & ~stick & (gamma[:, 0] > 0)
+        glide = float((rows.mu * np.hypot(vc[:, 1], vc[:, 2]))[sliding].max(initial=0.0)) * self.h
+        if glide > GLIDE_TOL:
+            # where rows slide, the cone lifts them off by mu |v_t| h: Coulomb's law again with the friction bounds
+            # lagged on the normal impulses, from the cone's solution, until the bounds hold with the impulses found
+            lag = np.maximum(gamma[:, 0], 0.0)
+            self.law = lambda vc, R, hessian=True: contact_law(vc, R, rows.v_hat, self.bound, rows.bilateral, hessian)
+            self.cone = False
+            for rounds in range(2, self.owner.lag_rounds + 2):
+                self.bound = rows.mu * lag
+                V, du, gamma, vc, stick, its, converged, residual, cost = self._newton(V, du, self.owner.rel_tol,
+                                                                                      self.owner.max_iter)
+                iterations += its
+                gn = np.maximum(gamma[:, 0], 0.0)
+                if self._coulomb(gamma, stick, friction) and converged:
+                    break  # Coulomb's law holds with the impulses found: the bounds need not move
+                lag = gn.copy()
         return Solution(self._split(V), du, gamma, vc, stick, iterations, self.factorizations, cost, residual,
                         converged, rounds)
 
+    def _coulomb(self, gamma: np.ndarray, stick: np.ndarray, friction: np.ndarray) -> bool:
+        """Whether the impulses gamma (m, 3) obey Coulomb's law with their own normal impulses, to LAG_TOL: a sliding
+        row's friction mu g_n (its bound lagged on the same g_n), a sticking row's within mu g_n."""
+        gn = np.maximum(gamma[:, 0], 0.0)
+        gt = np.hypot(gamma[:, 1], gamma[:, 2])
+        cone = self.rows.mu * gn
+        scale = self.owner.lag_tol * max(float(cone.max(initial=0.0)), 1e-300)
+        sliding = friction & ~stick
+        return bool(np.all(np.abs(self.bound - cone)[sliding] <= scale) and np.all((gt - cone)[friction & stick] <= scale))
+
     def _evaluate(self, V: np.ndarray, du: np.ndarray, hessian: bool = True):
-        """(vc, gamma, G, stick, A V, cost) at (V, du) under the current friction bounds."""
-        rows = self.rows
+        """(vc, gamma, G, stick, A V, cost) at (V, du) under the current law (self.law)."""
         vc = self.velocities(V, du)
-        gamma, G, cost_c, stick = contact_law(vc, self.R, rows.v_hat, self.bound, rows.bilateral, hessian)
+        gamma, G, cost_c, stick = self.law(vc, self.R, hessian)
         AV = self._A_products(V)
         cost = 0.5 * float(np.vdot(V, AV)) - float(np.vdot(self.b, V)) + float(cost_c.sum())
         if self.n:
             cost += 0.5 * float(du @ self.M @ du)
         return vc, gamma, G, stick, AV, cost
 
-    def _newton(self, V: np.ndarray, du: np.ndarray):
+    def _newton(self, V: np.ndarray, du: np.ndarray, rel_tol: float, max_iter: int):
         """Newton's method from (V, du) under the current bounds; returns (V, du, gamma, vc, stick, iterations,
         converged, residual, cost). Stops when the scaled gradient is below rel_tol times the scaled momentum or
-        impulses, or when a full-length step no longer lowers the cost beyond round-off."""
+        impulses, or when a full-length step, or two steps in a row, no longer lower the cost beyond round-off (a
+        direction that round-off in the gradient spoils gets only a vanishing step from the line search)."""
         free = ~self.held
         vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
-        it, converged, residual = 0, False, np.inf
-        for it in range(self.owner.max_iter + 1):
+        it, converged, residual, flat = 0, False, np.inf, False
+        for it in range(max_iter + 1):
             jc = self._impulses_on_soft(gamma)
             jr = self._impulse_on_rigid(gamma)
             gV = np.where(free, AV - self.b - jc, 0.0)
@@ -670,10 +765,10 @@ class _Newton:
                              float(np.linalg.norm(self.M @ du * self.scale_r)) if self.n else 0.0)
             imp = math.hypot(float(np.linalg.norm(jc * self.scale_s)), float(np.linalg.norm(jr * self.scale_r)))
             residual = grad / max(mom, imp, 1e-300)
-            if grad <= ABS_TOL + self.owner.rel_tol * max(mom, imp) or (not len(self.rows) and it > 0):
+            if grad <= ABS_TOL + rel_tol * max(mom, imp) or (not len(self.rows) and it > 0):
                 converged = True
                 break
-            if it == self.owner.max_iter:
+            if it == max_iter:
                 break
             dV, ddu = self._direction(self.group, G, gV, gu)
             alpha = self._line_search(V, du, dV, ddu, AV, gamma)
@@ -681,16 +776,18 @@ class _Newton:
             du = du + alpha * ddu
             previous = cost
             vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
-            if alpha > 0.5 and abs(previous - cost) <= COST_TOL * max(abs(cost), abs(previous), 1e-300):
+            still = abs(previous - cost) <= COST_TOL * max(abs(cost), abs(previous), 1e-300)
+            if still and (alpha > 0.5 or flat):
                 converged = True  # at round-off: the cost no longer falls
-                residual = min(residual, grad / max(mom, imp, 1e-300))
                 it += 1
                 break
+            flat = still
         return V, du, gamma, vc, stick, it, converged, residual, cost
 
     def _line_search(self, V, du, dV, ddu, AV, gamma) -> float:
-        """The exact minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step: Newton on
-        dl/dalpha safeguarded by bisection (Castro et al.'s line search)."""
+        """The minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step, to where its slope is
+        LINE_TOL of the slope at the start: Newton on dl/dalpha safeguarded by bisection (Castro et al.'s line
+        search)."""
         rows = self.rows
         AdV = self._A_products(dV)
         dAd = float(np.vdot(dV, AdV)) + (float(ddu @ self.M @ ddu) if self.n else 0.0)
@@ -701,11 +798,20 @@ class _Newton:
         # velocities() is affine in (V, du): its constant part, the rigid side's free motion, added back
         dvc = self.velocities(dV, ddu) + np.einsum("mji,mj->mi", rows.frames, rows.rigid_velocity)
 
-        def derivatives(alpha):
-            gamma_a, G_a, _, _ = contact_law(vc0 + alpha * dvc, self.R, rows.v_hat, self.bound, rows.bilateral)
-            d1 = g0 + alpha * dAd - float(np.sum(dvc * gamma_a))
-            d2 = dAd + float(np.einsum("mi,mij,mj->", dvc, G_a, dvc))
-            return d1, d2
+        if kernels.ENABLED:  # the slopes row by row (integration.kernels), without the impulses and Hessians
+            vc0, dvc = np.ascontiguousarray(vc0), np.ascontiguousarray(dvc)
+            param = np.ascontiguousarray(rows.mu if self.cone else self.bound, dtype=float)
+            R, v_hat, bilateral = np.ascontiguousarray(self.R), np.ascontiguousarray(rows.v_hat), rows.bilateral
+
+            def derivatives(alpha):
+                s1, s2 = kernels.law_slopes(vc0, dvc, float(alpha), R, v_hat, param, bilateral, self.cone)
+                return g0 + alpha * dAd - s1, dAd + s2
+        else:
+            def derivatives(alpha):
+                gamma_a, G_a, _, _ = self.law(vc0 + alpha * dvc, self.R)
+                d1 = g0 + alpha * dAd - float(np.sum(dvc * gamma_a))
+                d2 = dAd + float(np.einsum("mi,mij,mj->", dvc, G_a, dvc))
+                return d1, d2
 
         d0 = g0 - float(np.sum(dvc * gamma))
         lo, hi = 0.0, 1.5
@@ -713,7 +819,7 @@ class _Newton:
         if d_hi <= 0:
             return hi
         d1, d2 = derivatives(1.0)
-        if abs(d1) <= 1e-10 * abs(d0):
+        if abs(d1) <= LINE_TOL * abs(d0):
             return 1.0
         alpha = 1.0
         if d1 < 0:
@@ -724,7 +830,7 @@ class _Newton:
             step = alpha - d1 / d2 if d2 > 0 else 0.5 * (lo + hi)
             alpha = step if lo < step < hi else 0.5 * (lo + hi)
             d1, d2 = derivatives(alpha)
-            if abs(d1) <= 1e-10 * abs(d0) or hi - lo <= 1e-12:
+            if abs(d1) <= LINE_TOL * abs(d0) or hi - lo <= 1e-12:
                 break
             if d1 < 0:
                 lo = alpha

@@ -12,7 +12,8 @@ for the contact search, where numpy would spread a little arithmetic over dozens
 - ``node_normals_at``: surface normals at the nodes in contact only (numpy computes them everywhere);
 - ``tangent_frames``, ``contact_start``, ``friction_update``, ``contact_finish``: the contact set's arithmetic in
   the active-set loop (contact.py), contact by contact, bit for bit numpy's;
-- ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible).
+- ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible);
+- ``law_slopes``: the convex problem's line search, the contact cost's slopes along a step (convex.py).
 
 Each is compared with its numpy reference in tests/test_kernels.py."""
 from __future__ import annotations
@@ -26,7 +27,7 @@ from softbody import compilation
 from softbody.kernels import AVAILABLE, _jit
 
 __all__ = ["ENABLED", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
-           "friction_update", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
+           "friction_update", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
            "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
@@ -758,6 +759,61 @@ def node_read(v: np.ndarray, r: np.ndarray, nodes: np.ndarray, frames: np.ndarra
         for i in range(3):
             rl[k, i] = r[n, i] / h
             vrel[k, i] = (frames[k, 0, i] * v0 + frames[k, 1, i] * v1 + frames[k, 2, i] * v2) - vr_free[k, i]
+
+
+@_jit
+def law_slopes(vc0: np.ndarray, dvc: np.ndarray, alpha: float, R: np.ndarray, v_hat: np.ndarray, param: np.ndarray,
+               bilateral: np.ndarray, cone: bool) -> tuple:
+    """The line search's slopes of the convex problem's contact cost along a step (convex._Newton._line_search), row
+    by row without the (m, 3) impulses or (m, 3, 3) Hessians: at vc = vc0 + alpha dvc (m, 3) [m/s], the sums over
+    the rows of dvc . gamma(vc) and dvc^T G(vc) dvc, under Castro et al.'s cone (``cone``: param = mu,
+    convex.cone_law) or the bounded law (param = the friction bounds [N s], convex.contact_law)."""
+    s1 = 0.0
+    s2 = 0.0
+    for k in range(vc0.shape[0]):
+        d0, d1, d2 = dvc[k, 0], dvc[k, 1], dvc[k, 2]
+        v0, v1, v2 = vc0[k, 0] + alpha * d0, vc0[k, 1] + alpha * d1, vc0[k, 2] + alpha * d2
+        i0, i1, i2 = 1.0 / R[k, 0], 1.0 / R[k, 1], 1.0 / R[k, 2]
+        if cone:
+            mu = param[k]
+            y0, y1, y2 = (v_hat[k] - v0) * i0, -v1 * i1, -v2 * i2
+            yr = math.sqrt(y1 * y1 + y2 * y2)
+            if bilateral[k] or (mu > 0 and yr <= mu * y0):  # stiction: gamma = y, G = R^-1
+                s1 += d0 * y0 + d1 * y1 + d2 * y2
+                s2 += i0 * d0 * d0 + i1 * d1 * d1 + i2 * d2 * d2
+            elif mu > 0:
+                mh = mu * R[k, 1] * i0
+                if y0 > -mh * yr:  # sliding
+                    f = 1.0 / (1.0 + mu * mh)
+                    gn = (y0 + mh * yr) * f
+                    t1, t2 = y1 / yr, y2 / yr
+                    s1 += gn * (d0 + mu * (t1 * d1 + t2 * d2))
+                    # d^T (dP R^-1) d, dP as in convex.cone_law
+                    e0, e1, e2 = i0 * d0, i1 * d1, i2 * d2
+                    te = t1 * e1 + t2 * e2
+                    td = t1 * d1 + t2 * d2
+                    q = d0 * (f * e0 + mh * f * te) + td * mu * f * e0
+                    q += mu * ((gn / yr) * (d1 * e1 + d2 * e2 - td * te) + mh * f * td * te)
+                    s2 += q
+            elif y0 > 0:  # frictionless, pushing
+                s1 += d0 * y0
+                s2 += i0 * d0 * d0
+        else:
+            bound = param[k]
+            yn = (v_hat[k] - v0) * i0
+            if bilateral[k] or yn > 0:
+                s1 += d0 * yn
+                s2 += i0 * d0 * d0
+            speed = math.sqrt(v1 * v1 + v2 * v2)
+            if bilateral[k] or (bound > 0 and speed * i1 <= bound):
+                s1 -= i1 * (d1 * v1 + d2 * v2)
+                s2 += i1 * (d1 * d1 + d2 * d2)
+            elif speed > 0:
+                scale = bound / speed
+                s1 -= scale * (d1 * v1 + d2 * v2)
+                td = (v1 * d1 + v2 * d2) / speed
+                s2 += scale * (d1 * d1 + d2 * d2 - td * td)
+    return s1, s2
 
 
 ENABLED = compilation.register(sys.modules[__name__], AVAILABLE, warmup="integration.warmup")

@@ -816,7 +816,7 @@ class Recorder:
     def _step_ms(self, now: float) -> float:
         """Wall time of the last step [ms]: the World's own timing, else the time since the recorder last returned."""
         if self.is_world:
-            return 1e3 * self.target.timings.get("total", 0.0)
+            return 1e3 * self.target.report.timings.get("total", 0.0)
         return 1e3 * (now - self._last_end)
 
     @staticmethod
@@ -907,9 +907,10 @@ class Recorder:
             f[self._rigid_path(rb)] = pose = rb.pose()
             if rb.key in self._link_paths:
                 self._grow_bounds(self._link_paths[rb.key], pose[0][None, :])
+        report = target.report if self.is_world else None  # what the World's last step published (integration.step)
         if "contacts" in content:
-            kinds = {"world/contacts": target.contact_results.values(), "world/contacts/faces": target.face_results.values(),
-                     "world/contacts/soft": target.pair_results}
+            kinds = {"world/contacts": report.contact_results.values(), "world/contacts/faces": report.face_results.values(),
+                     "world/contacts/soft": report.pair_results}
             for path, results in kinds.items():
                 pts, vec = [], []
                 for c, res in results:
@@ -927,9 +928,8 @@ class Recorder:
             f["plots/energy"] = self._energies()
             if self.is_world:
                 active = sum(int(np.count_nonzero(r.active)) for _, r in
-                             [*target.contact_results.values(), *target.face_results.values(), *target.pair_results])
-                found = (len(target.contacts) + len(target.face_hits) + len(target.soft_hits)
-                         + len(getattr(target, "edge_hits", ())))
+                             [*report.contact_results.values(), *report.face_results.values(), *report.pair_results])
+                found = len(report.candidates) + len(report.face_hits) + len(report.soft_hits) + len(report.edge_hits)
                 f["plots/contacts"] = (active, max(found - active, 0))
             if self.sim.steps > self._steps0 + 1:  # the first step is set-up (plots/setup_time, from __call__)
                 f["plots/step_time"] = (self._step_ms(tic),)

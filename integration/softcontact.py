@@ -240,12 +240,18 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # every body's box, grown by its reach: a node counts against a body only inside its box
     xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
     vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
-    speed2 = np.einsum("ij,ij->i", vs, vs)
-    grow = (margin + depth + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, starts)))[:, None]
+    # motions relative to each body's mean (a pile falling together closes nothing): a node's travel against another
+    # body's triangle is bounded by its own about its body's mean, the triangle's about its, and the two means'
+    mean_v = np.add.reduceat(vs, starts) / s_of[:, None]
+    rel = vs - np.repeat(mean_v, s_of, axis=0)
+    travel_a = SOFT_SLACK * h * np.sqrt(np.einsum("ij,ij->i", rel, rel))
+    own = np.maximum.reduceat(travel_a, starts)  # per body, its nodes' largest travel about its mean
+    between = SOFT_SLACK * h * np.sqrt(((mean_v[:, None] - mean_v[None]) ** 2).sum(axis=2))  # (B, B)
+    grow = margin + depth + own[:, None] + own[None] + between  # (B, B): p's nodes against q's triangles
     plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)  # the nodes' boxes
-    lo, hi = plo - grow, phi + grow
-    # directions (p, q) that can meet: searched, and p's nodes' box within q's grown box ((B, B), p by q)
-    meet = (rank >= 0) & ~((plo[:, None] > hi[None]) | (phi[:, None] < lo[None])).any(axis=2)
+    # directions (p, q) that can meet: searched, and p's nodes' box within q's box grown for p ((B, B), p by q)
+    meet = (rank >= 0) & ~((plo[:, None] > phi[None] + grow[:, :, None])
+                           | (phi[:, None] < plo[None] - grow[:, :, None])).any(axis=2)
     reached = np.flatnonzero(meet.any(axis=0))
     if not len(reached):
         return SoftHits.empty()
@@ -265,8 +271,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # where it finds a triangle whose prism holds the node within rho, that triangle is the node's nearest (any
     # nearer lies within rho too). Only the nodes left, inside q's box (a node outside it cannot be inside q),
     # are searched again as deep as a node may lie inside (depth): in a pile, the few that are.
-    travel_a = SOFT_SLACK * h * np.sqrt(speed2)
-    tb_max = np.zeros(B)  # per body, its triangles' largest travel
+    tb_max = np.zeros(B)  # per body, its triangles' largest travel about its mean
     R = np.concatenate([r for _, _, _, r in data])
     rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
     vnormals = None
@@ -274,14 +279,15 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     def query(q: int, sel: np.ndarray, first: bool, centre, radius, travel_b) -> tuple[np.ndarray, np.ndarray]:
         """Candidates (node, triangle) of nodes sel against q's triangles: within the reach of a contact as deep as
         depth; in the first pass also within rho (+ q's travel) of the triangle (1.1 radius: the prism's slack)."""
-        reach = margin + depth + radius.max() + travel_a[sel].max() + travel_b.max()
+        ta = travel_a[sel] + between[node_b[sel], q]  # the nodes' travel against q
+        reach = margin + depth + radius.max() + ta.max() + travel_b.max()
         if first:
-            rho = margin + travel_a[sel] + travel_b.max()
+            rho = margin + ta + travel_b.max()
             reach = min(reach, rho.max() + 1.1 * radius.max())
         found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre), reach, output_type="ndarray")
         k, t = found["i"], found["j"].astype(np.int64)
         i = sel[k]
-        ok = found["v"] <= margin + depth + radius[t] + travel_a[i] + travel_b[t]
+        ok = found["v"] <= margin + depth + radius[t] + ta[k] + travel_b[t]
         if first:
             ok &= found["v"] <= rho[k] + 1.1 * radius[t]
         return i[ok], t[ok] + t_off[q]
@@ -320,14 +326,15 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     for q in reached.tolist():
         near = np.flatnonzero(meet[:, q])  # the bodies whose nodes may lie in q's grown box, and those nodes
         sel = np.concatenate([np.arange(starts[p], starts[p] + s_of[p]) for p in near.tolist()])
-        sel = sel[((xs[sel] >= lo[q]) & (xs[sel] <= hi[q])).all(axis=1)]
+        g = grow[node_b[sel], q][:, None]
+        sel = sel[((xs[sel] >= plo[q] - g) & (xs[sel] <= phi[q] + g)).all(axis=1)]
         if not len(sel):
             continue
         tq = tris[t_off[q]:t_off[q] + t_of[q]]
         Pq = X[tq]  # (T_q, 3, 3)
         centre = Pq.mean(axis=1)
         radius = np.sqrt(((Pq - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
-        travel_b = SOFT_SLACK * h * np.sqrt((V[tq] ** 2).sum(axis=2).max(axis=1))
+        travel_b = SOFT_SLACK * h * np.sqrt(((V[tq] - mean_v[q]) ** 2).sum(axis=2).max(axis=1))
         tri_data[q] = (centre, radius, travel_b)
         tb_max[q] = travel_b.max()
         i, t = query(q, sel, True, centre, radius, travel_b)
@@ -342,7 +349,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # the nodes to search again: inside a body's box and not settled by the first pass (a first-pass nearest
     # farther than rho is no contact: outside the box the node is not inside the body, and beyond its reach)
     deep_i, deep_q = np.concatenate(deep_i), np.concatenate(deep_q)
-    settled = np.abs(d) <= margin + travel_a[i] + tb_max[qb]
+    settled = np.abs(d) <= margin + travel_a[i] + between[pb, qb] + tb_max[qb]
     i, t, pb, qb, same, w, nrm, d, facing = (a[settled] for a in (i, t, pb, qb, same, w, nrm, d, facing))
     if len(deep_i):
         deep = ~np.isin(deep_i * (B + 1) + deep_q, i * (B + 1) + qb)
@@ -482,18 +489,27 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     data = [bodies[k] for k in layout.used.tolist()]
     xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
     vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
-    speed2 = np.einsum("ij,ij->i", vs, vs)
-    grow = (margin + SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(speed2, layout.starts)))[:, None]
+    # motions relative to each body's mean (soft_contacts' rule: a pile falling together closes nothing)
+    mean_v = np.add.reduceat(vs, layout.starts) / layout.s_of[:, None]
+    rel = vs - np.repeat(mean_v, layout.s_of, axis=0)
+    own = SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", rel, rel), layout.starts))
+    grow = (margin + own)[:, None]
     blo = np.minimum.reduceat(xs, layout.starts) - grow
     bhi = np.maximum.reduceat(xs, layout.starts) + grow
     row = {k: r for r, k in enumerate(layout.used.tolist())}
     P_ = np.array([(row[a], row[b]) for a, b in pairs], dtype=np.int64)
-    apart = ((blo[P_[:, 0]] > bhi[P_[:, 1]]) | (blo[P_[:, 1]] > bhi[P_[:, 0]])).any(axis=1)
+    between = SOFT_SLACK * h * np.linalg.norm(mean_v[P_[:, 0]] - mean_v[P_[:, 1]], axis=1)[:, None]  # per pair
+    apart = ((blo[P_[:, 0]] - between > bhi[P_[:, 1]]) | (blo[P_[:, 1]] - between > bhi[P_[:, 0]])).any(axis=1)
     if apart.all():
         return EdgeHits.empty()
     meeting = [pr for pr, off in zip(pairs, apart.tolist()) if not off]
+    pair_travel = {pr: float(b) for pr, b, off in zip(pairs, between[:, 0].tolist(), apart.tolist()) if not off}
     lo = {k: blo[row[k]] for pr in meeting for k in pr}
     hi = {k: bhi[row[k]] for pr in meeting for k in pr}
+    mean_of = {k: mean_v[row[k]] for pr in meeting for k in pr}
+    slack_with = {}  # per body and partner: the means' travel
+    for (a, b), t in pair_travel.items():
+        slack_with[(a, b)] = slack_with[(b, a)] = t
     partners: dict[int, list[int]] = {}
     for a, b in meeting:
         partners.setdefault(a, []).append(b)
@@ -505,7 +521,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
         near = np.zeros(len(e0), dtype=bool)
         for o in set(others):
-            inside = np.flatnonzero(((elo <= hi[o]) & (ehi >= lo[o])).all(axis=1) & ~near)
+            t_ko = slack_with[(k, o)]
+            inside = np.flatnonzero(((elo <= hi[o] + t_ko) & (ehi >= lo[o] - t_ko)).all(axis=1) & ~near)
             if len(inside) and explained is not None:
                 # not where an end has a node contact with o already (the final filter below drops those pairs
                 # with o): in a stack or a pile, most edges near a neighbour lie in the faces that touch it
@@ -521,8 +538,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         ends.append(sf.edges[e])
         P0.append(e0[e])
         P1.append(e1[e])
-        V0.append(v[sf.edges[e, 0]])
-        V1.append(v[sf.edges[e, 1]])
+        V0.append(v[sf.edges[e, 0]] - mean_of[k])  # about the body's mean (the means' own travel: per pair)
+        V1.append(v[sf.edges[e, 1]] - mean_of[k])
         N.append(edge_normals(x, sf.triangles, sf.edge_tris[e]))
         rest = bodies[k][3]
         R0.append(rest[sf.edges[e, 0]])
@@ -530,11 +547,18 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not body_of:
         return EdgeHits.empty()
     body_of, edge_of, ends = np.concatenate(body_of), np.concatenate(edge_of), np.concatenate(ends)
+    table = np.zeros((max(mean_of) + 1, 3))
+    for k, m in mean_of.items():
+        table[k] = m
+
+    def mean_v_of(k: np.ndarray) -> np.ndarray:
+        return table[k]
+
     P0, P1, V0, V1, N, R0, R1 = (np.concatenate(z) for z in (P0, P1, V0, V1, N, R0, R1))
     mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     reach = margin + depth
-    radius = 2.0 * (half.max() + travel.max()) + reach
+    radius = 2.0 * (half.max() + travel.max()) + reach  # and, per meeting pair, the means' travel
     # the candidate pairs, meeting pair by meeting pair: one k-d tree per body over its edges' midpoints (one
     # tree over all edges would list every body's own neighbouring edges first, most of the pairs in a pile)
     starts = np.flatnonzero(np.r_[True, body_of[1:] != body_of[:-1]])
@@ -554,7 +578,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
             got = tree(a).query_pairs(radius, output_type="ndarray")
             fi, fj = got[:, 0], got[:, 1]
         else:
-            got = tree(a).sparse_distance_matrix(tree(b), radius, output_type="ndarray")
+            got = tree(a).sparse_distance_matrix(tree(b), radius + slack_with[(a, b)], output_type="ndarray")
             fi, fj = got["i"], got["j"]
         found_i.append(fi.astype(np.int64) + span[a][0])
         found_j.append(fj.astype(np.int64) + span[b][0])
@@ -562,7 +586,9 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         return EdgeHits.empty()
     i, j = np.concatenate(found_i), np.concatenate(found_j)
     gap = mid[i] - mid[j]
-    ok = np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]
+    means = mean_v_of(body_of[i]) - mean_v_of(body_of[j])  # the bodies' mean velocities' difference, per pair
+    ok = (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]
+          + SOFT_SLACK * h * np.sqrt(np.einsum("ij,ij->i", means, means)))
     i, j = i[ok], j[ok]
     same = body_of[i] == body_of[j]
     if same.any():  # self-contact: not against the edge's own surroundings at rest
@@ -598,7 +624,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     n = cr / crn[:, None]
     n *= np.where(np.einsum("ij,ij->i", n, N[j]) < 0.0, -1.0, 1.0)[:, None]  # out of b's edge
     d = np.einsum("ij,ij->i", n, (P0[i] + s[:, None] * da) - (P0[j] + t[:, None] * db))
-    v_rel = ((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
+    v_rel = (((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
+             + mean_v_of(body_of[i]) - mean_v_of(body_of[j]))
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
     facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
     deepest = np.where(body_of[i] == body_of[j], -margin, -depth)  # within one body: never pulled through

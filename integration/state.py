@@ -16,6 +16,8 @@ from typing import Any
 
 from softbody.state import FORMAT, SimulationState, write_state
 
+from .step import StepReport
+
 
 @dataclass
 class WorldState:
@@ -35,10 +37,9 @@ class WorldState:
     started: list[int]
     previous: dict[tuple, Any]
     lagged: list
-    results: dict[str, Any]
+    results: StepReport  # the last step's (integration.step)
     bullet: bytes
     format: int = FORMAT
-    impulses: dict[tuple, Any] = field(default_factory=dict)  # the contacts' last normal impulses (friction's lag)
     patterns: dict[tuple, Any] = field(default_factory=dict)  # the coupled problem's sparse patterns (their extra blocks)
 
     def write(self, path: str | Path) -> Path:

@@ -4,27 +4,31 @@ A World opens a pybullet client of its own, or joins the user's (``World(client=
 body in that client, loaded before or after, is a rigid obstacle, link by link, and the user's own
 calls between steps (motor commands, constraints, forces) keep working.
 
-One step of length h, in order:
-  1. new or removed pybullet bodies are picked up; kinematic bodies get their scripted velocity;
-  2. soft surface nodes near rigid links are queried against them (collision.py), at the start pose;
-  3. movable rigid bodies in contact with (or attached to) a soft body give their mass matrix and the
-     Jacobians of the contact points (bullet.py), at the start configuration;
+One step of length h reads top to bottom in ``World._step`` (its data in one integration.step.StepRecord):
+  1. sync: new or removed pybullet bodies are picked up; kinematic bodies get their scripted velocity;
+  2. collide: soft surface nodes and faces near rigid links are queried against them (collision.py), soft
+     bodies against each other (softcontact.py), at the start pose;
+  3. build the contact problem: movable rigid bodies in contact with (or attached to) a soft body give their
+     mass matrix and the Jacobians of the contact points (bullet.py), at the start configuration;
   4. pybullet steps once (``stepSimulation``): the rigid bodies' free motion over the step, with the
      user's motors, forces and rigid contacts;
-  5. every soft body takes one implicit step with its supports, attachments and contacts, solved
-     together with the rigid bodies' velocity change du (contact.py, coupling.py);
-  6. du goes back to pybullet (velocity and position of the step just taken), the soft states are
-     committed, kinematic bodies are moved to their scripted pose at t + h.
+  5. the Simulation prepares every soft body's implicit step and hands the systems to the contact solve, which
+     solves them with their supports, attachments and contacts, together with the rigid bodies' velocity change
+     du (contact.py, convex.py), and again with contacts the end of the step reveals;
+  6. commit: du goes back to pybullet (velocity and position of the step just taken), the soft states are
+     committed, kinematic bodies are moved to their scripted pose at t + h; checks; the step publishes its
+     report (``World.report``: contacts, results, forces, timings).
 A divergence (non-finite state, or energy above ``max_energy``) raises SimulationDiverged before 6
 and leaves soft and rigid bodies as they were before the step.
+
+Each soft body added has a SoftEntry (integration.entries: its friction, what it ignores, self-contact, surface,
+place in a stack, contact group), each stepped body a SteppedEntry; both are reached by handle (an index).
 """
 from __future__ import annotations
 
 import copy
 import math
-import time
 import warnings
-from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
@@ -33,7 +37,7 @@ import numpy as np
 
 from softbody import FemBody, Simulation
 from softbody.errors import InvalidInputError, SimulationDiverged, finite_number
-from softbody.integrator import Constraints, LinearSystem
+from softbody.integrator import Constraints, LinearSystem, timed
 from softbody.simulation import run_steps
 from softbody.stack import BodyStack, stack_key
 from softbody.state import not_copyable, read_state
@@ -48,7 +52,9 @@ from .rigid import PoseScript, RigidLink, load_trimesh
 from .shapes import Box, Mesh, Plane, RigidShape, Sphere
 from .intersection import intersection_depth
 from .softcontact import EdgeHits, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
+from .entries import SoftEntry, SteppedEntry
 from .state import WorldState
+from .step import StepRecord, StepReport
 
 
 # a node touches a rigid link (for the face contacts of its triangles) when it is within this fraction of
@@ -109,13 +115,15 @@ def _friction(value, name: str = "friction") -> float:
 @dataclass
 class Attachment:
     """Nodes of a soft body held to a rigid link: ``local`` (m, 3) their positions in the link's frame;
-    coupled: the link is movable and the attachment is solved two-way (else the nodes are prescribed)."""
+    coupled: the link is movable and the attachment is solved two-way (else the nodes are prescribed); handle: its
+    index in ``World.attachments``."""
 
     body: FemBody
     nodes: np.ndarray
     rigid: RigidLink
     local: np.ndarray
     coupled: bool
+    handle: int = -1
 
 
 class World:
@@ -168,49 +176,23 @@ class World:
         self.max_energy = self.sim.max_energy
         self.sim.max_energy = None  # the World checks the whole scene's energy, rigid bodies included
         self.rigids: dict[tuple[int, int], RigidLink] = {}
-        self.friction: dict[int, float] = {}  # id(body) -> mu
         self.attachments: list[Attachment] = []
         self.detector = CollisionDetector(self.client)
         self.contact_solver = ContactSolver(push_speed=_positive(push_speed, "push_speed"))
-        self._started: set[int] = set()  # id(body) of the soft bodies that took a step
-        self._members: list[FemBody] = []  # the soft bodies as added (World.bodies)
+        self._entries: list[SoftEntry] = []  # the soft bodies as added (World.bodies), by handle
+        self._stepped: list[SteppedEntry] = []  # the stepped bodies (sim.bodies), by index
         self._stack = bool(stack)
         self._restack_due = False  # members added or their grouping changed since the last step
-        # id(member) -> (index of its stepped body in sim.bodies, first node there)
-        self._place: dict[int, tuple[int, int]] = {}
-        self._place_version = self._results_of_version = 0  # counts the changes of _place; _results_of's
-        self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
-        self._results_of: dict[int, tuple[int, int]] = {}  # id(member) -> (id of its stepped body, first node), last step
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
         self._soft_layout = None  # (that key, softcontact.SoftLayout of the pairs) for the soft search
-        # id(member) -> id of the first member of its contact group: the members whose contacts need the dense
-        # contact solve (soft contact among them, a movable rigid body they share, friction at face contacts)
-        # are stacked apart from the others, which would otherwise be solved densely with them; groups only merge
-        self._dense_group: dict[int, int] = {}
         self._pairs_version = 0  # counts the changes of what the bodies ignore
-        self.contacts: Contacts = Contacts.empty()  # candidates of the last step
-        self.contact_results: dict[int, tuple[NodeContacts, ContactResult]] = {}  # id(body) -> node contacts
-        self.face_results: dict[int, tuple[FaceContacts, ContactResult]] = {}  # id(body) -> face contacts
-        self.face_hits = FaceHits.empty()  # face contact candidates of the last step
-        self.attachment_forces: list[tuple[Attachment, np.ndarray]] = []  # forces on the soft nodes [N], last step
-        # seconds spent in the last step, by disjoint phase: collision (queries), the core's rotations,
-        # forces, assembly, factorize, solve (linear algebra), contact (the contact loop's own work),
-        # other (rest of the FEM step), rigid (pybullet and the coupling's rigid side); "total" is their sum
-        self.timings: dict[str, float] = defaultdict(float)
-        self._surface: dict[int, SoftSurface] = {}  # of the stepped bodies (and the members), for rigid contact
-        self._soft_surface: dict[int, SoftSurface] = {}
-        self._self_contact: set[int] = set()  # id(body) of the bodies with self-contact
+        self.report = StepReport()  # what the last step found and solved (integration.step)
         self.soft_contact = bool(soft_contact)
-        self.soft_hits = SoftHits.empty()  # soft contact candidates of the last step: node against face
-        self.edge_hits = EdgeHits.empty()  # and edge against edge
-        self.pair_results: list[tuple[PairContacts, ContactResult]] = []  # soft contacts solved, last step
-        self._ignore: dict[int, set] = {}  # id(body) -> {(body id, link or None)}
         self._kin_velocity: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._known: set[int] = set()
         self._one_way: set[int] = set()  # bodies pybullet moves but the coupled solve cannot (unsupported joints)
         self._warned: set = set()
         self._lagged: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (body, link, force, point) for the next step
-        self.sim.velocity_solver = self._solve_velocities
         self._sync()
 
     # ------------------------------------------------------------------ properties
@@ -222,11 +204,75 @@ class World:
     def t(self) -> float:
         return self.sim.t
 
+    # the last step's findings and results, as it published them (self.report)
+    @property
+    def contacts(self) -> Contacts:
+        """The rigid contact candidates of the last step (node against rigid link)."""
+        return self.report.candidates
+
+    @property
+    def face_hits(self) -> FaceHits:
+        """The face contact candidates of the last step (rigid point against soft triangle)."""
+        return self.report.face_hits
+
+    @property
+    def soft_hits(self) -> SoftHits:
+        """The soft contact candidates of the last step: node against face (a, b index ``sim.bodies``)."""
+        return self.report.soft_hits
+
+    @property
+    def edge_hits(self) -> EdgeHits:
+        """... and soft edge against edge."""
+        return self.report.edge_hits
+
+    @property
+    def contact_results(self) -> dict[int, tuple[NodeContacts, ContactResult]]:
+        """Node contacts with rigid links solved in the last step: index in ``sim.bodies`` -> (contacts, result)."""
+        return self.report.contact_results
+
+    @property
+    def face_results(self) -> dict[int, tuple[FaceContacts, ContactResult]]:
+        """Face contacts with rigid links solved in the last step: index in ``sim.bodies`` -> (contacts, result)."""
+        return self.report.face_results
+
+    @property
+    def pair_results(self) -> list[tuple[PairContacts, ContactResult]]:
+        """Soft contacts solved in the last step: [(contacts, result)]."""
+        return self.report.pair_results
+
+    @property
+    def attachment_forces(self) -> list[tuple[Attachment, np.ndarray]]:
+        """Forces [N] (m, 3) on the attached nodes in the last step: [(attachment, forces)]."""
+        return [(self.attachments[k], f) for k, f in self.report.attachment_forces]
+
+    @property
+    def timings(self) -> dict[str, float]:
+        """Seconds of the last step by disjoint phase: collision (queries), rigid (pybullet and the coupling's rigid
+        side), the core's rotations, forces, assembly, factorize, solve (linear algebra), contact (the contact solve's
+        own work), other (the rest of the FEM step); "total" is their sum."""
+        return self.report.timings
+
     @property
     def bodies(self) -> list[FemBody]:
         """The soft bodies, in the order they were added (the stepped ones, stacks among them, are
         ``sim.bodies``)."""
         return self._members
+
+    @property
+    def _members(self) -> list[FemBody]:
+        return [e.body for e in self._entries]
+
+    def _handle(self, body: FemBody, what: str) -> int:
+        """The handle (index in ``bodies``) of soft body ``body``; InvalidInputError naming ``what`` otherwise."""
+        for k, e in enumerate(self._entries):
+            if e.body is body:
+                return k
+        raise InvalidInputError(f"{what}: not a soft body of this World (add it with add_soft)")
+
+    def entry(self, body: FemBody) -> SoftEntry:
+        """What the World keeps for soft body ``body`` (integration.entries.SoftEntry: friction, what it ignores,
+        self-contact, surface, its place in a stack, its contact group)."""
+        return self._entries[self._handle(body, "entry")]
 
     def close(self) -> None:
         """Disconnect the World's own pybullet client; a joined client stays connected."""
@@ -394,7 +440,7 @@ class World:
         skip = set()
         for item in ignore:
             if isinstance(item, FemBody):
-                skip.add(("soft", id(item)))
+                skip.add(("soft", item))
             elif isinstance(item, RigidLink):
                 skip.add(item.key)
             elif isinstance(item, tuple) and len(item) == 2:
@@ -404,18 +450,13 @@ class World:
             else:
                 raise InvalidInputError(f"ignore: expected rigid body ids, RigidLinks, (body id, link) pairs or "
                                         f"soft bodies (FemBody), got {item!r}")
-        self._members.append(body)
+        entry = SoftEntry(body, friction, skip, bool(self_contact), SoftSurface.of(body.rest, body.mesh.surface_triangles()),
+                          place=(len(self.sim.bodies), 0))
+        self._entries.append(entry)
         self.sim.bodies.append(body)  # stepped alone until the next step stacks it (_restack)
-        self._place[id(body)] = (len(self.sim.bodies) - 1, 0)
-        self._place_version += 1
+        self._stepped.append(SteppedEntry(body, [len(self._entries) - 1], friction, skip, entry.surface))
         self._restack_due = True
-        self.friction[id(body)] = friction
-        self._ignore[id(body)] = skip
         self._pairs_version += 1
-        tris = body.mesh.surface_triangles()
-        self._surface[id(body)] = self._soft_surface[id(body)] = SoftSurface.of(body.rest, tris)
-        if self_contact:
-            self._self_contact.add(id(body))
         return body
 
     def attach(self, body: FemBody, node_ids, rigid: RigidLink | int, link: int | None = None,
@@ -429,6 +470,7 @@ class World:
         default: a body attached flush against a link would otherwise push against it)."""
         if not any(b is body for b in self._members):
             raise InvalidInputError("attach: add the soft body to the world first (add_soft)")
+        entry = self.entry(body)
         rb = self._link_of(rigid, link)
         ids = body._node_ids(node_ids, "attach")
         local = rb.to_local(body.positions[ids])
@@ -436,60 +478,64 @@ class World:
         if not coupled:
             body.prescribe(ids, self._follow(rb, local))
         if not collide:
-            self._ignore[id(body)].add(rb.key)
+            entry.ignore.add(rb.key)
             self._restack_due = True  # what it ignores decides its stack
             self._pairs_version += 1
-        att = Attachment(body, ids, rb, local, coupled)
+        att = Attachment(body, ids, rb, local, coupled, len(self.attachments))
         self.attachments.append(att)
         return att
 
-    def _stack_key(self, body: FemBody) -> tuple | None:
+    def _stack_key(self, entry: SoftEntry) -> tuple | None:
         """What a soft body must share with others to be stepped in one stack with them (softbody.stack_key,
         friction, self-contact, the rigid links it ignores); None: stacking off."""
         if not self._stack:
             return None
-        ignore = frozenset(k for k in self._ignore[id(body)] if k[0] != "soft")  # soft pairs are searched per body
-        return (stack_key(body), self.friction[id(body)], id(body) in self._self_contact, ignore)
+        return (stack_key(entry.body), entry.friction, entry.self_contact, entry.rigid_ignore())
 
     def _restack(self) -> None:
         """Group the soft bodies into the stepped ones (sim.bodies): a BodyStack for each two or more of one
-        key, the others alone; unchanged while no body was added and no grouping changed. A body of a dense contact
-        group (:meth:`_group_dense`) is stepped alone: the dense solve finds each stepped body's responses to every
-        row touching it, so a stack of a pile's bodies paid a solve over the whole stack per row, where alone each
-        body pays for its own rows (twelve stacked cubes 1.8x faster, benchmarks/piles.py)."""
+        key, the others alone; unchanged while no body was added and no grouping changed. A body of a coupled
+        contact group (:meth:`_group_dense`) is stepped alone: the former dense solve found each stepped body's
+        responses to every row touching it, so a stack of a pile's bodies paid a solve over the whole stack per row,
+        where alone each body paid for its own rows (twelve stacked cubes 1.8x faster then, benchmarks/piles.py); the
+        convex problem keeps each body's own block pattern (convex.GroupPattern), so alone costs it nothing."""
         if not self._restack_due:
             return
         self._restack_due = False
         groups: dict = {}
-        for b in self._members:
-            key = self._stack_key(b)
-            alone = key is None or id(b) in self._dense_group
-            groups.setdefault(("alone", id(b)) if alone else key, []).append(b)
+        for k, e in enumerate(self._entries):
+            key = self._stack_key(e)
+            alone = key is None or e.group is not None
+            groups.setdefault(("alone", k) if alone else key, []).append(k)
         self._apply_layout(list(groups.values()))
 
-    def _apply_layout(self, groups: list[list[FemBody]]) -> None:
-        """Step the soft bodies as ``groups`` (each a list of members: one alone, several as a BodyStack, a stack of
-        the same members kept), with what each stepped body needs (friction, ignored links, surface, places)."""
-        held = {tuple(map(id, s.members)): s for s in self.sim.bodies if isinstance(s, BodyStack)}
-        stepped = [g[0] if len(g) == 1 else held.pop(tuple(map(id, g)), None) or BodyStack(g) for g in groups]
-        for gone in held.values():  # stacks dissolved: their members keep their state (views of its rows)
-            for d in (self.friction, self._ignore, self._surface):
-                d.pop(id(gone), None)
-        stepping = {id(s) for s in stepped}  # what was kept for bodies no longer stepped goes (the warm starts of
-        for key in [k for k in self.contact_solver.previous if k[1] not in stepping and k[0] != "soft"]:  # contacts
-            del self.contact_solver.previous[key]  # restart from the contact state found in the next step)
-        self.sim.solvers.retain(stepped)
-        self._place = {}
-        self._place_version += 1
-        for i, s in enumerate(stepped):
-            for m, o in zip(getattr(s, "members", [s]), getattr(s, "offsets", [0])):
-                self._place[id(m)] = (i, int(o))
-            if isinstance(s, BodyStack):  # a stack's settings are its members' (one key)
-                self.friction[id(s)] = self.friction[id(s.members[0])]
-                self._ignore[id(s)] = {k for k in self._ignore[id(s.members[0])] if k[0] != "soft"}
-                tris = s.mesh.surface_triangles()
-                self._surface[id(s)] = SoftSurface.of(s.rest, tris)
-        self.sim.bodies[:] = stepped
+    def _apply_layout(self, groups: list[list[int]]) -> None:
+        """Step the soft bodies as ``groups`` (each a list of member handles: one alone, several as a BodyStack, a
+        stack of the same members kept), with what each stepped body needs (friction, ignored links, surface) and
+        each member's place."""
+        held = {tuple(e.members): e for e in self._stepped if len(e.members) > 1}
+        stepped: list[SteppedEntry] = []
+        for g in groups:
+            first = self._entries[g[0]]
+            if len(g) == 1:
+                stepped.append(SteppedEntry(first.body, list(g), first.friction, first.ignore, first.surface))
+                continue
+            kept = held.pop(tuple(g), None)  # a stack of the same members: kept (its solver and factor with it)
+            if kept is None:
+                stack = BodyStack([self._entries[k].body for k in g])
+                kept = SteppedEntry(stack, list(g), first.friction, first.rigid_ignore(),
+                                    SoftSurface.of(stack.rest, stack.mesh.surface_triangles()))
+            stepped.append(kept)
+        # stacks dissolved: their members keep their state (views of its rows)
+        stepping = {e.body for e in stepped}  # what was kept for bodies no longer stepped goes (the warm starts
+        for key in [k for k in self.contact_solver.previous if k[1] not in stepping and k[0] != "soft"]:  # of
+            del self.contact_solver.previous[key]  # contacts restart from the contact state found in the next step)
+        self.sim.solvers.retain([e.body for e in stepped])
+        for i, e in enumerate(stepped):
+            for k, o in zip(e.members, getattr(e.body, "offsets", [0])):
+                self._entries[k].place = (i, int(o))
+        self._stepped = stepped
+        self.sim.bodies[:] = [e.body for e in stepped]
 
     def _stepped_now(self) -> list[FemBody]:
         """The stepped bodies (sim.bodies), restacked if due, the stacks holding their members' current state and
@@ -500,31 +546,31 @@ class World:
                 s.gather()
         return self.sim.bodies
 
-    def _group_dense(self, member_pairs: np.ndarray, coupling: RigidCoupling) -> None:
-        """Merge the contact groups of this step's members that need the dense contact solve (ContactSolver.solve:
+    def _group_dense(self, record: StepRecord) -> None:
+        """Merge the contact groups of this step's members that need the coupled contact solve (ContactSolver.solve:
         soft contact, a movable rigid body in contact or attached, friction at face contacts): those in soft
         contact with each other or touching one movable body join one group, the others a group of their own;
         a change restacks from the next step on (the members of a group are stepped alone, :meth:`_stack_key`)."""
         if not self._stack or len(self._members) < 2:
             return
-        if not (len(member_pairs) or coupling.n or len(self.face_hits)):
-            return  # nothing that calls for the dense solve (no soft contact, no movable body, no face contact)
-        index = {id(m): k for k, m in enumerate(self._members)}
+        member_pairs, coupling = record.member_pairs, record.coupling
+        if not (len(member_pairs) or coupling.n or len(record.face_hits)):
+            return  # nothing that calls for the coupled solve (no soft contact, no movable body, no face contact)
         links: list[tuple[int, int]] = [tuple(p) for p in member_pairs.tolist()]
         by_rigid: dict[int, int] = {}
 
         def member_of(stepped: np.ndarray, node: np.ndarray) -> np.ndarray:
             out = np.empty(len(node), dtype=np.int64)
-            for i, s in enumerate(self.sim.bodies):
+            for i, e in enumerate(self._stepped):
                 on = stepped == i
                 if not on.any():
                     continue
-                members = getattr(s, "members", [s])
+                s = e.body
                 local = s.member_of(node[on]) if isinstance(s, BodyStack) else np.zeros(int(on.sum()), np.int64)
-                out[on] = np.array([index[id(m)] for m in members])[local]
+                out[on] = np.array(e.members)[local]
             return out
 
-        c, f = self.contacts, self.face_hits
+        c, f = record.candidates, record.face_hits
         coupled = np.isin(c.rigid, list(coupling.dynamics)) if coupling.n else np.zeros(len(c), bool)
         f_coupled = np.isin(f.rigid, list(coupling.dynamics)) if coupling.n else np.zeros(len(f), bool)
         for who, rid in ((member_of(c.body[coupled], c.node[coupled]), c.rigid[coupled]),
@@ -533,11 +579,11 @@ class World:
                 links.append((by_rigid.setdefault(r, k), k))
         for att in self.attachments:
             if att.coupled:
-                k = index[id(att.body)]
+                k = self._handle(att.body, "attachment")
                 links.append((by_rigid.setdefault(att.rigid.id, k), k))
         if len(f):  # friction at face contacts: the rigid link's coefficient, else the soft body's
             who = member_of(f.body, f.nodes[:, 0])
-            mu = np.array([self.friction[id(self._members[k])] for k in range(len(self._members))])[who]
+            mu = np.array([e.friction for e in self._entries])[who]
             links_of, at = np.unique(np.column_stack([f.rigid, f.link]), axis=0, return_inverse=True)
             for j, (r, lk) in enumerate(links_of.tolist()):
                 own = self.rigids[(r, lk)].friction
@@ -545,18 +591,18 @@ class World:
                     mu[at.reshape(-1) == j] = own
             links += [(k, k) for k in np.unique(who[mu > 0]).tolist()]
         changed = False
-        group = self._dense_group
+        entries = self._entries
         for a, b in links:
-            ia, ib = id(self._members[a]), id(self._members[b])
-            ga, gb = group.get(ia), group.get(ib)
+            ea, eb = entries[a], entries[b]
+            ga, gb = ea.group, eb.group
             if ga is None and gb is None:
-                group[ia] = group[ib] = ia
+                ea.group = eb.group = a
             elif ga is None or gb is None:
-                group[ia if ga is None else ib] = gb if ga is None else ga
+                (ea if ga is None else eb).group = gb if ga is None else ga
             elif ga != gb:
-                for k, g in list(group.items()):
-                    if g == gb:
-                        group[k] = ga
+                for e in entries:
+                    if e.group == gb:
+                        e.group = ga
             else:
                 continue
             changed = True
@@ -565,16 +611,14 @@ class World:
 
     def stepped(self, body: FemBody) -> FemBody:
         """The body that steps soft body ``body``: itself, or the BodyStack it is stepped in (softbody.stack)."""
-        if not any(b is body for b in self._members):
-            raise InvalidInputError("stepped: not a soft body of this World (add it with add_soft)")
+        k = self._handle(body, "stepped")
         self._restack()
-        return self.sim.bodies[self._place[id(body)][0]]
+        return self.sim.bodies[self._entries[k].place[0]]
 
     def _member(self, stepped: int, node: int) -> int:
         """The index in ``bodies`` of the soft body that node ``node`` of stepped body ``stepped`` belongs to."""
-        s = self.sim.bodies[stepped]
-        m = s.members[int(s.member_of(np.array([node]))[0])] if isinstance(s, BodyStack) else s
-        return next(i for i, b in enumerate(self._members) if b is m)
+        e = self._stepped[stepped]
+        return e.members[int(e.body.member_of(np.array([node]))[0])] if isinstance(e.body, BodyStack) else e.members[0]
 
     def _follow(self, rb: RigidLink, local: np.ndarray) -> Callable[[float], np.ndarray]:
         """The positions of rigid points ``local`` (m, 3) at time t, for nodes held to a link that the
@@ -597,14 +641,16 @@ class World:
             return v + cross(w, points - c)
         return rb.point_velocity(points)
 
-    def _ignored(self, body: FemBody, rb: RigidLink) -> bool:
-        skip = self._ignore.get(id(body), ())
+    def _ignores(self, k: int, rb: RigidLink) -> bool:
+        """Whether soft body k does not collide with rigid link rb."""
+        skip = self._entries[k].ignore
         return rb.key in skip or (rb.id, None) in skip
 
-    def _detect(self, i: int, body: FemBody) -> tuple[Contacts, FaceHits]:
-        """Contact candidates of soft body i against every rigid link it does not ignore (collision.py)."""
-        surf = self._surface[id(body)]
-        links = [rb for rb in self.rigids.values() if not self._ignored(body, rb)]
+    def _detect(self, i: int) -> tuple[Contacts, FaceHits]:
+        """Contact candidates of stepped body i against every rigid link it does not ignore (collision.py)."""
+        e = self._stepped[i]
+        body, surf = e.body, e.surface
+        links = [rb for rb in self.rigids.values() if not e.ignores(rb)]
         v = body.velocities
         speeds = np.sqrt(np.einsum("ij,ij->i", v, v))
         sweeps = [self._sweep(rb, v, speeds) for rb in links]
@@ -639,15 +685,15 @@ class World:
 
     def _find_soft_pairs(self, skipped: list) -> list[tuple[int, int]]:
         out = []
-        bodies = self._members
-        for a, ba in enumerate(bodies):
-            if id(ba) in self._self_contact:
+        entries = self._entries
+        for a, ea in enumerate(entries):
+            if ea.self_contact:
                 out.append((a, a))
-            for b in range(a + 1, len(bodies)):
-                bb = bodies[b]
+            for b in range(a + 1, len(entries)):
+                eb = entries[b]
                 if not self.soft_contact:
                     why = "soft contact is off (World(soft_contact=False))"
-                elif ("soft", id(bb)) in self._ignore[id(ba)] or ("soft", id(ba)) in self._ignore[id(bb)]:
+                elif ea.ignores_soft(eb.body) or eb.ignores_soft(ea.body):
                     why = "they were told not to collide (add_soft(..., ignore=...))"
                 else:
                     out.append((a, b))
@@ -655,45 +701,43 @@ class World:
                 skipped.append((a, b, why))
         return out
 
-    def _detect_soft(self) -> SoftHits:
+    def _detect_soft(self, record: StepRecord) -> None:
         """Contact candidates between the soft bodies, and of bodies with self-contact (softcontact.py), searched
         body by body and numbered by the stepped bodies (a, b index sim.bodies, node and nodes theirs; triangle
-        stays the soft body's own surface triangle); a warning, once,
-        when bodies left out of soft contact meet (their boxes overlap)."""
+        stays the soft body's own surface triangle), into the record (soft_hits, edge_hits, member_pairs); a warning,
+        once, when bodies left out of soft contact meet (their boxes overlap)."""
         skipped: list = []
         pairs = self._soft_pairs(skipped)
         for a, b, why in skipped:
-            (la, ha), (lb, hb) = (self._box(self._members[k]) for k in (a, b))
+            (la, ha), (lb, hb) = (self._box(k) for k in (a, b))
             if np.all(la <= hb) and np.all(lb <= ha):
                 self._warn_once(("soft off", a, b), f"soft bodies {a} and {b} meet, but {why}: they pass through "
                                 "each other")
-        self._soft_member_pairs = np.zeros((0, 2), dtype=np.int64)
-        self.edge_hits = EdgeHits.empty()
         if not pairs:
-            return SoftHits.empty()
-        data = [(b.positions, b.velocities, self._soft_surface[id(b)], b.rest) for b in self._members]
+            return
+        data = [(e.body.positions, e.body.velocities, e.surface, e.body.rest) for e in self._entries]
         key = self._pairs_memo[0]  # the members' surfaces are fixed: the search's layout lasts as the pairs do
         if self._soft_layout is None or self._soft_layout[0] != key:
             self._soft_layout = (key, SoftLayout.of([sf for _, _, sf, _ in data], pairs))
         depth = SOFT_DEPTH * self.contact_margin
         hits = soft_contacts(data, pairs, self.contact_margin, self.dt, depth, self._soft_layout[1])
-        self.edge_hits = edges = edge_contacts(data, pairs, self.contact_margin, self.dt,
-                                               EDGE_DEPTH * self.contact_margin, hits,
-                                               self._soft_layout[1])
+        edges = edge_contacts(data, pairs, self.contact_margin, self.dt, EDGE_DEPTH * self.contact_margin, hits,
+                              self._soft_layout[1])
         # in the members' numbering
-        self._soft_member_pairs = np.concatenate([np.column_stack([hits.a, hits.b]), np.column_stack([edges.a, edges.b])])
+        record.member_pairs = np.concatenate([np.column_stack([hits.a, hits.b]), np.column_stack([edges.a, edges.b])])
         if (len(hits) or len(edges)) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering
-            place = np.array([self._place[id(b)] for b in self._members])
+            place = np.array([e.place for e in self._entries])
             hits.node = hits.node + place[hits.a, 1]
             hits.nodes = hits.nodes + place[hits.b, 1][:, None]
             hits.a, hits.b = place[hits.a, 0], place[hits.b, 0]
             edges.nodes = edges.nodes + np.column_stack([place[edges.a, 1]] * 2 + [place[edges.b, 1]] * 2)
             edges.a, edges.b = place[edges.a, 0], place[edges.b, 0]
-        return hits
+        record.soft_hits, record.edge_hits = hits, edges
 
-    def _box(self, body: FemBody) -> tuple[np.ndarray, np.ndarray]:
-        """The box (lo (3,), hi (3,)) [m] of a soft body's surface nodes."""
-        x = body.positions[self._soft_surface[id(body)].nodes]
+    def _box(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The box (lo (3,), hi (3,)) [m] of soft body k's surface nodes."""
+        e = self._entries[k]
+        x = e.body.positions[e.surface.nodes]
         return x.min(axis=0), x.max(axis=0)
 
     def _pair_contacts(self, hits: SoftHits, edges: EdgeHits) -> PairContacts | None:
@@ -703,7 +747,7 @@ class World:
         if not m:
             return None
         a, b = np.concatenate([hits.a, edges.a]), np.concatenate([hits.b, edges.b])
-        mu_of = np.array([self.friction[id(body)] for body in self.sim.bodies])
+        mu_of = np.array([e.friction for e in self._stepped])
         parts = np.concatenate([np.column_stack([hits.a, hits.b, hits.b, hits.b]),
                                 np.column_stack([edges.a, edges.a, edges.b, edges.b])])
         nodes = np.concatenate([np.column_stack([hits.node, hits.nodes]), edges.nodes])
@@ -719,11 +763,11 @@ class World:
                             np.minimum(mu_of[a], mu_of[b]), np.full(m, -1), point, np.full(m, -1), parts=parts,
                             nodes=nodes, weights=weights)
 
-    def _contact_data(self, body: FemBody, found: Contacts | FaceHits, coupling: RigidCoupling
+    def _contact_data(self, i: int, found: Contacts | FaceHits, coupling: RigidCoupling
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """For contacts with rigid links: friction (m,), the rigid points' velocities (m, 3) (for movable
         bodies filled in after pybullet's step) and the Jacobians (m, 3, n) of the coupled ones."""
-        mu = np.full(len(found), self.friction[id(body)])
+        mu = np.full(len(found), self._stepped[i].friction)
         vr = np.zeros((len(found), 3))
         keys = set(zip(found.rigid.tolist(), found.link.tolist()))
         for key in keys:
@@ -736,15 +780,15 @@ class World:
         J = coupling.jacobians(self.adapter, found.rigid, found.link, found.point) if coupling.n else None
         return mu, vr, J
 
-    def _node_contacts(self, body: FemBody, found: Contacts, coupling: RigidCoupling, carried: bool = False
+    def _node_contacts(self, i: int, found: Contacts, coupling: RigidCoupling, carried: bool = False
                        ) -> NodeContacts:
         """The solver's form of node contacts; carried: found at the end of the step (see NodeContacts)."""
-        mu, vr, J = self._contact_data(body, found, coupling)
+        mu, vr, J = self._contact_data(i, found, coupling)
         return NodeContacts(found.node, found.normal, found.distance, vr, mu, found.rigid, found.point,
                             found.link, J, np.full(len(found), carried))
 
-    def _face_contacts(self, body: FemBody, hits: FaceHits, coupling: RigidCoupling) -> FaceContacts:
-        mu, vr, J = self._contact_data(body, hits, coupling)
+    def _face_contacts(self, i: int, hits: FaceHits, coupling: RigidCoupling) -> FaceContacts:
+        mu, vr, J = self._contact_data(i, hits, coupling)
         return FaceContacts(hits.key, hits.normal, hits.distance, vr, mu, hits.rigid, hits.point, hits.link, J,
                             nodes=hits.nodes, weights=hits.weights, group=hits.group, primary=hits.primary,
                             edge=hits.edge)
@@ -755,7 +799,7 @@ class World:
         two-way attachments."""
         out = []
         for att in self.attachments:
-            where, first = self._place[id(att.body)]
+            where, first = self.entry(att.body).place
             if where == i and att.coupled:
                 pts = att.rigid.to_world(att.local)
                 link = np.full(len(pts), att.rigid.link)
@@ -763,20 +807,20 @@ class World:
                 out.append((att, att.nodes + first, pts, J))
         return out
 
-    def _body_steps(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
+    def _body_steps(self, record: StepRecord, systems: list[LinearSystem], supports: list[Constraints],
                     u: np.ndarray) -> list[BodyStep]:
-        """Each soft body's part of the contact solve: its system, supports, pending contacts and coupled
+        """Each soft body's part of the contact solve: its system, supports, the record's contacts and coupled
         attachments, with the rigid points' velocities under the free motion u (n,) of the coupled bodies."""
         steps = []
-        h, coupling = self.dt, self._coupling
-        for body, system, sup in zip(bodies, systems, supports):
-            c, f = self._pending.get(id(body)), self._pending_faces.get(id(body))
+        h, coupling = self.dt, record.coupling
+        for i, (body, system, sup) in enumerate(zip(record.bodies, systems, supports)):
+            c, f = record.contacts.get(i), record.faces.get(i)
             for cc in (c, f):
                 if cc is not None and coupling.n:  # rigid velocities of the coupled points under the free motion
                     on = np.isin(cc.rigid, list(coupling.dynamics))
                     cc.rigid_velocity[on] = cc.jacobian[on] @ u
             att = None
-            parts = self._attach_pending.get(id(body), [])
+            parts = record.attachments.get(i, [])
             if parts:
                 nodes, target, J, rid, lid, pts = [], [], [], [], [], []
                 for a, ids, p0, Ja in parts:
@@ -791,46 +835,48 @@ class World:
             steps.append(BodyStep(system, sup, c, att, f))
         return steps
 
-    def _end_pose(self, rb: RigidLink, du: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _end_pose(self, record: StepRecord, rb: RigidLink, du: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """A moving link's pose (centre (3,), quaternion (4,)) at the end of the step: a kinematic link's
         scripted one; a dynamic one's after pybullet's step, its centre moved on by the coupled velocity change
         du (n,) of the solve (its rotation by the free motion alone)."""
         if rb.motion is not None:
-            return rb.scripted_pose(self.t + self.dt)
+            return rb.scripted_pose(record.t + self.dt)
         c1, q1 = rb.pose()
-        coupling = self._coupling
+        coupling = record.coupling
         if rb.id in coupling.dynamics and len(du):
-            J = coupling.jacobians(self.adapter, np.array([rb.id]), np.array([rb.link]), self._poses0[rb.key][0][None])
+            J = coupling.jacobians(self.adapter, np.array([rb.id]), np.array([rb.link]),
+                                   record.poses0[rb.key][0][None])
             c1 = c1 + self.dt * (J[0] @ du)
         return c1, q1
 
-    def _end_contacts(self, bodies: list[FemBody], velocities: list[np.ndarray], du: np.ndarray) -> bool:
+    def _end_contacts(self, record: StepRecord, velocities: list[np.ndarray], du: np.ndarray) -> bool:
         """Node contacts the start of the step missed: nodes that the solved velocities (N, 3) per body carry
         inside a moving rigid link (primitives) at its pose at the end of the step (:meth:`_end_pose`, with the
-        solve's du) join the body's node contacts, in place of a start contact of the same node; each is the
-        end pose's closest point carried back to the start with the link (so the condition n . (x_end - p_end)
-        >= 0 holds at the end), and only where the node moved into the link across that point's normal (not
-        through it: a normal on the far side would pull it through). Returns whether any joined."""
+        solve's du) join the record's node contacts of the body, in place of a start contact of the same node; each
+        is the end pose's closest point carried back to the start with the link (so the condition
+        n . (x_end - p_end) >= 0 holds at the end), and only where the node moved into the link across that point's
+        normal (not through it: a normal on the far side would pull it through). Returns whether any joined."""
         h, added = self.dt, False
-        moving = [rb for rb in self.rigids.values() if rb.key in self._poses0 and rb.primitive_parts() is not None]
+        moving = [rb for rb in self.rigids.values() if rb.key in record.poses0 and rb.primitive_parts() is not None]
         if not moving:
             return False
-        ends = {rb.key: self._end_pose(rb, du) for rb in moving}
-        for i, (body, v) in enumerate(zip(bodies, velocities)):
-            surface = self._surface[id(body)].nodes
+        ends = {rb.key: self._end_pose(record, rb, du) for rb in moving}
+        for i, (e, v) in enumerate(zip(self._stepped, velocities)):
+            body = e.body
+            surface = e.surface.nodes
             surface = surface[~body.supported()[surface]]
             x0 = body.positions[surface]
             x1 = x0 + h * v[surface]
             found = []
             for rb in moving:
-                if self._ignored(body, rb):
+                if e.ignores(rb):
                     continue
                 c1, q1 = ends[rb.key]
                 near = np.einsum("ij,ij->i", x1 - c1, x1 - c1) <= (rb.bounding_radius() + self.contact_margin) ** 2
                 if not near.any():
                     continue
                 point, normal, dist = primitive_distances(rb, rb.primitive_parts(), x1[near], (c1, q1))
-                c0, q0 = self._poses0[rb.key]
+                c0, q0 = record.poses0[rb.key]
                 local = (point - c1) @ quat_matrix(q1)  # the material points, carried back to the start
                 start = local @ quat_matrix(q0).T + c0
                 moved_in = np.einsum("ij,ij->i", (x1[near] - x0[near]) - (point - start), normal) < 0
@@ -848,55 +894,38 @@ class World:
                 continue
             order = np.lexsort((found.distance, found.node))  # one per node: the deepest
             found = found.select(order[run_starts(found.node[order])])
-            new = self._node_contacts(body, found, self._coupling, carried=True)
-            old = self._pending.get(id(body))
+            new = self._node_contacts(i, found, record.coupling, carried=True)
+            old = record.contacts.get(i)
             if old is not None:
                 new = _concat_contacts(old.select(~np.isin(old.node, new.node)), new)
-            self._pending[id(body)] = new
+            record.contacts[i] = new
             added = True
         return added
 
-    def _solve_velocities(self, bodies: list[FemBody], systems: list[LinearSystem], supports: list[Constraints],
-                          t_next: float) -> list[np.ndarray]:
-        """The contact and coupling solve of all soft bodies (Simulation's velocity hook)."""
-        core0 = sum(self.sim.timings.values())  # core phases (factorize, solve, ...) run inside this call
-        t0 = time.perf_counter()
-        h, coupling = self.dt, self._coupling
-        u_free = {b: self.adapter.generalized_velocity(dyn) for b, dyn in coupling.dynamics.items()}
-        tr = time.perf_counter()
-        u = np.zeros(coupling.n)
-        for b, o in coupling.offset.items():
-            u[o:o + coupling.dynamics[b].n] = u_free[b]
-        steps = self._body_steps(bodies, systems, supports, u)
-        self._rigid_inside = time.perf_counter() - tr
-        self.timings["rigid"] += self._rigid_inside
-        M = coupling.mass_matrix() if coupling.n else None
-        sol = self.contact_solver.solve(steps, h, M, self._pending_pairs)
-        for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
-            if not self._end_contacts(bodies, sol.velocities, sol.du):
-                break
-            steps = self._body_steps(bodies, systems, supports, u)
-            sol = self.contact_solver.solve(steps, h, M, self._pending_pairs)
-        self._solution = sol
-        self.pair_results = sol.pairs
-        self.contact_results = {id(b): (st.contacts, res) for b, st, res in zip(bodies, steps, sol.contacts)
-                                if res is not None}
-        self.face_results = {id(b): (st.faces, res) for b, st, res in zip(bodies, steps, sol.faces) if res is not None}
-        self.attachment_forces = []
-        for body, st, f in zip(bodies, steps, sol.attachment_forces):
-            if f is None:
-                continue
-            k = 0
-            for a, _, _, _ in self._attach_pending.get(id(body), []):
-                self.attachment_forces.append((a, f[k:k + len(a.nodes)]))
-                k += len(a.nodes)
-        self.timings["velocity_solve"] += (time.perf_counter() - t0 - self._rigid_inside
-                                           - (sum(self.sim.timings.values()) - core0))
+    def _solve_velocities(self, record: StepRecord, systems: list[LinearSystem],
+                          supports: list[Constraints]) -> list[np.ndarray]:
+        """The contact and coupling solve of all soft bodies (the velocities Simulation.solve_step asks for), into
+        record.solution: with the contacts found at the start, then again with those the end of the step reveals."""
+        timings, coupling = record.timings, record.coupling
+        with timed(timings, "contact"):
+            with timed(timings, "rigid"):
+                u = np.zeros(coupling.n)
+                for b, o in coupling.offset.items():
+                    u[o:o + coupling.dynamics[b].n] = self.adapter.generalized_velocity(coupling.dynamics[b])
+                steps = self._body_steps(record, systems, supports, u)
+            M = coupling.mass_matrix() if coupling.n else None
+            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs)
+            for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
+                if not self._end_contacts(record, sol.velocities, sol.du):
+                    break
+                with timed(timings, "rigid"):
+                    steps = self._body_steps(record, systems, supports, u)
+                sol = self.contact_solver.solve(steps, self.dt, M, record.pairs)
+        record.solution = sol
         return sol.velocities
 
     def step(self) -> None:
         """Advance the whole scene by dt (pybullet steps exactly once)."""
-        self.timings = defaultdict(float)
         self.adapter.invalidate()  # the user may have moved bodies since the last step
         self.adapter.caching = True  # within the step only pybullet's step and this World move them
         try:
@@ -906,10 +935,57 @@ class World:
             self.adapter.invalidate()
 
     def _step(self) -> None:
-        h, t = self.dt, self.t
-        tic = time.perf_counter()
-        self._sync()
-        bodies = self._stepped_now()
+        """One step, top to bottom: sync the rigid scene, collide, build the contact problem, let pybullet step,
+        solve the soft bodies' systems with the contact problem, commit, check; then publish the report."""
+        h = self.dt
+        record = StepRecord(self.t, self._stepped_now())
+        timings = record.timings
+        with timed(timings, "collision"):
+            self._sync()
+            self._script_velocities(record.t)
+            self._collide(record)
+        with timed(timings, "rigid"):
+            self._build_problem(record)
+            snapshot = self.adapter.snapshot({k[0] for k, rb in self.rigids.items()
+                                              if rb.movable or k[0] in self._one_way})
+            for b, lk, f, x in self._lagged:
+                self.adapter.apply_force(b, lk, f, x)
+            self.adapter.step()
+        try:
+            with timed(timings, "other"):  # the FEM step's own phases (factorize, solve, ...) nest in it
+                new = self.sim.solve_step(
+                    lambda _bodies, systems, supports, _t: self._solve_velocities(record, systems, supports),
+                    timings)
+            with timed(timings, "rigid"):
+                du = record.solution.du if record.solution is not None else np.zeros(0)
+                coupling = record.coupling
+                for b, dyn in coupling.dynamics.items():
+                    o = coupling.offset[b]
+                    if np.any(du[o:o + dyn.n]):
+                        self.adapter.change_velocity(dyn, du[o:o + dyn.n], h)
+                self._check_energy(new)
+        except BaseException:
+            self.adapter.restore_snapshot(snapshot)
+            raise
+        with timed(timings, "rigid"):
+            self.sim.commit(new)
+            for e in self._entries:
+                e.started = True
+            for rb in self.rigids.values():
+                if rb.motion is not None:
+                    pos, orn = rb.scripted_pose(self.t)
+                    self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
+            self._check_missed()
+            self._check_intersections(record)
+            self._check_rigid_intersections()
+            self._lagged = self._one_way_reactions(record)
+        if not record.in_contact:
+            timings.pop("contact", None)
+        self.report = StepReport.of(record, [e.place for e in self._entries])
+
+    def _script_velocities(self, t: float) -> None:
+        """The kinematic links' velocities over the step from t, from their scripted poses."""
+        h = self.dt
         for rb in self.rigids.values():
             if rb.motion is not None:
                 p0, q0 = rb.scripted_pose(t)
@@ -918,105 +994,67 @@ class World:
                 angle = 2 * math.atan2(np.linalg.norm(dq[:3]), dq[3])
                 axis = dq[:3] / max(np.linalg.norm(dq[:3]), 1e-300)
                 self._kin_velocity[rb.id] = ((p1 - p0) / h, axis * angle / h)
-        self.contact_results, self.face_results = {}, {}
-        self.attachment_forces = []
+
+    def _collide(self, record: StepRecord) -> None:
+        """The contact search at the start of the step, into the record: soft nodes and faces against rigid
+        links, soft bodies against each other; bodies new since the last step checked for overlaps."""
         self.detector.last_candidates = 0
-        detected = [self._detect(i, body) for i, body in enumerate(bodies)] if self.rigids else []
-        found = [d[0] for d in detected]
-        hits = [d[1] for d in detected]
-        self.contacts = Contacts.concat(found)
-        self.face_hits = FaceHits.concat(hits)
-        self.soft_hits = self._detect_soft()
-        self.pair_results = []
-        if len(self._started) < len(self._members):  # bodies added since the last step (none are removed)
-            self._check_overlaps([i for i, b in enumerate(self._members) if id(b) not in self._started])
-        self.timings["collision"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        # the movable bodies in play, at the start configuration (before pybullet moves them)
-        in_play = (set(self.contacts.rigid.tolist()) | set(self.face_hits.rigid.tolist())
-                   | {a.rigid.id for a in self.attachments if a.coupled})
+        record.detected = detected = [self._detect(i) for i in range(len(record.bodies))] if self.rigids else []
+        record.candidates = Contacts.concat([d[0] for d in detected])
+        record.face_hits = FaceHits.concat([d[1] for d in detected])
+        self._detect_soft(record)
+        fresh = [k for k, e in enumerate(self._entries) if not e.started]  # bodies added since the last step
+        if fresh:
+            self._check_overlaps(record, fresh)
+
+    def _build_problem(self, record: StepRecord) -> None:
+        """The step's contact problem, into the record: the movable rigid bodies in play (their mass matrices and
+        Jacobians at the start configuration, before pybullet moves them), each body's node and face contacts and
+        coupled attachments, the soft contacts, the moving links' start poses."""
+        c, f = record.candidates, record.face_hits
+        in_play = set(c.rigid.tolist()) | set(f.rigid.tolist()) | {a.rigid.id for a in self.attachments if a.coupled}
         dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
                     if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
-        self._coupling = coupling = RigidCoupling.of(dynamics)
+        record.coupling = coupling = RigidCoupling.of(dynamics)
         self._check_constraints(dynamics)
-        self._group_dense(self._soft_member_pairs, coupling)
-        self._pending = {id(body): self._node_contacts(body, f, coupling)
-                         for body, f in zip(bodies, found) if len(f)}
-        self._pending_faces = {id(body): self._face_contacts(body, f, coupling)
-                               for body, f in zip(bodies, hits) if len(f)}
-        self._attach_pending = {id(body): self._coupled_attachments(i, coupling) for i, body in enumerate(bodies)}
-        self._pending_pairs = self._pair_contacts(self.soft_hits, self.edge_hits)
-        self._rigid_inside = 0.0
-        # the moving links' poses at the start, for contacts found at the end of the step (_end_contacts)
-        self._poses0 = ({rb.key: rb.pose() for rb in self.rigids.values() if rb.movable or rb.motion is not None}
-                        if bodies else {})
-        snapshot = self.adapter.snapshot({k[0] for k, rb in self.rigids.items() if rb.movable or k[0] in self._one_way})
-        for b, lk, f, x in self._lagged:
-            self.adapter.apply_force(b, lk, f, x)
-        self.adapter.step()
-        self.timings["rigid"] = time.perf_counter() - tic
-        tic = time.perf_counter()
-        try:
-            new = self.sim.solve_step()
-            du = self._solution.du if bodies else np.zeros(0)
-            fem = time.perf_counter() - tic
-            tr = time.perf_counter()
-            for b, dyn in coupling.dynamics.items():
-                o = coupling.offset[b]
-                if np.any(du[o:o + dyn.n]):
-                    self.adapter.change_velocity(dyn, du[o:o + dyn.n], h)
-            self._check_energy(new)
-        except BaseException:
-            self.adapter.restore_snapshot(snapshot)
-            raise
-        self.sim.commit(new)
-        if len(self._started) < len(self._members):
-            self._started.update(id(b) for b in self._members)
-        if self._results_of_version != self._place_version:  # whose results are whose (changed with a restack)
-            self._results_of = {id(m): (id(bodies[w]), first) for m in self._members
-                                for w, first in [self._place[id(m)]]}
-            self._results_of_version = self._place_version
-        for rb in self.rigids.values():
-            if rb.motion is not None:
-                pos, orn = rb.scripted_pose(self.t)
-                self.adapter.reset_pose(rb.id, pos.tolist(), orn.tolist())
-        self._check_missed()
-        self._check_intersections()
-        self._check_rigid_intersections()
-        self._lagged = self._one_way_reactions()
-        self.timings["rigid"] += time.perf_counter() - tr
-        core = dict(self.sim.timings)
-        contact = self.timings.pop("velocity_solve", 0.0)  # outside the core phases
-        self.timings.update(core)
-        in_contact = self._pending or self._pending_faces or self._pending_pairs is not None
-        self.timings["contact"] = max(contact, 0.0) if in_contact else 0.0
-        self.timings["other"] = max(fem - sum(core.values()) - self.timings["contact"] - self._rigid_inside, 0.0)
-        self.timings["total"] = sum(self.timings.values())
+        self._group_dense(record)
+        for i, (found, hits) in enumerate(record.detected):
+            if len(found):
+                record.contacts[i] = self._node_contacts(i, found, coupling)
+            if len(hits):
+                record.faces[i] = self._face_contacts(i, hits, coupling)
+        for i in range(len(record.bodies)):
+            record.attachments[i] = self._coupled_attachments(i, coupling)
+        record.pairs = self._pair_contacts(record.soft_hits, record.edge_hits)
+        if record.bodies:  # the moving links' poses at the start, for contacts found at the end of the step
+            record.poses0 = {rb.key: rb.pose() for rb in self.rigids.values() if rb.movable or rb.motion is not None}
 
-    def _check_overlaps(self, fresh: list[int]) -> None:
+    def _check_overlaps(self, record: StepRecord, fresh: list[int]) -> None:
         """At a soft body's first step: refuse it placed deeper than half its smallest size inside a rigid link
         (no surface to push it out through) or overlapping another soft body (two overlapping meshes have no
         trustworthy way out: the nearest faces of the one inside the other may be its sides), and warn that a
         shallower overlap with a rigid link is pushed out at ``push_speed``."""
-        margin = self.contact_margin
+        margin, c = self.contact_margin, record.candidates
         for i in fresh:
-            body = self._members[i]
+            entry = self._entries[i]
+            body = entry.body
             extent = float(np.ptp(body.positions, axis=0).min())
-            where, first = self._place[id(body)]
-            mine = (self.contacts.body == where) & (self.contacts.node >= first) & (self.contacts.node < first + body.n_nodes)
-            sel = mine & (self.contacts.distance < -margin)
+            where, first = entry.place
+            mine = (c.body == where) & (c.node >= first) & (c.node < first + body.n_nodes)
+            sel = mine & (c.distance < -margin)
             overlaps = []
             if sel.any():
-                k = np.flatnonzero(sel)[np.argmin(self.contacts.distance[sel])]
-                rb = self.rigids[(int(self.contacts.rigid[k]), int(self.contacts.link[k]))]
-                overlaps.append((-float(self.contacts.distance[k]), f"rigid body {rb.name!r}", 0.5 * extent))
+                k = np.flatnonzero(sel)[np.argmin(c.distance[sel])]
+                rb = self.rigids[(int(c.rigid[k]), int(c.link[k]))]
+                overlaps.append((-float(c.distance[k]), f"rigid body {rb.name!r}", 0.5 * extent))
             for a, b in self._soft_pairs():
                 if i not in (a, b) or a == b or (a != i and a in fresh):  # each pair once
                     continue
                 j = b if a == i else a
-                other = self._members[j]
-                reach = max(extent, float(np.ptp(other.positions, axis=0).min()))
-                data = [(x.positions, np.zeros_like(x.positions), self._soft_surface[id(x)], x.rest) for x in (body, other)]
+                other = self._entries[j]
+                reach = max(extent, float(np.ptp(other.body.positions, axis=0).min()))
+                data = [(x.body.positions, np.zeros_like(x.body.positions), x.surface, x.body.rest)
+                        for x in (entry, other)]
                 d = soft_contacts(data, [(0, 1)], margin, self.dt, reach).distance
                 if len(d) and d.min() < -margin:
                     overlaps.append((-float(d.min()), f"soft body {j}", margin))
@@ -1025,17 +1063,18 @@ class World:
                     raise InvalidInputError(
                         f"soft body {i} starts {1e3 * depth:.1f} mm inside {what}: more than can be pushed out "
                         f"({1e3 * limit:.1f} mm); place it outside (or less deep) before the first step")
-                self._warn_once(("overlap", id(body), what), f"soft body {i} starts {1e3 * depth:.1f} mm inside "
+                self._warn_once(("overlap", i, what), f"soft body {i} starts {1e3 * depth:.1f} mm inside "
                                 f"{what}: it is pushed out at up to {self.contact_solver.push_speed} m/s (push_speed)")
 
     def _check_missed(self) -> None:
         """After a step: a fast rigid link that ended inside a soft body was not caught within the step (its
         contacts are linearised at the start of the step); say so once, with its speed."""
-        for i, body in enumerate(self.sim.bodies):
-            surface = self._surface[id(body)].nodes
+        for i, e in enumerate(self._stepped):
+            body = e.body
+            surface = e.surface.nodes
             surface = surface[~body.supported()[surface]]  # supports win over contact
             for rb in self.rigids.values():
-                if not (rb.movable or rb.motion is not None) or self._ignored(body, rb):
+                if not (rb.movable or rb.motion is not None) or e.ignores(rb):
                     continue
                 sweep = self._sweep(rb, body.velocities)
                 if sweep.rigid_travel() <= self.contact_margin:
@@ -1051,28 +1090,29 @@ class World:
                         f"was not caught within the step of {self.dt} s (it travels {1e3 * speed * self.dt:.0f} mm "
                         "per step); it is pushed out over the next steps. A smaller dt catches it."))
 
-    def _check_intersections(self) -> None:
+    def _check_intersections(self, record: StepRecord) -> None:
         """After a step: two soft bodies whose surfaces cross deeper than INTERSECTING (a geometric test,
         intersection.py, apart from the contact search) were not separated by their contacts; say so once per pair,
         naming both (bodies told not to collide are said to pass through at _detect_soft). Tested: every step the
         pairs whose contact candidates reach that deep, every CHECK_EVERY steps all pairs whose boxes overlap
         (crossings the search does not see at all)."""
         pairs = set()
-        if len(self.soft_hits) or len(self.edge_hits):
-            deep = np.concatenate([self.soft_hits.distance, self.edge_hits.distance]) < -INTERSECTING
+        if len(record.soft_hits) or len(record.edge_hits):
+            deep = np.concatenate([record.soft_hits.distance, record.edge_hits.distance]) < -INTERSECTING
             if deep.any():
-                found = self._soft_member_pairs[deep]
+                found = record.member_pairs[deep]
                 pairs.update(map(tuple, np.sort(found, axis=1).tolist()))
         if self.sim.steps % CHECK_EVERY == 0:
-            boxes = [self._box(b) for b in self._members]
+            boxes = [self._box(k) for k in range(len(self._entries))]
             pairs.update((a, b) for a, b in self._soft_pairs() if a != b and np.all(boxes[a][0] <= boxes[b][1])
                          and np.all(boxes[b][0] <= boxes[a][1]))
         for a, b in sorted(pairs):
             if a == b or ("intersect", a, b) in self._warned:
                 continue
-            ba, bb = self._members[a], self._members[b]
-            sa, sb = self._soft_surface[id(ba)], self._soft_surface[id(bb)]
-            depth = intersection_depth(ba.positions, sa.triangles, sa.edges, bb.positions, sb.triangles, sb.edges)
+            ea, eb = self._entries[a], self._entries[b]
+            sa, sb = ea.surface, eb.surface
+            depth = intersection_depth(ea.body.positions, sa.triangles, sa.edges, eb.body.positions, sb.triangles,
+                                       sb.edges)
             if depth > INTERSECTING:
                 self._warn_once(("intersect", a, b), (
                     f"soft bodies {a} and {b} intersect {1e3 * depth:.2f} mm deep at t = {self.t:.4g} s: their "
@@ -1093,13 +1133,13 @@ class World:
         if self.sim.steps % CHECK_EVERY or not self.rigids or not self._members:
             return
         members = self._members
-        surfs = [self._soft_surface[id(b)] for b in members]
-        boxes = [self._box(b) for b in members]
+        surfs = [e.surface for e in self._entries]
+        boxes = [self._box(k) for k in range(len(members))]
         lo, hi = np.array([b[0] for b in boxes]) - INTERSECTING, np.array([b[1] for b in boxes]) + INTERSECTING
         for rb in self.rigids.values():
             rlo, rhi = (np.asarray(v, float) for v in rb.aabb())
             near = [k for k in np.flatnonzero(np.all(lo <= rhi, axis=1) & np.all(hi >= rlo, axis=1)).tolist()
-                    if ("rigid intersect", k, rb.key) not in self._warned and not self._ignored(members[k], rb)]
+                    if ("rigid intersect", k, rb.key) not in self._warned and not self._ignores(k, rb)]
             if not near:
                 continue
             nodes = [surfs[k].nodes for k in near]
@@ -1159,13 +1199,16 @@ class World:
                                     "solve treats the body as free and pybullet enforces the constraint in its next "
                                     "step (a joint of a multibody is coupled exactly)")
 
-    def _one_way_reactions(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    def _one_way_reactions(self, record: StepRecord) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
         """Reactions on bodies the coupled solve cannot move (unsupported joints), for pybullet's next step."""
         lagged = self._one_way
-        if not lagged:
+        sol = record.solution
+        if not lagged or sol is None:
             return []
         out = []
-        for c, res in [*self.contact_results.values(), *self.face_results.values()]:
+        solved = [(record.contacts[i], r) for i, r in enumerate(sol.contacts) if r is not None]
+        solved += [(record.faces[i], r) for i, r in enumerate(sol.faces) if r is not None]
+        for c, res in solved:
             for i in np.flatnonzero(res.active & np.isin(c.rigid, list(lagged))):
                 out.append((int(c.rigid[i]), int(c.link[i]), -res.force[i], c.point[i]))
         return out
@@ -1214,19 +1257,22 @@ class World:
         force of that soft body (one added with :meth:`add_soft`)."""
         if isinstance(body_id, RigidLink):
             body_id, link = body_id.id, body_id.link if link is None else link
-        if soft is not None and all(b is not soft for b in self._members):
+        member = next((k for k, b in enumerate(self._members) if b is soft), None)
+        if soft is not None and member is None:
             raise InvalidInputError("soft must be a soft body of this World (added with add_soft)")
         total = np.zeros(3)
         results = [*self.contact_results.items(), *self.face_results.items()]
+        places = self.report.places
         if soft is not None:
-            if id(soft) not in self._results_of:  # added after the last step
+            if member >= len(places):  # added after the last step
                 return total
-            key_of, first = self._results_of[id(soft)]  # the stepped body it was in at the last step
+            key_of, first = places[member]  # the stepped body it was in at the last step
+            alone = sum(w == key_of for w, _ in places) == 1
         for key, (c, res) in results:
             if soft is not None and key != key_of:
                 continue
             sel = res.active & (c.rigid == body_id)
-            if soft is not None and key_of != id(soft):  # a stack: the contacts on the soft body's nodes
+            if soft is not None and not alone:  # a stack: the contacts on the soft body's nodes
                 node = c.nodes[:, 0] if isinstance(c, FaceContacts) else c.node
                 sel &= (node >= first) & (node < first + soft.n_nodes)
             if link is not None:
@@ -1243,47 +1289,28 @@ class World:
         run_steps(self.step, self.dt, duration, None if callback is None else lambda: callback(self), progress)
 
     # ------------------------------------------------------------------ saved states
-    def _handles(self) -> tuple[dict[int, int], list[tuple[int, ...]]]:
-        """(id(member) -> its index in ``bodies``, each stepped body as the tuple of its members' indices)."""
-        index = {id(m): k for k, m in enumerate(self._members)}
-        return index, [tuple(index[id(m)] for m in getattr(s, "members", [s])) for s in self.sim.bodies]
+    def _layout(self) -> list[tuple[int, ...]]:
+        """Each stepped body as the tuple of its members' handles (indices in ``bodies``)."""
+        return [tuple(e.members) for e in self._stepped]
 
     def save_state(self, path: str | Path | None = None) -> WorldState:
         """Everything the next steps read, copied: the soft bodies' state and solvers' (softbody.state), pybullet's
         world (its saveBullet), the contacts' warm starts and friction states, the stacking, the reactions lagged to
         the next step and the last step's results. Continuing after :meth:`restore_state` of it is the same to the
         bit as continuing now. ``path``: also write it there (``state.write(path)`` does the same later)."""
-        self._ensure_placed()
-        index, layout = self._handles()
-        by_id = {id(s): h for s, h in zip(self.sim.bodies, layout)}
-        previous = {(kind, key if kind == "soft" else by_id[key]): copy.deepcopy(value)
+        layout = self._layout()
+        handle = {e.body: h for e, h in zip(self._stepped, layout)}  # the contact solver's keys -> handles
+        previous = {(kind, key if kind == "soft" else handle[key]): copy.deepcopy(value)
                     for (kind, key), value in self.contact_solver.previous.items()
-                    if kind == "soft" or key in by_id}
-        impulses = {(kind, key if kind == "soft" else by_id[key]): dict(value)
-                    for (kind, key), value in self.contact_solver.lagged.items() if kind == "soft" or key in by_id}
-        attachment = {id(a): k for k, a in enumerate(self.attachments)}
-        results = {
-            "contacts": self.contacts, "face_hits": self.face_hits, "soft_hits": self.soft_hits, "edge_hits": self.edge_hits,
-            "soft_member_pairs": self._soft_member_pairs, "pair_results": list(self.pair_results),
-            "contact_results": {by_id[k]: v for k, v in self.contact_results.items() if k in by_id},
-            "face_results": {by_id[k]: v for k, v in self.face_results.items() if k in by_id},
-            "attachment_forces": [(attachment[id(a)], f) for a, f in self.attachment_forces],
-        }
+                    if kind == "soft" or key in handle}
         state = WorldState(self.sim.save_state(), self._scene_summary(), len(self.attachments), layout,
-                           {index[k]: index[g] for k, g in self._dense_group.items() if k in index and g in index},
-                           self._restack_due, sorted(index[k] for k in self._started if k in index),
-                           previous, copy.deepcopy(self._lagged), copy.deepcopy(results), self.adapter.save_world(),
-                           impulses=impulses,
-                           patterns=self.contact_solver.convex.patterns.save_state(lambda b: by_id.get(id(b))))
+                           {k: e.group for k, e in enumerate(self._entries) if e.group is not None},
+                           self._restack_due, [k for k, e in enumerate(self._entries) if e.started],
+                           previous, copy.deepcopy(self._lagged), copy.deepcopy(self.report), self.adapter.save_world(),
+                           patterns=self.contact_solver.convex.patterns.save_state(handle.get))
         if path is not None:
             state.write(path)
         return state
-
-    def _ensure_placed(self) -> None:
-        """Members added since the last step join the stepped bodies (a restack), so that every member has a place;
-        otherwise the stepping stays as the last step left it (a regrouping it asked for waits for the next step)."""
-        if any(id(m) not in self._place for m in self._members):
-            self._restack()
 
     def _scene_summary(self) -> dict:
         """What a saved state must find again to restore into this World: the soft bodies' node counts, the time step
@@ -1292,7 +1319,7 @@ class World:
         return {"members": [m.n_nodes for m in self._members], "dt": self.dt, "gravity": tuple(map(float, self.gravity)),
                 "rigid": [(b, ad.body_name(b), ad.num_links(b)) for b in ad.body_ids()]}
 
-    def _check_restorable(self, state: WorldState) -> list[list[FemBody]]:
+    def _check_restorable(self, state: WorldState) -> list[list[int]]:
         """Raise InvalidInputError naming what differs unless ``state`` was saved from this scene; returns the saved
         stepping as groups of members. Changes nothing."""
         have, want = self._scene_summary(), state.scene
@@ -1306,11 +1333,11 @@ class World:
                         f"{have['gravity']} here")
         if have["rigid"] != want["rigid"]:
             what.append(f"pybullet bodies (id, name, links) {want['rigid']} saved, {have['rigid']} here")
-        groups = [[self._members[k] for k in h] for h in state.layout] if not what else []
+        groups = [list(h) for h in state.layout] if not what else []
         for g in groups:
-            keys = {self._stack_key(m) for m in g}
+            keys = {self._stack_key(self._entries[k]) for k in g}
             if len(g) > 1 and (not self._stack or len(keys) > 1):
-                what.append(f"soft bodies {[self._members.index(m) for m in g]} were stepped as one stack, here they "
+                what.append(f"soft bodies {g} were stepped as one stack, here they "
                             "differ in what a stack shares (element kind, material, damping, friction, ignored links) "
                             "or stacking is off")
                 break
@@ -1335,37 +1362,27 @@ class World:
         try:
             self._apply_state(state, groups)
         except BaseException:
-            self._apply_state(backup, [[self._members[k] for k in h] for h in backup.layout])
+            self._apply_state(backup, [list(h) for h in backup.layout])
             raise
 
-    def _apply_state(self, state: WorldState, groups: list[list[FemBody]]) -> None:
+    def _apply_state(self, state: WorldState, groups: list[list[int]]) -> None:
         """Restore ``state`` (checked by :meth:`_check_restorable`, which gave ``groups``)."""
-        self.adapter.restore_world(state.bullet, fresh=self.sim.steps == 0 and not self._started)
-        members = self._members
-        self._dense_group = {id(members[k]): id(members[g]) for k, g in state.dense_group.items()}
+        self.adapter.restore_world(state.bullet, fresh=self.sim.steps == 0 and not any(e.started for e in self._entries))
+        for k, e in enumerate(self._entries):
+            e.group = state.dense_group.get(k)
+            e.started = k in state.started
         self._apply_layout(groups)
         self._restack_due = state.restack_due
         self.sim.restore_state(state.sim)
         for s in self.sim.bodies:
             if isinstance(s, BodyStack):
                 s.gather()
-        stepped = {h: s for h, s in zip(self._handles()[1], self.sim.bodies)}
-        self.contact_solver.previous = {(kind, key if kind == "soft" else id(stepped[key])): copy.deepcopy(value)
+        stepped = {h: s for h, s in zip(self._layout(), self.sim.bodies)}
+        self.contact_solver.previous = {(kind, key if kind == "soft" else stepped[key]): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
-        self.contact_solver.lagged = {(kind, key if kind == "soft" else id(stepped[key])): dict(value)
-                                      for (kind, key), value in state.impulses.items()}
         self.contact_solver.convex.patterns.load_state(state.patterns, lambda h: stepped[h])
-        self._started = {id(members[k]) for k in state.started}
         self._lagged = copy.deepcopy(state.lagged)
-        r = copy.deepcopy(state.results)
-        self.contacts, self.face_hits, self.soft_hits = r["contacts"], r["face_hits"], r["soft_hits"]
-        self.edge_hits = r.get("edge_hits", EdgeHits.empty())
-        self._soft_member_pairs, self.pair_results = r["soft_member_pairs"], r["pair_results"]
-        self.contact_results = {id(stepped[h]): v for h, v in r["contact_results"].items()}
-        self.face_results = {id(stepped[h]): v for h, v in r["face_results"].items()}
-        self.attachment_forces = [(self.attachments[k], f) for k, f in r["attachment_forces"]]
-        self._results_of = {id(m): (id(self.sim.bodies[w]), first) for m in members for w, first in [self._place[id(m)]]}
-        self._results_of_version = self._place_version
+        self.report = copy.deepcopy(state.results)
 
     __deepcopy__ = not_copyable("a pybullet client and the soft bodies' solver factorisations", "World")
     __reduce_ex__ = not_copyable("a pybullet client and the soft bodies' solver factorisations", "World")
@@ -1374,11 +1391,13 @@ class World:
     def max_penetration(self) -> float:
         """Deepest penetration [m] of any soft surface node into any rigid link at the current positions."""
         worst = 0.0
-        for i, body in enumerate(self._stepped_now()):
-            surface = self._surface[id(body)].nodes
+        self._stepped_now()
+        for i, e in enumerate(self._stepped):
+            body = e.body
+            surface = e.surface.nodes
             surface = surface[~body.supported()[surface]]
             for rb in self.rigids.values():
-                if self._ignored(body, rb):
+                if e.ignores(rb):
                     continue
                 c = self.detector.node_contacts(i, body.positions, surface, rb, 1e-3)
                 if len(c):

@@ -101,25 +101,52 @@ def merge(first: Constraints, second: Constraints) -> Constraints:
                        np.concatenate([first.value, second.value[keep]]), frames)
 
 
-Timings = dict  # phase -> seconds, accumulated: rotations, forces, assembly, factorize, solve
+class Timings(dict):
+    """Seconds by phase, accumulated over a step (rotations, forces, assembly, factorize, solve, and the phases a
+    caller opens around them): exclusive, a phase entered inside another counts to the inner one only, so that the
+    phases add up to the wall time and nothing is subtracted afterwards. ``timed`` opens and closes them."""
+
+    __slots__ = ("_open",)
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self._open: list[list] = []  # [phase, tic] of the open phases, innermost last
+
+    def enter(self, phase: str) -> None:
+        now = time.perf_counter()
+        if self._open:  # the enclosing phase pauses
+            outer = self._open[-1]
+            self[outer[0]] = self.get(outer[0], 0.0) + now - outer[1]
+        self._open.append([phase, now])
+
+    def leave(self) -> None:
+        now = time.perf_counter()
+        phase, tic = self._open.pop()
+        self[phase] = self.get(phase, 0.0) + now - tic
+        if self._open:  # and resumes
+            self._open[-1][1] = now
 
 
 class timed:
     """``with timed(timings, phase):`` adds the wall time of the block to timings[phase] (nothing when timings is
-    None). A class, not a generator context manager: a step enters a dozen of these, and contextlib's costs
-    about 3 us each."""
+    None; exclusive of the phases nested in it when timings is a :class:`Timings`). A class, not a generator context
+    manager: a step enters a dozen of these, and contextlib's costs about 3 us each."""
 
     __slots__ = ("timings", "phase", "tic")
 
-    def __init__(self, timings: Timings | None, phase: str):
+    def __init__(self, timings: dict | None, phase: str):
         self.timings, self.phase = timings, phase
 
     def __enter__(self) -> None:
-        if self.timings is not None:
+        if isinstance(self.timings, Timings):
+            self.timings.enter(self.phase)
+        elif self.timings is not None:
             self.tic = time.perf_counter()
 
     def __exit__(self, *exc) -> None:
-        if self.timings is not None:
+        if isinstance(self.timings, Timings):
+            self.timings.leave()
+        elif self.timings is not None:
             self.timings[self.phase] = self.timings.get(self.phase, 0.0) + time.perf_counter() - self.tic
 
 

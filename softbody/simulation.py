@@ -13,7 +13,8 @@ import numpy as np
 from . import compilation, kernels
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, finite_number
-from .integrator import Constraints, DirectSystem, IterativeSettings, LinearSystem, step_system, support_constraints
+from .integrator import (Constraints, DirectSystem, IterativeSettings, LinearSystem, Timings, step_system,
+                         support_constraints)
 from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
 from .solvers import BodySolvers
@@ -144,9 +145,8 @@ class Simulation:
         self.max_energy = max_energy
         self.t = 0.0
         self.steps = 0
-        self.velocity_solver: VelocitySolver | None = None
         # seconds of the last step by phase: rotations, forces, assembly, factorize, solve
-        self.timings: dict[str, float] = {}
+        self.timings: Timings = Timings()
         self._external_forces = ExternalForces()  # body -> (N, 3) extra loads [N], see ExternalForces
         self.solvers = BodySolvers()  # per body: the SPD solvers and preconditioners kept from step to step
         for b in bodies:
@@ -233,28 +233,34 @@ class Simulation:
         """The last Newton step's iterations and residuals (scheme "newton")."""
         return self.newton.report
 
-    def solve_step(self) -> list[tuple[np.ndarray, np.ndarray]]:
+    def solve_step(self, solve_velocities: VelocitySolver | None = None,
+                   timings: Timings | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """The new (positions, velocities) of every body after one step, checked (SimulationDiverged) but not
-        yet applied: :meth:`commit` applies them. :meth:`step` is both."""
+        yet applied: :meth:`commit` applies them. :meth:`step` is both.
+
+        ``solve_velocities(bodies, systems, supports, t_next)`` -> velocities (N, 3) per body solves the step's
+        systems in place of each system's own solve with its supports (a caller's contact solve: integration.World);
+        ``timings`` collects the seconds by phase (a caller's, with its own phases around these; default a fresh
+        :class:`Timings`, kept as ``self.timings``)."""
         if compilation.pending:  # a first run: switch to the compiled kernels once they are ready
             compilation.poll()
         t_next = self.t + self.dt
-        self.timings = {}
+        self.timings = timings = Timings() if timings is None else timings
         for b in self.bodies:
             if isinstance(b, BodyStack):
                 b.gather()  # members whose state the user assigned anew since the last step
         supports = [support_constraints(b, t_next, self.dt) for b in self.bodies]
 
         def solve(systems: list[LinearSystem]) -> list[np.ndarray]:
-            if self.velocity_solver is not None:
-                return self.velocity_solver(self.bodies, systems, supports, t_next)
+            if solve_velocities is not None:
+                return solve_velocities(self.bodies, systems, supports, t_next)
             return [system.solve(cons)[0] for system, cons in zip(systems, supports)]
 
         if self.scheme == "newton" and self.bodies:
             vs = self.newton.solve(self.bodies, self.dt, [self.load(b) for b in self.bodies],
                                    [self.solvers.solver(b, self.solver_backend) for b in self.bodies],
-                                   [self.linear_method(b) for b in self.bodies], self.settings, self.timings, solve,
-                                   t_next, self.steps + 1, contacts=self.velocity_solver is not None,
+                                   [self.linear_method(b) for b in self.bodies], self.settings, timings, solve,
+                                   t_next, self.steps + 1, contacts=solve_velocities is not None,
                                    preconditioners=[None if self.linear_method(b) == "direct" else self.solvers.preconditioner(
                                        b, self.solvers.solver(b, self.solver_backend)) for b in self.bodies])
         else:

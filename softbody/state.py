@@ -22,7 +22,7 @@ import numpy as np
 
 from .errors import InvalidInputError
 
-FORMAT = 1  # bumped when the layout of a saved state changes
+FORMAT = 2  # bumped when the layout of a saved state changes
 
 
 @dataclass

@@ -125,7 +125,7 @@ def test_box_corner_pressed_into_slab_does_not_penetrate():
     reach = 0.05 * math.sqrt(3)
     box = world.add_box((0.05, 0.05, 0.05), motion=lambda t: ((0.013, 0.021, 0.11 + reach - 0.04 * min(t, 1.0)), q))
     world.add_soft(body)
-    tris = world._surface[id(body)].triangles
+    tris = world.entry(body).surface.triangles
     worst = []
     def deepest(w):
         hits = w.detector.face_contacts(0, body.positions, tris, box, 0.05)
@@ -307,7 +307,7 @@ def test_node_contacts_alone_step_as_the_coupled_active_set(monkeypatch):
                 for _ in range(steps):
                     world.step()
                     forces += [res.force for _, res in world.contact_results.values()]
-                    iterations.append(world._solution.iterations)
+                    iterations.append(world.report.iterations)
                 runs.append(([b.positions.copy() for b in world.bodies], np.concatenate(forces), iterations))
                 world.close()
         (x1, f1, i1), (x2, f2, i2) = runs

@@ -184,7 +184,8 @@ def test_friction_is_lagged_to_coulombs_law():
     g = sol.gamma
     unilateral = ~rows.bilateral
     gt = np.hypot(g[:, 1], g[:, 2])
-    assert (gt[unilateral] <= rows.mu[unilateral] * g[unilateral, 0] * (1 + 1e-3) + 1e-12).all()
+    cone = rows.mu[unilateral] * g[unilateral, 0]
+    assert (gt[unilateral] <= cone + 2 * convex.LAG_TOL * cone.max()).all()  # the solver's tolerance: of the largest
     sliding = unilateral & ~sol.stiction & (g[:, 0] > 0) & (rows.mu > 0)
     assert (np.einsum("mi,mi->m", sol.vc[sliding, 1:], g[sliding, 1:]) <= 1e-12).all()
 
@@ -194,7 +195,7 @@ def test_a_kept_factorisation_solves_the_next_steps_alike():
     the first solve's factorisation (Factor), to the same velocities within the Newton tolerance."""
     rng = np.random.default_rng(7)
     parts, rows, M, h = _problem(rng)
-    solver = convex.ConvexSolver(rel_tol=1e-12)
+    solver = convex.ConvexSolver(rel_tol=1e-12, reuse_min=0)  # a small problem: reused all the same
     first = solver.solve(parts, rows, M, h)
     second = solver.solve(parts, rows, M, h)
     factor = next(iter(solver.patterns._held.values())).factor

@@ -639,3 +639,37 @@ def test_block_product_and_characteristic_gradient_kernels_equal_numpy(kind, mon
     Q *= np.sign(np.linalg.det(Q))
     F = body.characteristic_gradient(body.positions @ Q.T + [3.0, 1.0, -2.0])
     np.testing.assert_allclose(F.T.reshape(-1, 3, 3), np.broadcast_to(Q, (body.mesh.n_elements, 3, 3)), atol=1e-12)
+
+
+@pytest.mark.skipif(not kernels.ENABLED, reason="numba not installed")
+@pytest.mark.parametrize("cone", [True, False])
+def test_line_search_slopes_equal_the_laws_impulses_and_hessians(cone):
+    """integration.kernels.law_slopes against convex.cone_law / contact_law: rows in every region (stiction, sliding,
+    apart, frictionless, bilateral), at several points along a step."""
+    from integration import convex
+    from integration import kernels as contact_kernels
+
+    rng = np.random.default_rng(3)
+    m = 400
+    vc0 = rng.normal(scale=0.05, size=(m, 3))
+    dvc = rng.normal(scale=0.05, size=(m, 3))
+    R = np.repeat(10.0 ** rng.uniform(-4, 0, size=(m, 1)), 3, axis=1)
+    R[:, 0] *= 10.0 ** rng.uniform(-1, 1, size=m)  # normal and tangential entries differ
+    v_hat = rng.normal(scale=0.01, size=m)
+    mu = np.where(rng.random(m) < 0.2, 0.0, rng.uniform(0.1, 1.0, size=m))
+    bilateral = rng.random(m) < 0.1
+    param = mu if cone else mu * np.abs(rng.normal(scale=0.05, size=m))
+    stuck = slid = 0
+    for alpha in (0.0, 0.3, 1.0, 1.5):
+        vc = vc0 + alpha * dvc
+        law = convex.cone_law(vc, R, v_hat, mu, bilateral) if cone else convex.contact_law(vc, R, v_hat, param,
+                                                                                           bilateral)
+        gamma, G, _, stick = law
+        stuck += int(stick.sum())
+        slid += int((~stick & (np.abs(gamma[:, 1:]).sum(axis=1) > 0)).sum())
+        want1 = float(np.sum(dvc * gamma))
+        want2 = float(np.einsum("mi,mij,mj->", dvc, G, dvc))
+        s1, s2 = contact_kernels.law_slopes(vc0, dvc, alpha, R, v_hat, param, bilateral, cone)
+        assert s1 == pytest.approx(want1, rel=1e-10, abs=1e-12 * np.abs(dvc * gamma).sum())
+        assert s2 == pytest.approx(want2, rel=1e-10)
+    assert stuck > 50 and slid > 50  # both regions were tried
