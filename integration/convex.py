@@ -290,11 +290,9 @@ class Factor:
     made: int = 0  # factorisations
     reused: int = 0  # solves by the kept factor
     iterations: int = 0  # conjugate gradient iterations, over all reuses
-    failed: bool = False  # the last reuse did not converge: the next system is factorised at once
 
     def usable(self, held: np.ndarray) -> bool:
-        return (not self.failed and self.values is not None and self.held is not None
-                and np.array_equal(self.held, held))
+        return self.values is not None and self.held is not None and np.array_equal(self.held, held)
 
 
 @dataclass
@@ -598,9 +596,8 @@ class _Newton:
             if z is not None:
                 factor.reused += 1
                 return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
-            factor.failed = True
         group.solver.factorize(up)
-        factor.values, factor.held, factor.failed = up, self.held.copy(), False
+        factor.values, factor.held = up, self.held.copy()
         factor.made += 1
         self.factorizations += 1
         z = self._schur_solve(group.solver, Hsr, Hrr, rhs[:, None])[:, 0]

@@ -80,7 +80,7 @@ class StepReport:
     pair_results: list[tuple[PairContacts, ContactResult]] = field(default_factory=list)
     attachment_forces: list[tuple[int, np.ndarray]] = field(default_factory=list)
     places: list[tuple[int, int]] = field(default_factory=list)
-    timings: dict[str, float] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=lambda: {"total": 0.0})
     iterations: int = 0
 
     @classmethod

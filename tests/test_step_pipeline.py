@@ -74,3 +74,24 @@ def test_a_steps_phases_add_up_to_its_wall_time_and_its_report_holds_its_results
         w.restore_state(state)
         for b, f in zip(w.bodies, forces):
             np.testing.assert_array_equal(w.contact_force(floor, soft=b), f)
+
+
+def test_a_kept_stack_takes_up_what_its_members_ignore_since():
+    """Two cubes stepped as one stack, then both attached to the box under them without collision (attach's
+    default): the stack, kept as it was, ignores the box from then on, as each member does (no contact found)."""
+    with World(dt=0.005) as w:
+        box = w.add_box((0.1, 0.1, 0.01), position=(0, 0, -0.0095))
+        a, b = _cube(0.001), _cube(0.001)
+        w.add_soft(a)
+        w.add_soft(b)
+        b.positions = b.positions + np.array([0.06, 0.0, 0.0])
+        w.step()
+        stack = w.stepped(a)
+        assert stack is w.stepped(b) and stack is not a  # one stack of both
+        assert (w.contacts.rigid == box.id).any()  # resting on the box
+        for cube in (a, b):
+            w.attach(cube, [int(np.argmin(cube.positions[:, 2]))], box)
+        w.step()
+        assert w.stepped(a) is stack  # the same stack, kept
+        assert not (w.contacts.rigid == box.id).any()
+        assert not any((c.rigid == box.id).any() for c, _ in w.contact_results.values())
