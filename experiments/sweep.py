@@ -313,11 +313,11 @@ def _centroid(world) -> np.ndarray:
 def _slip(world) -> float:
     """Mean over the active contacts of the last step (node and face contacts with rigid links) of the
     tangential speed of the soft point relative to the rigid point [m/s] (0 without contacts)."""
-    bodies = {id(b): b for b in world.sim.bodies}  # the stepped bodies (stacks among them): the results' keys
+    bodies = world.sim.bodies  # the stepped bodies (stacks among them): the results are keyed by their index
     speeds = []
     for results in (world.contact_results, world.face_results):
         for key, (c, res) in results.items():
-            if key not in bodies or not res.active.any():
+            if key >= len(bodies) or not res.active.any():
                 continue
             a = res.active
             vel = bodies[key].velocities
