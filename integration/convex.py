@@ -58,7 +58,7 @@ MAX_ITER = 60
 #: a Newton system is solved by conjugate gradients preconditioned by the last factorisation on its pattern in at most
 #: this many iterations (each costs a pair of triangular solves and a sparse product), else factorised anew
 REUSE_ITERATIONS = 8
-#: ... to this residual, relative to the right-hand side's (an inexact Newton direction: the line search is exact)
+#: ... to this residual, relative to the right-hand side's (an inexact Newton direction: the line search follows it)
 REUSE_TOL = 1e-6
 #: ... in systems of at least this many soft unknowns: a smaller one is factorised anew at less cost than the products
 #: and triangular solves of the iterations
@@ -186,7 +186,8 @@ def cone_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, mu: np.ndarray, b
     < y_r / mu (gamma_n = (y_n + mu_hat y_r) / (1 + mu mu_hat), gamma_t = mu gamma_n y_t / y_r), apart otherwise.
     Normal and tangents are coupled where a row slides: Newton's model sees the slip resisted, and converges in a few
     iterations, but a sliding row lifts off its surface by about mu |v_t| h per step (the convex relaxation of
-    Coulomb's law): the solve refines such rows with :func:`contact_law` (ConvexSolver)."""
+    Coulomb's law): where that exceeds GLIDE_TOL the solve refines such rows with :func:`contact_law`
+    (ConvexSolver)."""
     m = len(vc)
     inv = 1.0 / R
     y = -vc * inv
@@ -336,9 +337,9 @@ class GroupPattern:
 
 
 class GroupPatterns:
-    """The group patterns kept from step to step, keyed by the parts' bodies: a pattern is reused while a step's extra blocks lie within it, else made anew with the union
-    of its extra blocks and the new ones (so that contacts coming and going settle on one pattern), unless that union
-    has grown to more than GROW times what the step needs."""
+    """The group patterns kept from step to step, keyed by the parts' bodies: a pattern is reused while a step's extra
+    blocks lie within it, else made anew with the union of its extra blocks and the new ones (so that contacts coming
+    and going settle on one pattern), unless that union has grown to more than GROW times what the step needs."""
 
     GROW = 4
 
