@@ -335,6 +335,23 @@ class GroupPattern:
         """The block indices of (rows, cols) (global nodes, every pair in the pattern)."""
         return np.searchsorted(self.keys, rows * self.pattern.n_nodes + cols)
 
+    def full(self, up: np.ndarray) -> sp.csr_matrix:
+        """The whole symmetric matrix (3N, 3N) of the upper values ``up`` (the solver's layout): its CSR structure and
+        where each entry comes from in ``up`` made once per pattern."""
+        if getattr(self, "_full", None) is None:
+            pat = self.pattern
+            off = np.flatnonzero(pat.up_row != pat.up_col)
+            r = np.concatenate([pat.up_row, pat.up_col[off]])
+            c = np.concatenate([pat.up_col, pat.up_row[off]])
+            src = np.concatenate([np.arange(len(pat.up_row)), off])
+            order = np.lexsort((c, r))
+            n3 = 3 * pat.n_nodes
+            indptr = np.zeros(n3 + 1, dtype=np.int64)
+            np.add.at(indptr, r + 1, 1)
+            self._full = (src[order], c[order].astype(np.int32), np.cumsum(indptr).astype(np.int32), n3)
+        src, indices, indptr, n3 = self._full
+        return sp.csr_matrix((up[src], indices, indptr), shape=(n3, n3))
+
 
 class GroupPatterns:
     """The group patterns kept from step to step, keyed by the parts' bodies: a pattern is reused while a step's extra
@@ -464,8 +481,8 @@ class _Newton:
         inv_blocks[touched] = Dinv
         F = rows.frames
         for s in range(self.gnodes.shape[1]):
-            B = inv_blocks[self.gnodes[:, s]]
-            out += (self.w[:, s] ** 2)[:, None] * np.einsum("mik,mij,mjk->mk", F, B, F)
+            BF = inv_blocks[self.gnodes[:, s]] @ F
+            out += (self.w[:, s] ** 2)[:, None] * np.einsum("mik,mik->mk", F, BF)
         if self.n and rows.jacobian is not None:
             JF = np.einsum("mij,mik->mkj", rows.jacobian, F)  # (m, 3 directions, n)
             out += np.einsum("mkj,jl,mkl->mk", JF, self.Minv, JF)
@@ -633,8 +650,7 @@ class _Newton:
         """The Newton system H z = rhs solved by conjugate gradients preconditioned by the kept factorisation (with the
         current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL."""
         pat, n3 = group.pattern, 3 * self.N
-        U = sp.csr_matrix((up, pat.up_indices, pat.up_indptr), shape=(n3, n3))
-        full = (U + U.T - sp.diags(up[pat.up_diag])).tocsr()  # the whole symmetric matrix, once: one product each
+        full = group.full(up)  # the whole symmetric matrix: one product per iteration
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):
