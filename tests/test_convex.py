@@ -4,7 +4,6 @@ here, for soft bodies coupled by rows to each other and to a free rigid body."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import scipy.optimize as so
 
 import softbody as sb
@@ -202,3 +201,23 @@ def test_a_kept_factorisation_solves_the_next_steps_alike():
     assert factor.reused > 0 and factor.iterations > 0
     for a, b in zip(first.velocities, second.velocities):
         assert np.abs(a - b).max() < 1e-9
+
+
+def test_sliding_rows_do_not_lift_off_beyond_glide_tol(monkeypatch):
+    """Castro et al.'s cone lifts a sliding row off its surface by about mu |v_t| h; where that passes GLIDE_TOL the
+    solve refines the rows by Coulomb's law, after which a sliding row's normal velocity is at most its target
+    (non-penetration without gliding). With the refinement turned off the cone's lift-off shows."""
+    rng = np.random.default_rng(3)
+    parts, rows, M, h = _problem(rng)
+
+    def lift_off(sol):
+        sliding = (rows.mu > 0) & ~rows.bilateral & ~sol.stiction & (sol.gamma[:, 0] > 0)
+        assert sliding.sum() >= 2
+        return float(((sol.vc[:, 0] - rows.v_hat) * h)[sliding].max())
+
+    tol = convex.GLIDE_TOL
+    refined = convex.ConvexSolver().solve(parts, rows, M, h)
+    assert refined.rounds > 1 and lift_off(refined) <= tol
+    monkeypatch.setattr(convex, "GLIDE_TOL", np.inf)  # the cone's solution as it is
+    cone = convex.ConvexSolver().solve(parts, rows, M, h)
+    assert cone.rounds == 1 and lift_off(cone) > 10 * tol
