@@ -15,6 +15,11 @@ from .rigid import RigidLink
 from .softcontact import SoftSurface
 
 
+def _ignores(skip: set | frozenset, rb: RigidLink) -> bool:
+    """Whether ``skip`` holds rigid link rb: its own key, or its body's (body id, None)."""
+    return rb.key in skip or (rb.id, None) in skip
+
+
 @dataclass
 class SoftEntry:
     """A soft body added to a World.
@@ -39,6 +44,10 @@ class SoftEntry:
         """The rigid links it ignores (soft pairs are searched per member, not per stepped body)."""
         return frozenset(k for k in self.ignore if k[0] != "soft")
 
+    def ignores(self, rb: RigidLink) -> bool:
+        """Whether it does not collide with rigid link ``rb``."""
+        return _ignores(self.ignore, rb)
+
     def ignores_soft(self, other: FemBody) -> bool:
         return ("soft", other) in self.ignore
 
@@ -56,4 +65,4 @@ class SteppedEntry:
 
     def ignores(self, rb: RigidLink) -> bool:
         """Whether it does not collide with rigid link ``rb``."""
-        return rb.key in self.ignore or (rb.id, None) in self.ignore
+        return _ignores(self.ignore, rb)

@@ -643,11 +643,6 @@ class World:
             return v + cross(w, points - c)
         return rb.point_velocity(points)
 
-    def _ignores(self, k: int, rb: RigidLink) -> bool:
-        """Whether soft body k does not collide with rigid link rb."""
-        skip = self._entries[k].ignore
-        return rb.key in skip or (rb.id, None) in skip
-
     def _detect(self, i: int) -> tuple[Contacts, FaceHits]:
         """Contact candidates of stepped body i against every rigid link it does not ignore (collision.py)."""
         e = self._stepped[i]
@@ -1141,7 +1136,7 @@ class World:
         for rb in self.rigids.values():
             rlo, rhi = (np.asarray(v, float) for v in rb.aabb())
             near = [k for k in np.flatnonzero(np.all(lo <= rhi, axis=1) & np.all(hi >= rlo, axis=1)).tolist()
-                    if ("rigid intersect", k, rb.key) not in self._warned and not self._ignores(k, rb)]
+                    if ("rigid intersect", k, rb.key) not in self._warned and not self._entries[k].ignores(rb)]
             if not near:
                 continue
             nodes = [surfs[k].nodes for k in near]
