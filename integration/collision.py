@@ -207,9 +207,8 @@ class CollisionDetector:
         supported (N,) bool) against ``links``: node contacts within each link's reach (``sweeps``, one per link:
         what the two sides may close within the step), one per node (the deepest), rigid points on its triangles
         between nodes (face contacts; a node within ``touch`` of a link rests on it) and, given the surface's
-        ``edges`` (E, 2) with the triangles each bounds (E, 2), the points of its edges deepest into immovable
-        links of primitive parts, between nodes (edge_contacts; not yet for links the coupled solve moves, whose
-        rows at a box's rim gained energy in the former dense frictional solve). A supported node has contacts only with movable links (a
+        ``edges`` (E, 2) with the triangles each bounds (E, 2), the points of its edges deepest into links of
+        primitive parts, between nodes (edge_contacts). A supported node has contacts only with movable links (a
         support wins over contact, but a rigid body resting on it must be held). Far links cost no query (broad
         phase on boxes). ``incidence``: the triangles' node_incidence, if at hand (for the surface normals)."""
         if not len(surface):
@@ -233,7 +232,7 @@ class CollisionDetector:
                     found = found.select(~supported[found.node])
                 if len(found):
                     parts.append(found)
-                with_edges = edges is not None and not rb.movable and _edge_parts(rb)
+                with_edges = edges is not None and _edge_parts(rb)
                 gap = node_gaps(found, len(positions)) if status == 2 or with_edges else None
                 if status == 2:  # face contacts possible: the numpy search decides
                     if boxes is None:
@@ -261,7 +260,7 @@ class CollisionDetector:
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
             gap = node_gaps(found, len(positions))
-            if edges is not None and not rb.movable and _edge_parts(rb):
+            if edges is not None and _edge_parts(rb):
                 faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
                 continue  # a plane: no face contacts (CollisionDetector.face_contacts)
@@ -631,14 +630,17 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
 
     ``edges``: the surface's edges (E, 2) and the triangles each bounds (E, 2); ``node_gap`` (N,): the gaps [m] the
     link's node contacts hold (inf where none). For every edge near a part (their boxes in the part's frame, not
-    where the distance is linear along it: RigidShape.linear_between), the point of least signed distance (convex along the edge: golden-section
-    search; on a flat stretch, such as under a box's face, the one farthest below the chord of the ends'
-    distances) counts if it lies between the ends (EDGE_END), nearer to the part than either end is and than the
-    ends' node contacts hold it (interpolated), by EDGE_EXPLAINED (a box lying on a soft face with an edge past its
-    rim adds nothing until the rim digs in), within reach (margin plus closing within the step), and the part faces
-    the edge (its normal against the edge's outward normal, FACING), inside it too. Each is a face hit with weights
-    (1 - t, t, 0) over the edge's nodes and the third of a triangle it bounds, its own rigid point (group), primary,
-    ``edge`` set."""
+    where the distance is linear along it: RigidShape.linear_between), the point of least signed distance (convex
+    along the edge: golden-section search; on a flat stretch, such as under a box's face, the one farthest below
+    the chord of the ends' distances) counts if it lies between the ends (EDGE_END), within reach (margin plus
+    closing within the step), the part faces the edge (its normal against the edge's outward normal, FACING; inside
+    it too) and, for an immovable link, it lies nearer to the part than either end and than the ends' node
+    contacts hold it (interpolated), by EDGE_EXPLAINED (a box lying on a soft face with an edge past its rim adds
+    nothing until the rim digs in). A link the coupled solve moves gets the row whenever it is within reach: the
+    convex solve shares the load between rows beside rows, and a row that came only once the rim dug in, and went
+    once it held, made a 2 kg box on a soft block rock and the scene gain 1e-3 of its energy in a step. Each is a
+    face hit with weights (1 - t, t, 0) over the edge's nodes and the third of a triangle it bounds, its own rigid
+    point (group), primary, ``edge`` set."""
     parts = _edge_parts(rigid)
     if not parts or not len(edges[0]):
         return FaceHits.empty()
@@ -695,7 +697,10 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
                 e_near, la, lb, d_a, d_b = (np.concatenate([v[keep], v[idx]]) for v in (e_near, la, lb, d_a, d_b))
         held = held_gap(np.column_stack([1 - t, t]), node_gap[E[e_near]])
         # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
-        ok = (t > EDGE_END) & (t < 1 - EDGE_END) & (d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED)
+        # (a movable link: always, see above; the convex solve takes rows beside rows)
+        ok = (t > EDGE_END) & (t < 1 - EDGE_END)
+        if not rigid.movable:
+            ok &= d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED
         if not ok.any():
             continue
         e, t, d, which = e_near[ok], t[ok], d[ok], which[ok]

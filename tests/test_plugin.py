@@ -16,6 +16,8 @@ import pytest
 import scipy.sparse as sparse
 import scipy.sparse.linalg as spla
 
+import geometry as geo
+
 import softbody as sb
 from integration import World
 from integration.bullet import BulletAdapter, quat_matrix
@@ -187,8 +189,9 @@ HALF = 0.0375  # the box's half extent [m]: a 7.5 cm box on a 10 cm block, its e
 
 def static_box_on_block(mass: float, offset: float, E: float = 1e5, nu: float = 0.3, rho: float = 1000.0) -> float:
     """Sag [m] of a rigid box (6 dof, small rotations about its bottom centre c) resting on a soft block fixed
-    at its bottom, in linear elasticity: unilateral, sticking contact at the top nodes strictly under the box
-    and at the box's bottom corners (points of the top surface triangles with barycentric weights); one sparse
+    at its bottom, in linear elasticity: unilateral, sticking contact at the top nodes strictly under the box,
+    at the box's bottom corners (points of the top surface triangles with barycentric weights) and where its
+    bottom rim crosses the top surface's edges (points of the edges); one sparse
     KKT system (scipy), the contact set by an active set on the normal reactions."""
     mesh = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=(0, 0, 0.05))
     X = mesh.nodes
@@ -212,9 +215,24 @@ def static_box_on_block(mass: float, offset: float, E: float = 1e5, nu: float = 
                 if (w >= -1e-9).all():
                     points.append((list(t), list(w), q))
                     break
+    # and where the box's rim crosses the top surface's edges between their nodes (a rigid edge across a soft face)
+    edges = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    corners = [c + np.array([sx, sy, 0.0]) for sx, sy in ((-HALF, -HALF), (HALF, -HALF), (HALF, HALF), (-HALF, HALF))]
+    for k in range(4):
+        r0, r1 = corners[k][:2], corners[(k + 1) % 4][:2]
+        for i, j in edges:
+            a, b = X[i, :2], X[j, :2]
+            A = np.column_stack([b - a, r0 - r1])
+            if abs(np.linalg.det(A)) < 1e-12:
+                continue  # parallel
+            t, s = np.linalg.solve(A, r0 - a)
+            if 1e-6 < t < 1 - 1e-6 and 1e-6 < s < 1 - 1e-6:
+                points.append(([i, j], [1 - t, t], np.r_[a + t * (b - a), 0.1]))
     bottom = np.flatnonzero(np.isclose(X[:, 2], 0.0))
     active = np.ones(len(points), dtype=bool)
+    seen: dict[bytes, float] = {}  # active set -> sag: a tilting box may cycle between two sets that agree
     for _ in range(50):
+        solved_with = active.tobytes()
         rows, cols, vals, r = [], [], [], 0
         for k, (nodes, w, q) in enumerate(points):
             if not active[k]:
@@ -235,19 +253,27 @@ def static_box_on_block(mass: float, offset: float, E: float = 1e5, nu: float = 
         C = sparse.csr_matrix((vals, (rows, cols)), shape=(r, 3 * N + 6))
         Kb = sparse.block_diag([K, sparse.csr_matrix((6, 6))])
         rhs = np.r_[f, 0, 0, -mass * 9.81, 0, 0, 0, np.zeros(r)]  # the box's weight acts above c: no moment
-        sol = spla.spsolve(sparse.bmat([[Kb, C.T], [C, None]]).tocsc(), rhs)
+        # rows beside rows (rim points on edges of nodes held too) are redundant: a compliance of 1e-12 m/N makes
+        # the system regular and leaves the sag unchanged (forces of tens of N: 1e-11 m)
+        sol = spla.spsolve(sparse.bmat([[Kb, C.T], [C, -1e-12 * sparse.eye(r)]]).tocsc(), rhs)
         u, U, theta, lam = sol[:3 * N].reshape(-1, 3), sol[3 * N:3 * N + 3], sol[3 * N + 3:3 * N + 6], sol[3 * N + 6:]
+        seen[solved_with] = -U[2]
         act = np.flatnonzero(active)
         push = lam[2:3 * len(act):3]  # > 0: the box pushes the soft point down
-        changed = bool((push < -1e-12).any())
-        active[act[push < -1e-12]] = False
+        pulls = push < -1e-9 * np.abs(push).max()
+        changed = bool(pulls.any())
+        active[act[pulls]] = False
         for k in np.flatnonzero(~active):
             nodes, w, q = points[k]
             z_soft = sum(wi * (X[node, 2] + u[node, 2]) for node, wi in zip(nodes, w))
-            if z_soft > 0.1 + U[2] + np.cross(theta, q - c)[2] + 1e-12:
+            if z_soft > 0.1 + U[2] + np.cross(theta, q - c)[2] + 1e-10:
                 active[k] = changed = True
         if not changed:
             return -U[2]
+        if active.tobytes() in seen:  # a cycle: fine if its sets give the same sag
+            cycle = [seen[active.tobytes()], -U[2]]
+            assert abs(cycle[0] - cycle[1]) <= 1e-3 * abs(cycle[1]), cycle  # the test allows 10%
+            return float(np.mean(cycle))
     raise AssertionError("no consistent contact set")
 
 
@@ -256,7 +282,8 @@ def static_box_on_block(mass: float, offset: float, E: float = 1e5, nu: float = 
 @pytest.mark.parametrize("offset", [0.0, 0.00625], ids=["centred", "near-edge"])
 def test_light_and_heavy_boxes_settle_on_a_soft_block(mass, dt, offset):
     """Boxes of 0.1 to 2 kg set 1 mm above a 1 kg soft block (E = 1e5) on a plane: each settles, never rises,
-    sags as the static FEM solution says, and the scene never gains energy."""
+    sags as the static FEM solution says, its rim does not dig in between the nodes, and the scene never gains
+    energy."""
     world = World(dt=dt)
     world.add_plane()
     mesh = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=(0, 0, 0.05))
@@ -275,6 +302,9 @@ def test_light_and_heavy_boxes_settle_on_a_soft_block(mass, dt, offset):
     assert sag == pytest.approx(static_box_on_block(mass, offset), rel=0.10)
     assert energy_never_grows(energies) <= 1e-9
     assert world.max_penetration() < 1e-3
+    # the box's bottom rim lies across soft faces between their nodes: by an independent test (triangle samples
+    # against the box's exact distance, the box's edge points inside the soft surface), it does not dig in
+    assert geo.rigid_penetration(world.client, box.id, block.positions, mesh.surface_triangles()) < 1e-4
 
 
 # ----------------------------------------------------------------------------------------------- pendulum
