@@ -545,7 +545,8 @@ def write_report(out: dict, path: Path, steps: int, elapsed: float, command: str
              f"Cantilever: {BEAM[0]} x {BEAM[1]} x {BEAM[2]} m, cells {BEAM_CELLS}, clamped at x = 0, released from rest "
              f"under gravity. Free cube: {CUBE} m, cells {CUBE_CELLS['tet4']} (tet10 {CUBE_CELLS['tet10']}), no gravity, "
              "released stretched +10 % / -5 % while spinning at 1 rev/s about an oblique axis. "
-             f"Rayleigh damping (alpha, beta) = {DAMPING}, rho = {RHO:g} kg/m^3.", "",
+             f"Rayleigh damping (alpha, beta) = {DAMPING}, sparing rigid motion (the default, docs/method.md "
+             f"section 3), rho = {RHO:g} kg/m^3.", "",
              f"**{counts['S']} strictly dissipative, {counts['s']} stable with a small excess, "
              f"{counts['U']} unstable (energy growth), {counts['X']} diverged, of {len(rows)}.**", ""]
     by_dt = {}

@@ -68,14 +68,18 @@ class FemBody:
     """A deformable body discretised by finite elements.
 
     mesh: :class:`Mesh`; material: :class:`LinearElastic`; warping: stiffness warping on/off;
-    damping: Rayleigh (alpha [1/s], beta [s]); mass: "consistent" or "lumped" (HRZ diagonal scaling);
+    damping: Rayleigh (alpha [1/s], beta [s]); damp_rigid: whether alpha M damps the body's rigid motion too
+    (classic Rayleigh damping: a free body falls and spins ever slower). By default (False) alpha M acts on the
+    velocity relative to the body's rigid motion (:meth:`rigid_velocity`): a free body falls and spins undamped
+    while its vibrations decay as before; a body with fixed or prescribed nodes has no free rigid motion and is
+    damped as classic Rayleigh. mass: "consistent" or "lumped" (HRZ diagonal scaling);
     hex_rotation: "average" (mean F of both Freudenthal inner tets) or "single" (the {0,2,5,7} tet).
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
     """
 
     def __init__(self, mesh: Mesh, material: LinearElastic, warping: bool = True,
                  damping: tuple[float, float] = (0.1, 0.001), mass: str = "consistent",
-                 hex_rotation: str = "average"):
+                 hex_rotation: str = "average", damp_rigid: bool = False):
         if not isinstance(mesh, Mesh):
             raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
         if not isinstance(material, LinearElastic):
@@ -94,6 +98,7 @@ class FemBody:
         self.material = material
         self.warping = bool(warping)
         self.damping = (alpha, beta)
+        self.damp_rigid = bool(damp_rigid)
         self.mass_kind = mass
         self.hex_rotation = hex_rotation
         et = mesh.element_type
@@ -229,6 +234,67 @@ class FemBody:
     def total_mass(self) -> float:
         return float(self.material.density * self.volumes.sum())
 
+    def part_offsets(self) -> np.ndarray:
+        """Offsets (k + 1,) of the node ranges that move as bodies of their own: here the whole body; a BodyStack's
+        members."""
+        return np.array([0, len(self._positions)])
+
+    def rigid_parts(self) -> tuple[np.ndarray, np.ndarray]:
+        """The node ranges that move as bodies (:meth:`part_offsets`) and whether each is free (k,) bool: no fixed or
+        prescribed node, so that its rigid motion is its own."""
+        parts = self.part_offsets()
+        fixed = self.fixed
+        if not self.prescribed and not fixed[fixed.argmax()]:  # no support at all (argmax: one C call, no wrapper)
+            free = np.empty(len(parts) - 1, dtype=bool)
+            free.fill(True)
+            return parts, free
+        return parts, ~np.logical_or.reduceat(self.supported(), parts[:-1])
+
+    def rigid_velocity(self, momenta: np.ndarray, parts: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """The rigid velocity field (N, 3) [m/s] with the linear and angular momentum of the nodal momenta
+        ``momenta`` (N, 3) [kg m/s] (e.g. M v) under the mass matrix, part by part (``parts``: :meth:`rigid_parts`,
+        if at hand; zero on parts that are not free): V + omega x (x - c), c the part's centre of mass, V = P / m
+        and (Phi_r^T M Phi_r) omega = L, the inertia tensor taken with the body's own mass matrix (a rigid field is
+        its own fit, consistent mass or lumped)."""
+        parts, free = self.rigid_parts() if parts is None else parts
+        x, m = self._positions, self.node_mass
+        if kernels.ENABLED:  # the same arithmetic part by part (softbody.kernels)
+            k, n = len(parts) - 1, len(x)
+            mass, P, L = np.empty(k), np.empty((k, 3)), np.empty((k, 3))
+            r, Mr, out = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+            kernels.part_moments(parts, x, m, np.ascontiguousarray(momenta, dtype=float), mass, P, L, r)
+            M = self._mass_csr
+            kernels.scalar_product(M.indptr, M.indices, M.data, r, Mr)
+            kernels.rigid_field(parts, free, r, Mr, mass, P, L, out)
+            return out
+        starts, count = parts[:-1], np.diff(parts)
+        mass = np.add.reduceat(m, starts)
+        c = np.add.reduceat(m[:, None] * x, starts) / mass[:, None]
+        r = x - np.repeat(c, count, axis=0)
+        Mr = self.mass_product(r)  # M has no entries between parts (the members of a stack)
+        S = np.add.reduceat(r[:, :, None] * Mr[:, None, :], starts)  # sum_ij m_ij r_i r_j^T, (k, 3, 3)
+        inertia = np.trace(S, axis1=1, axis2=2)[:, None, None] * np.eye(3) - np.swapaxes(S, 1, 2)
+        V = np.add.reduceat(momenta, starts) / mass[:, None]
+        omega = np.linalg.solve(inertia, np.add.reduceat(np.cross(r, momenta), starts)[:, :, None])[:, :, 0]
+        V[~free] = 0.0
+        omega[~free] = 0.0
+        return np.repeat(V, count, axis=0) + np.cross(np.repeat(omega, count, axis=0), r)
+
+    def rigid_damping_relief(self, h: float, momenta: np.ndarray) -> np.ndarray | None:
+        """What a step of size h [s] adds to the right-hand side so that alpha M damps the velocity relative to the
+        rigid motion, not the rigid motion (see the class doc): h alpha M v_r (N, 3) [kg m/s], v_r the rigid field
+        of ``momenta`` (M v at the start of the step: zero at rest, so a body resting on a support or hanging from
+        an attachment feels nothing of it); None where nothing is spared (damp_rigid, no alpha, or no free
+        part)."""
+        alpha = self.damping[0]
+        if self.damp_rigid or alpha == 0.0:
+            return None
+        parts = self.rigid_parts()
+        free = parts[1]
+        if not free[free.argmax()]:
+            return None
+        return (h * alpha) * self.mass_product(self.rigid_velocity(momenta, parts))
+
     # ------------------------------------------------------------------ supports
     def _node_ids(self, node_ids, what: str) -> np.ndarray:
         ids = np.atleast_1d(np.asarray(node_ids))
@@ -327,8 +393,9 @@ class FemBody:
 
     def mass_product(self, y: np.ndarray) -> np.ndarray:
         """M y for y (N, 3); returns (N, 3)."""
-        if kernels.ENABLED and np.ndim(y) == 2 and np.shape(y)[1] == 3:  # row by row, compiled (softbody.kernels)
-            M, out = self._mass_csr, np.empty((self.n_nodes, 3))
+        if kernels.ENABLED and (y.ndim == 2 and y.shape[1] == 3 if isinstance(y, np.ndarray) else
+                                np.ndim(y) == 2 and np.shape(y)[1] == 3):  # row by row, compiled (softbody.kernels)
+            M, out = self._mass_csr, np.empty((len(self._positions), 3))
             kernels.scalar_product(M.indptr, M.indices, M.data, np.ascontiguousarray(y, dtype=float), out)
             return out
         return self._mass_csr @ y

@@ -709,7 +709,10 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
                 Ku = body.pattern.product(body.stiffness_blocks(K), u)
     with timed(timings, "forces"):
         terms = (body.mass_product(v), h * (load - Ku), h * f_ext)
-        b = terms[0] + terms[1] + terms[2]
+        relief = body.rigid_damping_relief(h, terms[0])  # alpha M spares the rigid motion
+        if relief is not None:
+            terms += (relief,)
+        b = sum(terms[1:], terms[0])
     if pre is None:
         return DirectSystem(body, A, b, solver, timings=timings)
     with timed(timings, "rotations"):

@@ -286,6 +286,78 @@ def constrained_upper(flat: np.ndarray, gather: np.ndarray, up_row: np.ndarray, 
 
 
 @_jit
+def part_moments(parts: np.ndarray, x: np.ndarray, m: np.ndarray, y: np.ndarray, mass: np.ndarray, P: np.ndarray,
+                 L: np.ndarray, r: np.ndarray) -> None:
+    """Per node range k of ``parts`` (offsets (k + 1,)): its mass (k,) (node masses m (N,)), the sums P (k, 3) of the
+    momenta y (N, 3) and L (k, 3) of r x y about its centre of mass, r (N, 3) = x - that centre (FemBody.rigid_velocity's
+    first half)."""
+    for k in range(parts.shape[0] - 1):
+        mk = c0 = c1 = c2 = 0.0
+        for i in range(parts[k], parts[k + 1]):
+            mk += m[i]
+            c0 += m[i] * x[i, 0]
+            c1 += m[i] * x[i, 1]
+            c2 += m[i] * x[i, 2]
+        c0, c1, c2 = c0 / mk, c1 / mk, c2 / mk
+        p0 = p1 = p2 = l0 = l1 = l2 = 0.0
+        for i in range(parts[k], parts[k + 1]):
+            r0, r1, r2 = x[i, 0] - c0, x[i, 1] - c1, x[i, 2] - c2
+            r[i, 0], r[i, 1], r[i, 2] = r0, r1, r2
+            y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
+            p0 += y0
+            p1 += y1
+            p2 += y2
+            l0 += r1 * y2 - r2 * y1
+            l1 += r2 * y0 - r0 * y2
+            l2 += r0 * y1 - r1 * y0
+        mass[k] = mk
+        P[k, 0], P[k, 1], P[k, 2] = p0, p1, p2
+        L[k, 0], L[k, 1], L[k, 2] = l0, l1, l2
+
+
+@_jit
+def rigid_field(parts: np.ndarray, free: np.ndarray, r: np.ndarray, Mr: np.ndarray, mass: np.ndarray, P: np.ndarray,
+                L: np.ndarray, out: np.ndarray) -> None:
+    """The rigid field V + omega x r into out (N, 3) per node range k of ``parts``: V = P_k / mass_k, omega the
+    solution of I omega = L_k with I = tr(S) 1 - S^T, S = sum_i r_i (M r)_i^T (r, Mr (N, 3)); zero where not free[k]
+    (FemBody.rigid_velocity's second half)."""
+    for k in range(parts.shape[0] - 1):
+        if not free[k]:
+            for i in range(parts[k], parts[k + 1]):
+                out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+            continue
+        s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
+        for i in range(parts[k], parts[k + 1]):
+            s00 += r[i, 0] * Mr[i, 0]
+            s01 += r[i, 0] * Mr[i, 1]
+            s02 += r[i, 0] * Mr[i, 2]
+            s10 += r[i, 1] * Mr[i, 0]
+            s11 += r[i, 1] * Mr[i, 1]
+            s12 += r[i, 1] * Mr[i, 2]
+            s20 += r[i, 2] * Mr[i, 0]
+            s21 += r[i, 2] * Mr[i, 1]
+            s22 += r[i, 2] * Mr[i, 2]
+        t = s00 + s11 + s22
+        a00, a01, a02 = t - s00, -s10, -s20  # I = tr(S) 1 - S^T
+        a10, a11, a12 = -s01, t - s11, -s21
+        a20, a21, a22 = -s02, -s12, t - s22
+        c00, c01, c02 = a11 * a22 - a12 * a21, a02 * a21 - a01 * a22, a01 * a12 - a02 * a11  # adjugate rows
+        c10, c11, c12 = a12 * a20 - a10 * a22, a00 * a22 - a02 * a20, a02 * a10 - a00 * a12
+        c20, c21, c22 = a10 * a21 - a11 * a20, a01 * a20 - a00 * a21, a00 * a11 - a01 * a10
+        det = a00 * c00 + a01 * c10 + a02 * c20
+        l0, l1, l2 = L[k, 0], L[k, 1], L[k, 2]
+        w0 = (c00 * l0 + c01 * l1 + c02 * l2) / det
+        w1 = (c10 * l0 + c11 * l1 + c12 * l2) / det
+        w2 = (c20 * l0 + c21 * l1 + c22 * l2) / det
+        v0, v1, v2 = P[k, 0] / mass[k], P[k, 1] / mass[k], P[k, 2] / mass[k]
+        for i in range(parts[k], parts[k + 1]):
+            r0, r1, r2 = r[i, 0], r[i, 1], r[i, 2]
+            out[i, 0] = v0 + w1 * r2 - w2 * r1
+            out[i, 1] = v1 + w2 * r0 - w0 * r2
+            out[i, 2] = v2 + w0 * r1 - w1 * r0
+
+
+@_jit
 def scalar_product(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
     """M y into out (N, 3) for a scalar CSR matrix M (N, N) (indptr, indices, data) and y (N, 3): the mass matrix's
     product (FemBody.mass_product; scipy's sparse-times-dense costs several times this on a small mesh)."""

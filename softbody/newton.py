@@ -116,12 +116,13 @@ class _BodyStep:
     f_ext: np.ndarray
     damping_product: Callable[[np.ndarray], np.ndarray]
     K_damp: np.ndarray  # upper blocks of beta h K'_n, added into every tangent
+    spared: np.ndarray | float = 0.0  # alpha M v_r (N, 3) [N]: the damping force the rigid motion is spared
 
     def gradient(self, v: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """(g (N, 3), dPsi/dx (N, 3)) at the iterate v."""
         body = self.body
         dpsi = body.energy_gradient(self.x0 + h * v)
-        g = body.mass_product(v - self.v0) + h * self.damping_product(v) + h * (dpsi - self.f_ext)
+        g = body.mass_product(v - self.v0) + h * (self.damping_product(v) - self.spared) + h * (dpsi - self.f_ext)
         return g, dpsi
 
     def potential(self, v: np.ndarray, h: float) -> float:
@@ -129,7 +130,7 @@ class _BodyStep:
         body = self.body
         dv = v - self.v0
         return float(0.5 * np.sum(dv * body.mass_product(dv)) + 0.5 * h * np.sum(v * self.damping_product(v))
-                     + body.elastic_energy(self.x0 + h * v) - h * np.sum(self.f_ext * v))
+                     + body.elastic_energy(self.x0 + h * v) - h * np.sum((self.f_ext + self.spared) * v))
 
 
 def rigid_prediction(body: FemBody, h: float) -> np.ndarray:
@@ -329,13 +330,16 @@ class NewtonStepper:
         K_n, _ = body.warped_stiffness_upper(body.rotations(x0) if body.warping else None)
         Kb = body.pattern.to_bsr(body.stiffness_blocks(K_n)) if beta else None
 
+        relief = body.rigid_damping_relief(h, body.mass_product(v0))
+
         def damping(v: np.ndarray) -> np.ndarray:
             out = alpha * body.mass_product(v)
             if Kb is not None:
                 out = out + beta * (Kb @ v.reshape(-1)).reshape(-1, 3)
             return out
 
-        return _BodyStep(body, x0, v0, np.asarray(f_ext, float), damping, h * beta * K_n)
+        return _BodyStep(body, x0, v0, np.asarray(f_ext, float), damping, h * beta * K_n,
+                         0.0 if relief is None else relief / h)
 
     def _line_search(self, states: list[_BodyStep], v: list[np.ndarray], d: list[np.ndarray], g: list[np.ndarray],
                      h: float) -> float | None:

@@ -27,7 +27,7 @@ def stack_key(body: FemBody) -> tuple:
     hex rotation (everything a step reads apart from the mesh and the state)."""
     m = body.material
     return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.warping, body.damping,
-            body.mass_kind, body.hex_rotation)
+            body.damp_rigid, body.mass_kind, body.hex_rotation)
 
 
 class BodyStack(FemBody):
@@ -54,11 +54,15 @@ class BodyStack(FemBody):
         elements = np.concatenate([b.mesh.elements + o for b, o in zip(members, self.offsets[:-1])])
         self.element_offsets = np.concatenate([[0], np.cumsum([b.mesh.n_elements for b in members])])
         super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
-                         first.mass_kind, first.hex_rotation)
+                         first.mass_kind, first.hex_rotation, first.damp_rigid)
         self.members = members
         self._views: tuple[list, list] = ([], [])  # the members' positions and velocities as last made views
         self._supports_seen: tuple | None = None  # (members' fixed (N,), their prescriptions) as last read
         self.gather(force=True)
+
+    def part_offsets(self) -> np.ndarray:
+        """Each member a part of its own (FemBody.rigid_parts)."""
+        return self.offsets
 
     def member_of(self, nodes: np.ndarray) -> np.ndarray:
         """The member index (m,) of each stack node (m,)."""

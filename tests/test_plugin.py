@@ -358,7 +358,9 @@ def test_off_centre_block_tilts_the_rod_as_statics_says():
     L, s, m_r, off, pivot = 0.5, 0.1, 1.0, 0.03, np.array([0, 0, 1.0])
     rod = _hinged_rod(world, L, mass=m_r, pivot=tuple(pivot))
     mesh = sb.box_mesh((s, s, s), (2, 2, 2), "tet10", center=(off, 0, pivot[2] - L - s / 2))
-    block = sb.FemBody(mesh, sb.LinearElastic(1e7, 0.3, 1000.0), damping=(2.0, 0.002))
+    # classic Rayleigh damping settles the swing within the run (the default spares the block's rigid motion, which
+    # the swing is, and the rod has no damping of its own)
+    block = sb.FemBody(mesh, sb.LinearElastic(1e7, 0.3, 1000.0), damping=(2.0, 0.002), damp_rigid=True)
     world.add_soft(block)
     X = mesh.nodes
     world.attach(block, np.flatnonzero(np.isclose(X[:, 2], pivot[2] - L) & (np.abs(X[:, 0]) <= 0.025 + 1e-9)), rod, link=0)
@@ -390,9 +392,10 @@ def test_block_attached_flush_against_a_swinging_rod_is_stable():
         spin = max(spin, abs(p.getJointState(rod, 0, physicsClientId=world.client)[1]))
     assert spin < 5.0  # a 0.5 rad swing of a 0.5 m pendulum: about 2 rad/s at the bottom
     # pybullet integrates the rod by symplectic Euler, whose energy oscillates by about 1e-3 of itself (the bare
-    # rod here: up to 8e-3 J above its start over 2 s): no more than that, and none gained over the run
+    # rod here: up to 8e-3 J above its start over 2 s; rod and block with no mass damping at all, 1.10e-3 of it, as
+    # with the default damping, which spares the block's rigid motion): no more than that, and none gained over the run
     e = np.asarray(energies)
-    assert e.max() - e[0] <= 1e-3 * abs(e[0]) and e[-1] < e[0]
+    assert e.max() - e[0] <= 1.5e-3 * abs(e[0]) and e[-1] < e[0]
 
 
 # ----------------------------------------------------------------------------------------------- momentum

@@ -60,7 +60,10 @@ def test_free_cube_matrix_is_stable(kind, case):
     nu, E, dt = case
     r = sw.free_cube(kind, nu, E, dt, steps=30)
     assert r.stable, r.error
-    assert r.energy_ratio <= STRICT, r.energy_ratio
+    # a cube so soft that the spin flattens it (E = 1e2: shape change 0.8-0.9) gains 2-3e-4 of its energy in 30 steps
+    # from the warped step's linearised rotations, with no mass damping as with mass damping that spares the spin
+    # (the default); classic Rayleigh damping's toll on the spin (0.1% a step) used to hide it (docs/method.md 3)
+    assert r.energy_ratio <= (STRICT if E >= 1e5 else 1.0 + 1e-3), r.energy_ratio
     if E >= 1e5:  # stiff enough to hold together against the spin: stays near its (rest) shape
         assert r.extra["shape_change"] < 0.1, r.extra
         assert r.min_volume > 0.9
