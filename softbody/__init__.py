@@ -4,6 +4,7 @@ The FEM core: numpy and scipy only (pybullet and rerun live in the ``integration
 """
 from .body import FemBody
 from .elements import ELEMENT_TYPES, ElementType, element_type
+from .equilibrium import solve_equilibrium
 from .errors import InvalidInputError, MeshError, SimulationDiverged, SolverError
 from .integrator import Constraints
 from .material import LinearElastic
@@ -18,6 +19,6 @@ __all__ = [
     "BodyStack", "stack_key",
     "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Mesh",
     "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
-    "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
+    "solve_equilibrium", "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]
 __version__ = "0.1.0"

@@ -267,6 +267,7 @@ class DirectSystem:
     solver: SpdSolver
     stats: dict = field(default_factory=dict)
     timings: Timings | None = None
+    rotations: np.ndarray | None = None  # (E, 3, 3): the warped step's element rotations it was built with
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False, homogeneous: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -451,6 +452,7 @@ class IterativeSystem:
         responses (see :meth:`responses`)."""
         self.body, self.b = body, b
         self.terms = terms
+        self.rotations: np.ndarray | None = None  # (E, 3, 3): the warped step's element rotations (step_system)
         self._A = A
         if A_op is None:
             A_op = body.pattern.to_bsr(self.assemble())
@@ -714,7 +716,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
             terms += (relief,)
         b = sum(terms[1:], terms[0])
     if pre is None:
-        return DirectSystem(body, A, b, solver, timings=timings)
+        return DirectSystem(body, A, b, solver, timings=timings, rotations=R)
     with timed(timings, "rotations"):
         Q = body.node_frames(R) if body.warping else None
     # warm start: the velocity extrapolated linearly from the last two steps' (a better guess than v
@@ -722,7 +724,9 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
     # iterations and a third of the refactorisations per step)
     v_prev, pre.previous_velocities = pre.previous_velocities, v.copy()
     x0 = 2.0 * v - v_prev if v_prev is not None and v_prev.shape == v.shape else v
-    return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, A_op, solver)
+    system = IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, A_op, solver)
+    system.rotations = R
+    return system
 
 
 def support_constraints(body: FemBody, t_next: float, h: float) -> Constraints:

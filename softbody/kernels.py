@@ -358,6 +358,26 @@ def rigid_field(parts: np.ndarray, free: np.ndarray, r: np.ndarray, Mr: np.ndarr
 
 
 @_jit
+def max_spin(Fdot9: np.ndarray, R: np.ndarray) -> tuple[float, int]:
+    """(|omega|^2, element) of the fastest-turning element: omega = axial(skew(dF/dt R^T)) from dF/dt (component-major
+    (9, E), row 3 i + j) and the rotations R (E, 3, 3) (softbody.linearisation.rotation_per_step)."""
+    best, where = -1.0, 0
+    for e in range(Fdot9.shape[1]):
+        # L_ik = sum_j dF_ij R_kj, only the off-diagonal entries the skew part needs
+        l01 = Fdot9[0, e] * R[e, 1, 0] + Fdot9[1, e] * R[e, 1, 1] + Fdot9[2, e] * R[e, 1, 2]
+        l02 = Fdot9[0, e] * R[e, 2, 0] + Fdot9[1, e] * R[e, 2, 1] + Fdot9[2, e] * R[e, 2, 2]
+        l10 = Fdot9[3, e] * R[e, 0, 0] + Fdot9[4, e] * R[e, 0, 1] + Fdot9[5, e] * R[e, 0, 2]
+        l12 = Fdot9[3, e] * R[e, 2, 0] + Fdot9[4, e] * R[e, 2, 1] + Fdot9[5, e] * R[e, 2, 2]
+        l20 = Fdot9[6, e] * R[e, 0, 0] + Fdot9[7, e] * R[e, 0, 1] + Fdot9[8, e] * R[e, 0, 2]
+        l21 = Fdot9[6, e] * R[e, 1, 0] + Fdot9[7, e] * R[e, 1, 1] + Fdot9[8, e] * R[e, 1, 2]
+        w0, w1, w2 = 0.5 * (l21 - l12), 0.5 * (l02 - l20), 0.5 * (l10 - l01)
+        s = w0 * w0 + w1 * w1 + w2 * w2
+        if s > best:
+            best, where = s, e
+    return best, where
+
+
+@_jit
 def scalar_product(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
     """M y into out (N, 3) for a scalar CSR matrix M (N, N) (indptr, indices, data) and y (N, 3): the mass matrix's
     product (FemBody.mass_product; scipy's sparse-times-dense costs several times this on a small mesh)."""

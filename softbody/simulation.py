@@ -15,6 +15,7 @@ from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import (Constraints, DirectSystem, IterativeSettings, LinearSystem, Timings, step_system,
                          support_constraints)
+from .linearisation import RotationWatch
 from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
 from .solvers import BodySolvers
@@ -149,6 +150,7 @@ class Simulation:
         self.timings: Timings = Timings()
         self._external_forces = ExternalForces()  # body -> (N, 3) extra loads [N], see ExternalForces
         self.solvers = BodySolvers()  # per body: the SPD solvers and preconditioners kept from step to step
+        self.rotation_watch = RotationWatch()  # the warped step: bodies turning too fast for it, warned once each
         for b in bodies:
             self.solvers.solver(b, solver)  # fail early on a bad backend
 
@@ -264,7 +266,10 @@ class Simulation:
                                    preconditioners=[None if self.linear_method(b) == "direct" else self.solvers.preconditioner(
                                        b, self.solvers.solver(b, self.solver_backend)) for b in self.bodies])
         else:
-            vs = solve([self.system(b) for b in self.bodies])
+            systems = [self.system(b) for b in self.bodies]
+            vs = solve(systems)
+            for i, (b, v, system) in enumerate(zip(self.bodies, vs, systems)):
+                self.rotation_watch.check(i, b, v, self.dt, system.rotations)
         new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]
         for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
             self._check(i, b, x, v)
@@ -340,14 +345,8 @@ def run_steps(step: Callable[[], object], dt: float, duration: float,
             after_step()
 
 
-def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
-                 forces: np.ndarray | None = None) -> np.ndarray:
-    """Small-strain static equilibrium K u = f_gravity (+ forces) with the body's supports.
-
-    Fixed nodes get u = 0, prescribed nodes u = motion(0) - rest. Returns u (N, 3) [m].
-    Raises InvalidInputError when the supports do not remove the rigid-body modes.
-    """
-    g = _gravity(gravity)
+def static_load(body: FemBody, g: np.ndarray, forces: np.ndarray | None = None) -> np.ndarray:
+    """The static load (N, 3) [N]: gravity g (3,) [m/s^2] on the nodal masses plus ``forces`` (N, 3) [N], checked."""
     f = body.node_mass[:, None] * g
     if forces is not None:
         fx = np.asarray(forces, dtype=float)
@@ -355,6 +354,17 @@ def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
             raise InvalidInputError(f"forces must be finite with shape {f.shape} [N], got shape {fx.shape}"
                                     + ("" if fx.size != f.size else " with non-finite entries"))
         f = f + fx.reshape(f.shape)
+    return f
+
+
+def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
+                 forces: np.ndarray | None = None) -> np.ndarray:
+    """Small-strain static equilibrium K u = f_gravity (+ forces) with the body's supports.
+
+    Fixed nodes get u = 0, prescribed nodes u = motion(0) - rest. Returns u (N, 3) [m].
+    Raises InvalidInputError when the supports do not remove the rigid-body modes.
+    """
+    f = static_load(body, _gravity(gravity), forces)
     K = body.pattern.assemble(body.Ke)
     nodes, _ = body.constrained_targets(0.0, 1.0)
     u_c = np.zeros((len(nodes), 3))

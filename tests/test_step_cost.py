@@ -14,8 +14,9 @@ from experiments.scenes import cubes_on_plane, sheet_on_sphere
 
 pytestmark = pytest.mark.skipif(not kernels.ENABLED, reason="the counts are the compiled path's (numba)")
 
-# a few hundred: one soft body and one rigid, in contact (measured 323-404 per step on the scenes below)
-ONE_BODY_CALLS = 450
+# a few hundred: one soft body and one rigid, in contact (measured 323-404 per step on the scenes below when set;
+# 409-450 since the damping that spares rigid motion (9 calls) and the warped step's rotation watch (6))
+ONE_BODY_CALLS = 470
 # each extra body of a World, once its bodies are stepped as one (measured 5)
 PER_BODY_CALLS = 10
 

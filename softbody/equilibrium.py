@@ -1,0 +1,114 @@
+"""Static equilibrium of the warped (corotational) model however large the rotations, where softbody.solve_static is
+small-strain linear (issue 33).
+
+Two equilibria, as the two schemes settle (docs/method.md section 3):
+
+- ``model="energy"``: the minimiser of Pi(x) = Psi(x) - f^T x under the supports, Psi the warped strain energy
+  (FemBody.elastic_energy: each element's displacement in its rotated frame), f gravity and the given forces; where
+  ``Simulation(scheme="newton")`` comes to rest. Newton's method in load steps (f scaled by k / load_steps, each from
+  the last one's solution): the exact gradient of Psi (FemBody.energy_gradient, rotation derivatives included), its
+  Hessian made positive semi-definite per element as tangent (FemBody.energy_hessian_blocks), the supports eliminated
+  in the same constrained solve as a step's (integrator.DirectSystem), a backtracking line search on Pi.
+- ``model="warped"`` (default): where the warped force -R K (R^T x - X) balances the loads; where the default warped
+  step comes to rest. The warped force is not quite the gradient of Psi (R's own change is left out), so from the
+  energy's equilibrium the iteration K'(x) dx = f_warped(x) + f, the warped step's own tangent, takes it the rest of
+  the way (linear convergence; measured on a soft cantilever 5 x 1 x 1 cells bending 0.26-0.53 m: the two
+  equilibria 3e-10 m apart for tet4, 3e-5 m for hex8, 5 mm for tet10).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .body import FemBody
+from .errors import InvalidInputError, SolverError
+from .integrator import Constraints, DirectSystem
+from .simulation import _gravity, body_solver, solve_static, static_load
+
+ARMIJO = 1e-4  # the line search's sufficient decrease, relative to the slope
+MODELS = ("warped", "energy")
+
+
+def _step_length(body: FemBody, x: np.ndarray, dx: np.ndarray, f: np.ndarray, g: np.ndarray, slope: float) -> float:
+    """Backtracking on Pi along dx from x (gradient g, zero on supports; slope g . dx < 0): the first of 1, 1/2, ...
+    with sufficient decrease (ARMIJO); where the decrease asked is below Pi's round-off (near the solution), the first
+    that lowers the residual instead."""
+    work = float(np.vdot(f, x))
+    psi = body.elastic_energy(x)
+    pi0, noise = psi - work, 1e-12 * (psi + abs(work))
+    free = g != 0.0
+    r0 = float(np.linalg.norm(g))
+    alpha = 1.0
+    while alpha > 1e-6:
+        xt = x + alpha * dx
+        if abs(ARMIJO * alpha * slope) <= noise:  # below round-off: the residual decides
+            if float(np.linalg.norm(np.where(free, body.energy_gradient(xt) - f, 0.0))) < r0:
+                return alpha
+        elif body.elastic_energy(xt) - float(np.vdot(f, xt)) - pi0 <= ARMIJO * alpha * slope:
+            return alpha
+        alpha *= 0.5
+    return alpha
+
+
+def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarray | None = None,
+                      model: str = "warped", load_steps: int = 4, tol: float = 1e-8, max_iter: int = 40,
+                      solver: str = "auto") -> np.ndarray:
+    """Displacements u (N, 3) [m] of the static equilibrium under gravity [m/s^2] and ``forces`` (N, 3) [N] with the
+    body's supports (fixed nodes u = 0, prescribed ones motion(0) - rest), of the warped model ("warped": where the
+    default step comes to rest) or its energy ("energy": where scheme="newton" does); see the module doc. Each of
+    ``load_steps`` load steps to a residual (the free components' unbalanced force) of ``tol`` times the load within
+    ``max_iter`` Newton iterations, the warped model's last iteration within 5 max_iter; else SolverError with the
+    last residuals. A body without warping is linear: solve_static's answer. InvalidInputError without supports."""
+    if model not in MODELS:
+        raise InvalidInputError(f"model must be one of {MODELS}, got {model!r}")
+    if not isinstance(load_steps, (int, np.integer)) or load_steps < 1:
+        raise InvalidInputError(f"load_steps must be a positive integer, got {load_steps!r}")
+    if not (np.isfinite(tol) and tol > 0):
+        raise InvalidInputError(f"tol must be a positive number, got {tol!r}")
+    if not body.warping:
+        return solve_static(body, gravity, solver, forces)
+    f = static_load(body, _gravity(gravity), forces)
+    nodes, _ = body.constrained_targets(0.0, 1.0)
+    if not body.mesh.used_nodes()[nodes].any():
+        raise InvalidInputError("solve_equilibrium needs supports: fix or prescribe nodes to remove the rigid-body modes")
+    x = np.array(body.rest, dtype=float)
+    for ids, motion in body.prescribed:
+        x[ids] = np.asarray(motion(0.0), float).reshape(-1, 3)
+    free = np.ones(len(x), dtype=bool)
+    free[nodes] = False
+    held = Constraints.full(nodes, np.zeros((len(nodes), 3)))
+    s = body_solver(body, solver)
+    scale = max(float(np.linalg.norm(f[free])), 1e-300)
+    residuals: list[float] = []
+
+    def fail(what: str, iterations: int):
+        raise SolverError(f"solve_equilibrium: {what} did not converge to tol = {tol:g} in {iterations} iterations; "
+                          f"residuals {[f'{r:.2e}' for r in residuals[-5:]]} (more load_steps, or a larger tol)")
+
+    for k in range(1, load_steps + 1):
+        fk = f * (k / load_steps)
+        for _ in range(max_iter + 1):
+            g = body.energy_gradient(x) - fk
+            g[~free] = 0.0
+            residuals.append(float(np.linalg.norm(g)) / scale)
+            if residuals[-1] <= tol:
+                break
+            dx, _ = DirectSystem(body, body.energy_hessian_blocks(x), -g, s).solve(held)
+            slope = float(np.vdot(g, dx))
+            if not slope < 0:  # the projected Hessian gave no descent: round-off at the solution
+                break
+            x = x + _step_length(body, x, dx, fk, g, slope) * dx
+        else:
+            fail(f"load step {k} of {load_steps}", max_iter)
+    if model == "warped":
+        for _ in range(5 * max_iter + 1):
+            R = body.rotations(x)
+            g = -(body.scatter_nodal(body.element_forces(x, R)) + f)  # minus the warped force and the load
+            g[~free] = 0.0
+            residuals.append(float(np.linalg.norm(g)) / scale)
+            if residuals[-1] <= tol:
+                break
+            dx, _ = DirectSystem(body, body.stiffness_blocks(body.warped_stiffness_upper(R)[0]), -g, s).solve(held)
+            x = x + dx
+        else:
+            fail("the warped force balance", 5 * max_iter)
+    return x - body.rest

@@ -1,0 +1,80 @@
+"""When the warped step's linearisation is poor: how far its elements rotate within one step.
+
+The warped step (docs/method.md section 4) takes each element's rotation at the start of the step and moves the nodes
+along straight lines x + h v. An element that turns by theta within the step is stretched by its own rotation, about
+theta^2 / 2, before the next step's rotation sees it: a cube spinning at 10 rev/s with dt = 0.01 s (0.63 rad per step)
+stays 12-16% out of shape (benchmarks/stability_sweep.py's ``spin``, measured for tet4, tet10 and hex8 alike: the
+rigid residual is about 0.42 theta^2 of the body's size, 0.4% at 0.063 rad per step, 1.3% at 0.157, 4.2% at 0.314).
+
+:class:`RotationWatch` measures theta after every warped step from the new velocities: per element the spin of the
+velocity gradient of its characteristic tetrahedron, omega = axial(skew(dF/dt R^T)) (R the rotation the step used),
+theta = |omega| h. Beyond ``limit`` (ROTATION_LIMIT, 0.2 rad: about 1.7% out of shape) it warns once per body with the
+distortion to expect and what to change (a step of at most h limit / theta, or ``scheme="newton"``, whose rotations
+follow the iterate and which keeps the spinning cube's shape to 0.02%).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from . import kernels
+from .body import FemBody
+
+#: rotation per step [rad] beyond which the warped step warns (its shape error is about SHAPE_PER_RAD2 theta^2: 1.7%)
+ROTATION_LIMIT = 0.2
+#: the warped step's rigid residual per unit size and per rad^2 of rotation per step (spin at 10 rev/s, measured)
+SHAPE_PER_RAD2 = 0.42
+
+
+class LinearisationWarning(UserWarning):
+    """The warped step's rotations lag the motion by more than ROTATION_LIMIT per step (see softbody.linearisation)."""
+
+
+def rotation_per_step(body: FemBody, v: np.ndarray, h: float, R: np.ndarray | None = None) -> tuple[float, int]:
+    """(theta [rad], element): the largest angle any element turns through in a step of h [s] at velocities v (N, 3),
+    and where (omega = axial(skew(dF/dt R^T)) of its characteristic tetrahedron, R (E, 3, 3) its rotation: the step's
+    own if given, else at the body's current positions)."""
+    R = body.rotations(body.positions) if R is None else R
+    Fdot = body.characteristic_gradient(v)  # (9, E), row 3 i + j: dF_ij / dt
+    if kernels.ENABLED:  # the same arithmetic element by element (softbody.kernels)
+        speed2, e = kernels.max_spin(Fdot, R)
+        return math.sqrt(max(speed2, 0.0)) * h, int(e)
+    # L = dF/dt R^T; its skew part's axial vector: (L_21 - L_12, L_02 - L_20, L_10 - L_01) / 2
+    L = np.einsum("ije,ekj->eik", Fdot.reshape(3, 3, -1), R)
+    w = 0.5 * np.stack([L[:, 2, 1] - L[:, 1, 2], L[:, 0, 2] - L[:, 2, 0], L[:, 1, 0] - L[:, 0, 1]], axis=1)
+    speed = np.einsum("ij,ij->i", w, w)
+    e = int(speed.argmax())
+    return float(np.sqrt(speed[e])) * h, e
+
+
+class RotationWatch:
+    """After each warped step, whether a body's elements turned too far to trust the linearisation; a warning once per
+    body (kept here, by the body itself: the stepper owns this object)."""
+
+    def __init__(self, limit: float = ROTATION_LIMIT):
+        self.limit = float(limit)
+        self.warned: set[FemBody] = set()
+
+    def check(self, index: int, body: FemBody, v: np.ndarray, h: float, R: np.ndarray | None = None) -> None:
+        """Warn (LinearisationWarning) if ``body`` (the ``index``-th stepped) turns by more than the limit in this step
+        of h [s] to velocities v (N, 3), R (E, 3, 3) the step's rotations (None: at its positions); at most once per
+        body."""
+        if not body.warping or body in self.warned:
+            return
+        theta, e = rotation_per_step(body, v, h, R)
+        if theta <= self.limit:
+            return
+        self.warned.add(body)
+        where = f"element {e}"
+        offsets = getattr(body, "element_offsets", None)  # a BodyStack: which member
+        if offsets is not None:
+            k = int(np.searchsorted(offsets, e, side="right") - 1)
+            where = f"member {k}, element {e - int(offsets[k])}"
+        shape = SHAPE_PER_RAD2 * theta * theta
+        warnings.warn(
+            f"body {index} ({where}) turns {theta:.2f} rad in one step of {h:g} s ({theta / h:.1f} rad/s): the warped "
+            f"step's rotations lag it and leave it about {100 * shape:.0f}% out of shape (softbody.linearisation). "
+            f"Take dt <= {h * self.limit / theta:.2g} s (about {100 * SHAPE_PER_RAD2 * self.limit ** 2:.1f}%), or "
+            f"scheme='newton'. Said once per body.", LinearisationWarning, stacklevel=4)
