@@ -23,7 +23,7 @@ Open the file with ``rerun <file>.rrd``. Everything is logged on the ``sim_time`
                               mm for all three would flatten a coordinate that moves little next to one that
                               moves far, and hide one under another that moves alike)
     plots/energy              energies [J]: soft kinetic, elastic, gravitational, rigid kinetic and
-                              gravitational (World), and their total, which damping and contact can only lower
+                              gravitational (World), and their total, which damping and contact lower
     plots/step_time           wall time of each step from the second on [ms]
     plots/setup_time          wall time of the first step [ms] (symbolic analysis, first factorisation)
     plots/contacts            number of active contacts, and of candidates within reach but not touching

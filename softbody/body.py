@@ -70,8 +70,9 @@ class FemBody:
     mesh: :class:`Mesh`; material: :class:`LinearElastic`; warping: stiffness warping on/off;
     damping: Rayleigh (alpha [1/s], beta [s]); damp_rigid: whether alpha M damps the body's rigid motion too
     (classic Rayleigh damping: a free body falls and spins ever slower). By default (False) alpha M acts on the
-    velocity relative to the body's rigid motion (:meth:`rigid_velocity`): a free body falls and spins undamped
-    while its vibrations decay as before; a body with fixed or prescribed nodes has no free rigid motion and is
+    velocity relative to the body's rigid motion (:meth:`rigid_velocity`, lagged a step): a free spin keeps its
+    angular momentum and a free body falls with g / (1 + h alpha) (0.1% short at the defaults) while its vibrations
+    decay as before; a body with fixed or prescribed nodes has no free rigid motion and is
     damped as classic Rayleigh. mass: "consistent" or "lumped" (HRZ diagonal scaling);
     hex_rotation: "average" (mean F of both Freudenthal inner tets) or "single" (the {0,2,5,7} tet).
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
@@ -183,7 +184,8 @@ class FemBody:
         self.positions = mesh.nodes.copy()
         self.velocities = np.zeros_like(self.positions)
         self.fixed = np.zeros(mesh.n_nodes, dtype=bool)
-        self.fixed[~mesh.used_nodes()] = True  # unused nodes carry no mass: hold them at rest
+        self._used = mesh.used_nodes()
+        self.fixed[~self._used] = True  # unused nodes carry no mass: hold them at rest
         self.prescribed: list[tuple[np.ndarray, Motion]] = []
 
     # ------------------------------------------------------------------ state
@@ -241,14 +243,15 @@ class FemBody:
 
     def rigid_parts(self) -> tuple[np.ndarray, np.ndarray]:
         """The node ranges that move as bodies (:meth:`part_offsets`) and whether each is free (k,) bool: no fixed or
-        prescribed node, so that its rigid motion is its own."""
+        prescribed node of its elements (nodes no element uses are held at rest, and do not count), so that its
+        rigid motion is its own."""
         parts = self.part_offsets()
-        fixed = self.fixed
+        fixed = self.fixed & self._used
         if not self.prescribed and not fixed[fixed.argmax()]:  # no support at all (argmax: one C call, no wrapper)
             free = np.empty(len(parts) - 1, dtype=bool)
             free.fill(True)
             return parts, free
-        return parts, ~np.logical_or.reduceat(self.supported(), parts[:-1])
+        return parts, ~np.logical_or.reduceat(self.supported() & self._used, parts[:-1])
 
     def rigid_velocity(self, momenta: np.ndarray, parts: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """The rigid velocity field (N, 3) [m/s] with the linear and angular momentum of the nodal momenta

@@ -49,6 +49,15 @@ def _step_length(body: FemBody, x: np.ndarray, dx: np.ndarray, f: np.ndarray, g:
     return alpha
 
 
+def _solve(body: FemBody, A: np.ndarray, g: np.ndarray, s, held: Constraints) -> tuple[np.ndarray, np.ndarray]:
+    """A dx = -g with the supports held; a singular A (supports that leave a rigid mode free) said as bad input."""
+    try:
+        return DirectSystem(body, A, -g, s).solve(held)
+    except (SolverError, np.linalg.LinAlgError, RuntimeError) as exc:
+        raise InvalidInputError(f"solve_equilibrium: the system is singular ({exc}); the supports must remove all "
+                                "rigid-body modes") from exc
+
+
 def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarray | None = None,
                       model: str = "warped", load_steps: int = 4, tol: float = 1e-8, max_iter: int = 40,
                       solver: str = "auto") -> np.ndarray:
@@ -57,7 +66,8 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
     default step comes to rest) or its energy ("energy": where scheme="newton" does); see the module doc. Each of
     ``load_steps`` load steps to a residual (the free components' unbalanced force) of ``tol`` times the load within
     ``max_iter`` Newton iterations, the warped model's last iteration within 5 max_iter; else SolverError with the
-    last residuals. A body without warping is linear: solve_static's answer. InvalidInputError without supports."""
+    last residuals. A body without warping is linear: solve_static's answer. InvalidInputError without supports
+    (or with too few). Prescribed nodes take their place at t = 0 in full from the first load step."""
     if model not in MODELS:
         raise InvalidInputError(f"model must be one of {MODELS}, got {model!r}")
     if not isinstance(load_steps, (int, np.integer)) or load_steps < 1:
@@ -92,9 +102,11 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
             residuals.append(float(np.linalg.norm(g)) / scale)
             if residuals[-1] <= tol:
                 break
-            dx, _ = DirectSystem(body, body.energy_hessian_blocks(x), -g, s).solve(held)
+            dx, _ = _solve(body, body.energy_hessian_blocks(x), g, s, held)
             slope = float(np.vdot(g, dx))
-            if not slope < 0:  # the projected Hessian gave no descent: round-off at the solution
+            if not slope < 0:  # the projected Hessian gave no descent: round-off at the solution, or a failure
+                if residuals[-1] > 100 * tol:
+                    fail(f"load step {k} of {load_steps} (no descent direction)", len(residuals))
                 break
             x = x + _step_length(body, x, dx, fk, g, slope) * dx
         else:
@@ -107,7 +119,7 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
             residuals.append(float(np.linalg.norm(g)) / scale)
             if residuals[-1] <= tol:
                 break
-            dx, _ = DirectSystem(body, body.stiffness_blocks(body.warped_stiffness_upper(R)[0]), -g, s).solve(held)
+            dx, _ = _solve(body, body.stiffness_blocks(body.warped_stiffness_upper(R)[0]), g, s, held)
             x = x + dx
         else:
             fail("the warped force balance", 5 * max_iter)

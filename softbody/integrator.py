@@ -4,7 +4,8 @@ Data flows one way through a step:
 
     positions -> rotations R_e -> K' = sum R K R^T assembled (FemBody.warped_stiffness_upper)
     -> A = (1 + h alpha) M + (h beta + h^2) K',  f_el = -K' (x - c) + sum R K X
-    -> b = M v + h (f_el + f_ext) -> constraints (supports; contacts from the integration layer)
+    -> b = M v + h (f_el + f_ext) (+ h alpha M v_r: damping spares rigid motion, FemBody.rigid_damping_relief)
+    -> constraints (supports; contacts from the integration layer)
     -> solve A v' = b -> x' = x + h v'
 
 (The iterative solve only needs products with A; for tet10 it takes K' y element by element from
@@ -657,7 +658,8 @@ def assembled_system(body: FemBody, A: np.ndarray, b: np.ndarray, solver: SpdSol
 def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
                 settings: IterativeSettings | None = None, timings: Timings | None = None,
                 pre: Preconditioner | None = None) -> LinearSystem:
-    """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state.
+    """The backward Euler system (M + h C + h^2 K') v' = M v + h (f_el + f_ext) at the current state (+ h alpha M v_r
+    where alpha M spares the body's rigid motion, FemBody.rigid_damping_relief).
 
     K' (as its upper blocks, FemBody.warped_stiffness_upper) is assembled once, straight into
     A = c_m M + c_k K'; the warped elastic forces f_el = -K' (x - c) + sum_e R_e K_e X_e take K' (x - c)

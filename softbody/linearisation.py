@@ -4,7 +4,8 @@ The warped step (docs/method.md section 4) takes each element's rotation at the 
 along straight lines x + h v. An element that turns by theta within the step is stretched by its own rotation, about
 theta^2 / 2, before the next step's rotation sees it: a cube spinning at 10 rev/s with dt = 0.01 s (0.63 rad per step)
 stays 12-16% out of shape (benchmarks/stability_sweep.py's ``spin``, measured for tet4, tet10 and hex8 alike: the
-rigid residual is about 0.42 theta^2 of the body's size, 0.4% at 0.063 rad per step, 1.3% at 0.157, 4.2% at 0.314).
+rigid residual, relative to the body's size, is 0.4% at 0.063 rad per step, 1.3% at 0.157, 4.2% at 0.314, 16% at
+0.63 and 52% at 1.26; about 0.42 theta^2 from 0.15 to 0.7 rad, the range the warning speaks of).
 
 :class:`RotationWatch` measures theta after every warped step from the new velocities: per element the spin of the
 velocity gradient of its characteristic tetrahedron, omega = axial(skew(dF/dt R^T)) (R the rotation the step used),
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import math
 import warnings
+import weakref
 
 import numpy as np
 
@@ -24,7 +26,8 @@ from .body import FemBody
 
 #: rotation per step [rad] beyond which the warped step warns (its shape error is about SHAPE_PER_RAD2 theta^2: 1.7%)
 ROTATION_LIMIT = 0.2
-#: the warped step's rigid residual per unit size and per rad^2 of rotation per step (spin at 10 rev/s, measured)
+#: the warped step's rigid residual per unit size and per rad^2 of rotation per step (spin at 10 rev/s, measured from
+#: 0.15 to 0.7 rad per step; it overstates beyond: 52%, not 67%, at 1.26 rad)
 SHAPE_PER_RAD2 = 0.42
 
 
@@ -55,7 +58,7 @@ class RotationWatch:
 
     def __init__(self, limit: float = ROTATION_LIMIT):
         self.limit = float(limit)
-        self.warned: set[FemBody] = set()
+        self.warned: weakref.WeakSet[FemBody] = weakref.WeakSet()  # a body (or stack) let go of is forgotten
 
     def check(self, index: int, body: FemBody, v: np.ndarray, h: float, R: np.ndarray | None = None) -> None:
         """Warn (LinearisationWarning) if ``body`` (the ``index``-th stepped) turns by more than the limit in this step

@@ -268,11 +268,12 @@ class Simulation:
         else:
             systems = [self.system(b) for b in self.bodies]
             vs = solve(systems)
-            for i, (b, v, system) in enumerate(zip(self.bodies, vs, systems)):
-                self.rotation_watch.check(i, b, v, self.dt, system.rotations)
         new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]
         for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
             self._check(i, b, x, v)
+        if self.scheme != "newton":  # the step is finite: did its elements turn too far for it?
+            for i, (b, (_, v), system) in enumerate(zip(self.bodies, new, systems)):
+                self.rotation_watch.check(i, b, v, self.dt, system.rotations)
         return new
 
     def commit(self, new: list[tuple[np.ndarray, np.ndarray]]) -> None:

@@ -142,3 +142,20 @@ def test_a_stack_spares_each_free_member_alone():
 def test_damp_rigid_bodies_do_not_share_a_stack():
     with pytest.raises(sb.errors.InvalidInputError, match="damping"):
         BodyStack([cube("tet4"), cube("tet4", damp_rigid=True, center=(1, 0, 0))])
+
+
+def test_a_node_no_element_uses_is_no_support():
+    """Meshes read from files may carry points no element uses (held at rest, massless): the body is still free, and
+    falls as the same body without them."""
+    runs = []
+    for orphan in (False, True):
+        mesh = sb.box_mesh((0.1, 0.1, 0.1), (1, 1, 1), "tet4")
+        if orphan:
+            mesh = sb.Mesh(np.vstack([mesh.nodes, [[1.0, 1.0, 1.0]]]), mesh.elements, mesh.kind)
+        body = sb.FemBody(mesh, sb.LinearElastic(1e5, 0.3, 1000.0), damping=(ALPHA, 0.001))
+        sim = sb.Simulation([body], dt=H)
+        for _ in range(100):
+            sim.step()
+        runs.append(body.velocities[:8, 2].copy())
+    np.testing.assert_allclose(runs[1], runs[0], rtol=1e-12)
+    np.testing.assert_allclose(runs[0], -G * H * 100 / (1.0 + H * ALPHA), rtol=1e-8)
