@@ -201,14 +201,15 @@ class CollisionDetector:
 
     def detect(self, body_index: int, positions: np.ndarray, surface: np.ndarray, triangles: np.ndarray,
                supported: np.ndarray, links: list[RigidLink], sweeps: list[Sweep], touch: float,
-               incidence: sp.spmatrix | None = None, edges: tuple[np.ndarray, np.ndarray] | None = None
-               ) -> tuple["Contacts", "FaceHits"]:
+               incidence: sp.spmatrix | None = None, edges: tuple[np.ndarray, np.ndarray] | None = None,
+               movable_edges: bool = True) -> tuple["Contacts", "FaceHits"]:
         """Contact candidates of one soft body (positions (N, 3), surface nodes (s,), surface triangles (T, 3),
         supported (N,) bool) against ``links``: node contacts within each link's reach (``sweeps``, one per link:
         what the two sides may close within the step), one per node (the deepest), rigid points on its triangles
         between nodes (face contacts; a node within ``touch`` of a link rests on it) and, given the surface's
         ``edges`` (E, 2) with the triangles each bounds (E, 2), the points of its edges deepest into links of
-        primitive parts, between nodes (edge_contacts). A supported node has contacts only with movable links (a
+        primitive parts, between nodes (edge_contacts; for links the coupled solve moves only if ``movable_edges``).
+        A supported node has contacts only with movable links (a
         support wins over contact, but a rigid body resting on it must be held). Far links cost no query (broad
         phase on boxes). ``incidence``: the triangles' node_incidence, if at hand (for the surface normals)."""
         if not len(surface):
@@ -232,7 +233,7 @@ class CollisionDetector:
                     found = found.select(~supported[found.node])
                 if len(found):
                     parts.append(found)
-                with_edges = edges is not None and _edge_parts(rb)
+                with_edges = edges is not None and (movable_edges or not rb.movable) and _edge_parts(rb)
                 gap = node_gaps(found, len(positions)) if status == 2 or with_edges else None
                 if status == 2:  # face contacts possible: the numpy search decides
                     if boxes is None:
@@ -260,7 +261,7 @@ class CollisionDetector:
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
             gap = node_gaps(found, len(positions))
-            if edges is not None and _edge_parts(rb):
+            if edges is not None and (movable_edges or not rb.movable) and _edge_parts(rb):
                 faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
                 continue  # a plane: no face contacts (CollisionDetector.face_contacts)

@@ -79,7 +79,8 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
     f = static_load(body, _gravity(gravity), forces)
     nodes, _ = body.constrained_targets(0.0, 1.0)
     if not body.mesh.used_nodes()[nodes].any():
-        raise InvalidInputError("solve_equilibrium needs supports: fix or prescribe nodes to remove the rigid-body modes")
+        raise InvalidInputError("solve_equilibrium needs supports: fix or prescribe nodes to remove the rigid-body "
+                                "modes")
     x = np.array(body.rest, dtype=float)
     for ids, motion in body.prescribed:
         x[ids] = np.asarray(motion(0.0), float).reshape(-1, 3)

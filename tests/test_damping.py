@@ -30,7 +30,8 @@ def momenta(body: sb.FemBody) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("kind", KINDS)
 def test_free_fall_is_nearly_undamped_and_classic_rayleigh_slows_it(kind, scheme):
     """Sparing rigid motion, v_{n+1} = v_n - g h / (1 + h alpha) (the rigid field lagged on v_n: after 1 s 0.1% short
-    of backward Euler's undamped -g t at alpha 0.1, h 0.01); classic Rayleigh gives v_{n+1} = (v_n - g h) / (1 + h alpha)."""
+    of backward Euler's undamped -g t at alpha 0.1, h 0.01); classic Rayleigh gives
+    v_{n+1} = (v_n - g h) / (1 + h alpha)."""
     n = 100
     for damp_rigid in (False, True):
         body = cube(kind, damp_rigid)
@@ -124,8 +125,8 @@ def test_a_supported_body_keeps_classic_rayleigh_damping():
 
 
 def test_a_stack_spares_each_free_member_alone():
-    """A BodyStack of a falling cube and a clamped one: the free member falls as alone (v = -g n h / (1 + h alpha)), the clamped
-    one moves as it does stepped alone with classic damping."""
+    """A BodyStack of a falling cube and a clamped one: the free member falls as alone (v = -g n h / (1 + h alpha)),
+    the clamped one moves as it does stepped alone with classic damping."""
     free, held = cube("tet4", center=(0, 0, 1.0)), cube("tet4", center=(1.0, 0, 1.0))
     held.fix(np.flatnonzero(np.isclose(held.positions[:, 2], held.positions[:, 2].min())))
     alone = cube("tet4", damp_rigid=True, center=(1.0, 0, 1.0))

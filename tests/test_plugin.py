@@ -307,6 +307,23 @@ def test_light_and_heavy_boxes_settle_on_a_soft_block(mass, dt, offset):
     assert geo.rigid_penetration(world.client, box.id, block.positions, mesh.surface_triangles()) < 1e-4
 
 
+
+def test_movable_edges_off_lets_the_rim_dig_in():
+    """World(movable_edges=False) leaves out the rows of a dynamic box's rim across soft faces (a cheaper step): the
+    2 kg box's rim then lies inside the block between its nodes, by the independent test, where with them (the
+    default, test_light_and_heavy_boxes_settle_on_a_soft_block) it does not."""
+    depth = {}
+    for on in (True, False):
+        world = World(dt=0.01, movable_edges=on)
+        world.add_plane()
+        mesh = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=(0, 0, 0.05))
+        block = sb.FemBody(mesh, sb.LinearElastic(1e5, 0.3, 1000.0), damping=(0.1, 0.001))
+        world.add_soft(block, friction=0.5)
+        box = world.add_box((HALF,) * 3, position=(0.00625, 0, 0.1 + HALF + 0.001), mass=2.0)
+        world.run(1.0)
+        depth[on] = geo.rigid_penetration(world.client, box.id, block.positions, mesh.surface_triangles())
+    assert depth[True] < 1e-4 < 2e-4 < depth[False]
+
 # ----------------------------------------------------------------------------------------------- pendulum
 def _hinged_rod(world: World, L=0.5, a=0.02, mass=1.0, pivot=(0, 0, 1.0)) -> int:
     """A rod of length L hanging from a revolute joint (axis y) at ``pivot``, a pybullet multibody."""
