@@ -4,7 +4,8 @@
 
 The scene is the user's own pybullet client (table and robot loaded from pybullet_data, position motors,
 inverse kinematics); softbody joins it with ``World(client=cid)`` and is stepped inside the user's control
-loop. Printed per phase: the grip force of each finger [N] (the force the cube exerts on it), the slip of the
+loop. The motors are set through ``World.set_motor`` (pybullet's setJointMotorControl2 arguments): while the hand
+holds the cube they act inside the coupled step with their force limits (FINGER_FORCE per finger, whatever the step). Printed per phase: the grip force of each finger [N] (the force the cube exerts on it), the slip of the
 cube in the fingers [mm] since the grasp closed, the deepest penetration of a soft node into any rigid link
 [mm] (pybullet's own closest-point query), and at the end the cost per step and the real-time factor.
 """
@@ -21,6 +22,7 @@ import softbody as sb
 from integration import World
 
 ARM, FINGERS, HAND = list(range(7)), [9, 10], 11  # panda.urdf: arm joints, finger joints, grasp target link
+FINGER_FORCE = 5.0  # [N] the finger motors' force limit: the grip on the cube (E = 1e5 Pa, 62 g) once closed
 HOME = [0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785]
 
 
@@ -72,10 +74,12 @@ class Grasp:
             s = 0.5 - 0.5 * np.cos(np.pi * min(1.0, (k + 1) / (0.8 * steps)))  # arrive at 80% of the phase
             q = p.calculateInverseKinematics(self.panda, HAND, (start + s * (target - start)).tolist(), self.down,
                                              maxNumIterations=50, physicsClientId=self.cid)
+            # the World's motors, as pybullet's setJointMotorControl2: while the hand holds the cube they are rows of
+            # the coupled problem, so that a finger presses with its force limit whatever the step
             for j in ARM:
-                p.setJointMotorControl2(self.panda, j, p.POSITION_CONTROL, q[j], force=200, physicsClientId=self.cid)
+                self.world.set_motor(self.panda, j, "position", q[j], force=200)
             for j in FINGERS:
-                p.setJointMotorControl2(self.panda, j, p.POSITION_CONTROL, opening, force=20, physicsClientId=self.cid)
+                self.world.set_motor(self.panda, j, "position", opening, force=FINGER_FORCE)
             tic = time.perf_counter()
             self.world.step()
             self.seconds += time.perf_counter() - tic

@@ -154,6 +154,7 @@ class BulletAdapter:
             self.client = int(client)
             self.owned = False
         self._joint_info: dict[int, tuple[list[int], list[int]]] = {}  # body -> (movable joints, unsupported joints)
+        self._limits: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # body -> its movable joints' (lower, upper)
         self._shapes: dict[tuple[int, int], list[Shape]] = {}
         # (what, body, link) -> state, kept while ``caching`` (a World's step: nothing else moves bodies then)
         self._cache: dict[tuple, tuple] = {}
@@ -231,6 +232,24 @@ class BulletAdapter:
                     other.append(j)
             self._joint_info[body] = (movable, other)
         return self._joint_info[body]
+
+    def joint_limits(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """(lower (j,), upper (j,)) of the body's movable joints (:meth:`joints`), as the URDF gives them: a joint with
+        lower >= upper has no limit (pybullet's rule)."""
+        if body not in self._limits:
+            movable, _ = self.joints(body)
+            info = [p.getJointInfo(body, j, physicsClientId=self.client) for j in movable]
+            self._limits[body] = (np.array([i[8] for i in info], float), np.array([i[9] for i in info], float))
+        return self._limits[body]
+
+    def set_motor(self, motor) -> None:
+        """Run a motor (motors.Motor) in pybullet's step, as the user set it."""
+        mode, kw = motor.pybullet_args(p)
+        p.setJointMotorControl2(motor.body, motor.joint, mode, physicsClientId=self.client, **kw)
+
+    def motor_torques(self, body: int, joints: list[int]) -> np.ndarray:
+        """The force or torque each joint's pybullet motor applied in the last step [N or N m]."""
+        return np.array([s[3] for s in p.getJointStates(body, joints, physicsClientId=self.client)], float)
 
     def mass(self, body: int, link: int = BASE) -> float:
         return float(p.getDynamicsInfo(body, link, physicsClientId=self.client)[0])
@@ -339,14 +358,25 @@ class BulletAdapter:
         info = p.getDynamicsInfo(body, link, physicsClientId=self.client)
         return float(info[0]), np.asarray(info[2], float)
 
-    def constrained_bodies(self) -> dict[int, list[int]]:
-        """{constraint id: the bodies it joins} of the user's pybullet constraints (createConstraint)."""
-        out = {}
-        for i in range(p.getNumConstraints(physicsClientId=self.client)):
-            cid = p.getConstraintUniqueId(i, physicsClientId=self.client)
-            info = p.getConstraintInfo(cid, physicsClientId=self.client)
-            out[cid] = [b for b in (info[0], info[2]) if b >= 0]
-        return out
+    def user_constraints(self) -> list:
+        """The user's pybullet constraints (createConstraint), as constraints.UserConstraint."""
+        from .constraints import UserConstraint
+
+        c = self.client
+        ids = [p.getConstraintUniqueId(i, physicsClientId=c) for i in range(p.getNumConstraints(physicsClientId=c))]
+        return [UserConstraint.of(cid, p.getConstraintInfo(cid, physicsClientId=c)) for cid in ids]
+
+    def constraint_forces(self, cid: int) -> tuple[float, ...]:
+        """The forces (and torques) [N, N m] constraint ``cid`` applied on its child in pybullet's last step, world
+        axes (getConstraintState)."""
+        return tuple(p.getConstraintState(cid, physicsClientId=self.client))
+
+    def angular_jacobian(self, dyn: BodyDynamics, link: int) -> np.ndarray:
+        """The angular velocity (3, n) of ``link`` per unit generalized velocity, at the configuration ``dyn`` was taken
+        in (call before the client steps)."""
+        if link not in dyn.frames:
+            dyn.frames[link] = self._frame_jacobian(dyn, link)
+        return dyn.frames[link][2]
 
     def save_world(self) -> bytes:
         """pybullet's whole world (its saveBullet: bodies, poses, velocities, contact points) as bytes."""

@@ -29,7 +29,7 @@ from softbody.integrator import Constraints, LinearSystem
 
 from . import kernels
 from .collision import barycentric, closest_on_triangles
-from .convex import ConvexSolver, Rows as ConvexRows, SoftPart
+from .convex import ConvexSolver, JointRows, Rows as ConvexRows, SoftPart
 from .coupling import CoupledPart, CoupledSolver, Rows
 from .distance import cross
 
@@ -201,6 +201,7 @@ class StepSolution:
     du: np.ndarray
     iterations: int
     pairs: list[tuple["PairContacts", ContactResult]] = field(default_factory=list)
+    joint_impulses: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) [N s or N m s], of the joint rows
 
 
 def _stack(parts: list[Constraints]) -> Constraints:
@@ -613,10 +614,11 @@ class ContactSolver:
         return make(self.previous.get((kind, body), (set(), set(), {})))
 
     def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None,
-              pairs: PairContacts | None = None) -> StepSolution:
+              pairs: PairContacts | None = None, joints: JointRows | None = None) -> StepSolution:
         """Solve one step of every body in ``steps``; ``mass_matrix`` (n, n): the movable rigid bodies' mass
         matrix for the coupled velocity change du (None: no rigid body is coupled); ``pairs``: contacts
-        between the soft bodies (their parts index ``steps``).
+        between the soft bodies (their parts index ``steps``); ``joints``: motors and joint limits of the coupled
+        rigid bodies (convex.JointRows: rows of the convex problem, solved with it even where no soft body is).
 
         A body in touch with a movable rigid body (a contact or attachment whose Jacobian is not zero) is
         solved in the coupled convex problem with all others like it (:meth:`_solve_convex`, convex.py); so are
@@ -665,10 +667,12 @@ class ContactSolver:
         results: list = [None] * len(steps)
         simple = [i for i in range(len(steps)) if not dense[i]]
         coupled = [i for i in range(len(steps)) if dense[i]]
-        du, iterations, pair_results = np.zeros(n), 0, []
+        du, iterations, pair_results, joint_impulses = np.zeros(n), 0, [], np.zeros(0 if joints is None else len(joints))
+        if not n:
+            joints = None
         self._pair_previous = (set(), set(), {})
         for index, solve in ((simple, self._solve_sparse), (coupled, self._solve_convex)):
-            if not index:
+            if not index and not (solve == self._solve_convex and joints is not None):
                 continue
             sub = None
             if pairs is not None and len(pairs):
@@ -677,9 +681,9 @@ class ContactSolver:
                 sub = pairs.select(np.isin(pairs.parts[:, 0], index))
                 sub = sub.relabel(local) if len(sub) else None
             out, its, res = solve([steps[i] for i in index], [prepared[i] for i in index], h, index, results, sub,
-                                  *(() if solve == self._solve_sparse else (mass_matrix,)))
+                                  *(() if solve == self._solve_sparse else (mass_matrix, joints)))
             if solve == self._solve_convex:
-                du = out
+                du, joint_impulses = out
             iterations = max(iterations, its)
             if res is not None:
                 pair_results.append((pairs.select(np.isin(pairs.parts[:, 0], index)), res))
@@ -690,7 +694,7 @@ class ContactSolver:
             nodes.append(res_n)
             faces.append(res_f)
             attach.append(self._attachment_forces(st, r, h))
-        return StepSolution(velocities, nodes, faces, attach, du, iterations, pair_results)
+        return StepSolution(velocities, nodes, faces, attach, du, iterations, pair_results, joint_impulses)
 
     def _pair_set(self, pairs: PairContacts | None, steps: list[BodyStep], h: float) -> "_RowSet | None":
         """The row set of the soft contacts ``pairs`` (parts local to ``steps``), warm-started."""
@@ -817,11 +821,12 @@ class ContactSolver:
             results[j] = (v, r, node_result, None)
         return None, it, None
 
-    def _solve_convex(self, steps, prepared, h, index, results, pairs=None, M=None
-                      ) -> tuple[np.ndarray, int, ContactResult | None]:
+    def _solve_convex(self, steps, prepared, h, index, results, pairs=None, M=None, joints=None
+                      ) -> tuple[tuple[np.ndarray, np.ndarray], int, ContactResult | None]:
         """Bodies touching movable rigid bodies, each other or frictional faces, together: every contact and two-way
         attachment a row of one convex problem (convex.py) over their velocities and the rigid velocity change du,
-        solved by Newton on sparse systems. Returns (du, Newton iterations, the soft contacts' result)."""
+        with the ``joints`` rows on du, solved by Newton on sparse systems. Returns ((du, the joint rows' impulses),
+        Newton iterations, the soft contacts' result)."""
         n = 0 if M is None else len(M)
         parts, kinds = [], []  # kinds: (step index, kind, contacts, row slice, selected (m,) bool)
         row_parts = []
@@ -868,7 +873,7 @@ class ContactSolver:
         if pairs is not None and len(pairs):
             add(None, "soft", pairs, self._contact_rows(pairs, pairs.parts, pairs.nodes, pairs.weights, h, n), None)
         rows = ConvexRows.concat(row_parts, n)
-        sol = self.convex.solve(parts, rows, M, h)
+        sol = self.convex.solve(parts, rows, M, h, joints)
         F = rows.frames
         force = np.einsum("mij,mj->mi", F, sol.gamma) / h  # on the weighted (soft) point [N]
         gap_end = h * (sol.vc[:, 0] - rows.v_hat)  # the normal gap at the end of the step (of its bounded target)
@@ -902,7 +907,7 @@ class ContactSolver:
                 per_body[i][0 if kind == "node" else 1] = result
         for j, i in zip(index, range(len(steps))):
             results[j] = (sol.velocities[i], reactions[i], *per_body[i])
-        return sol.du, sol.iterations, pair_result
+        return (sol.du, sol.joint_gamma), sol.iterations, pair_result
 
     def _contact_rows(self, c: NodeContacts, parts, nodes: np.ndarray, weights: np.ndarray, h: float, n: int,
                       slop: float = 0.0) -> ConvexRows:

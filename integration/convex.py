@@ -143,7 +143,8 @@ class Solution:
     """velocities: per part (N, 3) [m/s]; du (n,); gamma (m, 3) [N s]: each row's impulse in its frame (on the weighted
     point; the other side takes minus it); stiction (m,) bool; iterations: Newton iterations; factorizations; cost:
     l at the solution; residual: the scaled gradient relative to its scale at the end; rounds: how many times the
-    friction bounds were lagged."""
+    friction bounds were lagged; joint_gamma (k,): the joint rows' impulses in the solve (JointRows: beyond those
+    applied already) [N s or N m s]."""
 
     velocities: list[np.ndarray]
     du: np.ndarray
@@ -156,6 +157,7 @@ class Solution:
     residual: float
     converged: bool
     rounds: int = 1
+    joint_gamma: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) the joint rows' impulses
 
 
 # ------------------------------------------------------------------ the contact law of one row
@@ -266,6 +268,64 @@ def contact_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, bound: np.ndar
         t = vt[sliding] / speed[sliding, None]
         G[sliding, 1:, 1:] -= slide_scale[sliding, None, None] * t[:, :, None] * t[:, None, :]
     return gamma, G, cost, stick
+
+
+@dataclass
+class JointRows:
+    """Scalar rows on the rigid unknowns alone (k of them): joint motors, joint limits, pybullet's user constraints.
+    Row r's value is y_r = C_r . u, u = u_free + du the rigid bodies' generalized velocity at the end of the step, and
+    its impulse on u, along C_r, is gamma_r = clip((target_r - y_r) / R_r, lo_r, hi_r) (:func:`box_law`): a motor with
+    force limit F drives y to its target with at most F h (lo = -F h, hi = F h), a joint limit pushes only (lo = 0,
+    hi = inf), an equality holds both ways (lo = -inf, hi = inf).
+
+    coefficients (k, n); free (k,): C u_free, the rows' values under the free motion; target (k,) [the generalized
+    velocity's units]; lo, hi (k,) [N s or N m s]: the bounds of the row's whole impulse, ``applied`` (k,) (what the
+    free motion holds already: pybullet's own motor in its step) plus the solve's gamma; labels: what each row is, for
+    the caller (its own keys)."""
+
+    coefficients: np.ndarray
+    free: np.ndarray
+    target: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    labels: list = field(default_factory=list)
+    applied: np.ndarray | None = None
+
+    @classmethod
+    def concat(cls, parts: list["JointRows"], n: int) -> "JointRows":
+        """The rows of ``parts`` (on n rigid unknowns) together."""
+        parts = [r for r in parts if len(r)]
+        if not parts:
+            return cls(np.zeros((0, n)), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+        applied = (None if all(r.applied is None for r in parts) else
+                   np.concatenate([np.zeros(len(r)) if r.applied is None else r.applied for r in parts]))
+        return cls(*(np.concatenate([getattr(r, f) for r in parts]) for f in ("coefficients", "free", "target", "lo",
+                                                                             "hi")),
+                   [lab for r in parts for lab in r.labels], applied)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The bounds (lo, hi) (k,) of the solve's own impulses gamma: the whole impulse's less the applied one."""
+        if self.applied is None:
+            return self.lo, self.hi
+        return self.lo - self.applied, self.hi - self.applied
+
+    def __len__(self) -> int:
+        return len(self.target)
+
+
+def box_law(y: np.ndarray, R: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The law of scalar rows with values y (k,), regularisation R (k,) [s/kg or s/(kg m^2)], targets (k,) and impulse
+    bounds lo <= 0 <= hi (k,): the impulses gamma = clip(z, lo, hi), z = (target - y) / R, the cost's curvature
+    d^2 l / dy^2 (k,) (1 / R where the impulse is within its bounds, else 0) and the costs (k,): R (gamma z -
+    gamma^2 / 2), a convex function of y whose derivative is -gamma (quadratic within the bounds, linear beyond: a
+    motor at its force limit pushes with the limit however far from its target)."""
+    z = (target - y) / R
+    gamma = np.clip(z, lo, hi)
+    curvature = np.where((z > lo) & (z < hi), 1.0 / R, 0.0)
+    with np.errstate(invalid="ignore"):
+        cost = R * (gamma * z - 0.5 * gamma * gamma)
+    return gamma, curvature, np.where(gamma == 0.0, 0.0, cost)
 
 
 # ------------------------------------------------------------------ the sparse Newton system
@@ -429,19 +489,23 @@ class ConvexSolver:
         self.lag_rounds = lag_rounds
         self.patterns = GroupPatterns(backend)
 
-    def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float) -> Solution:
-        """Minimise the step's cost for the soft ``parts``, the ``rows`` and the rigid mass matrix M (n, n) (None: no
-        rigid unknowns). Returns the Solution."""
-        return _Newton(self, parts, rows, M, h).run()
+    def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float,
+              joints: JointRows | None = None) -> Solution:
+        """Minimise the step's cost for the soft ``parts``, the ``rows``, the rigid mass matrix M (n, n) (None: no
+        rigid unknowns) and the scalar ``joints`` rows on the rigid unknowns (motors, limits, user constraints).
+        Returns the Solution."""
+        return _Newton(self, parts, rows, M, h, joints).run()
 
 
 class _Newton:
     """One solve: the problem's fixed data (offsets, global slots, the rows' regularisation) and its iterations."""
 
-    def __init__(self, owner: ConvexSolver, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float):
+    def __init__(self, owner: ConvexSolver, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float,
+                 joints: JointRows | None = None):
         self.owner, self.parts, self.rows, self.h = owner, parts, rows, h
         self.n = 0 if M is None else len(M)
         self.M = M
+        self.joints = joints if joints is not None and len(joints) and self.n else None
         self.offsets = np.concatenate([[0], np.cumsum([p.body.n_nodes for p in parts])]).astype(np.int64)
         self.N = int(self.offsets[-1])
         used = rows.parts >= 0
@@ -454,6 +518,11 @@ class _Newton:
         self.held = np.concatenate([p.held for p in parts]) if parts else np.zeros((0, 3), bool)
         self.Minv = None if not self.n else np.linalg.pinv(M)
         self.R = regularization(self._delassus_diagonal(), rows.bilateral)
+        if self.joints is not None:  # near rigid on the rigid side's own inertia, as the contacts' normals
+            self.joint_bounds = self.joints.bounds()
+            C = self.joints.coefficients
+            w = np.einsum("kn,nl,kl->k", C, self.Minv, C)
+            self.Rj = BETA * BETA / (4.0 * math.pi * math.pi) * np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
         self.factorizations = 0
 
     # -- the rows' geometry
@@ -586,11 +655,15 @@ class _Newton:
             self._fgf = (G, F @ G @ np.swapaxes(F, 1, 2))
         return self._fgf[1]
 
-    def _rigid_blocks(self, G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """H_sr (3N, n) = J_s^T G J_r-part and H_rr (n, n) = M + J_r^T G J_r of the Newton system (held rows zeroed)."""
+    def _rigid_blocks(self, G: np.ndarray, joint_curvature: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """H_sr (3N, n) = J_s^T G J_r-part and H_rr (n, n) = M + J_r^T G J_r (+ C^T diag(joint curvatures) C) of the
+        Newton system (held rows zeroed)."""
         n, rows = self.n, self.rows
         Hsr = np.zeros((self.N, 3, n))
         Hrr = self.M.copy()
+        if joint_curvature is not None:
+            C = self.joints.coefficients
+            Hrr += C.T @ (joint_curvature[:, None] * C)
         if len(rows) and rows.jacobian is not None:
             FGF = self._frame_hessians(G)
             C = -(FGF @ rows.jacobian)  # d (J_s^T gamma-gradient) / d du per row, (m, 3, n)
@@ -600,13 +673,20 @@ class _Newton:
         Hsr[self.held.ravel()] = 0.0
         return Hsr, Hrr
 
-    def _direction(self, group: GroupPattern, G: np.ndarray, gV: np.ndarray, gu: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+    def _direction(self, group: GroupPattern | None, G: np.ndarray, gV: np.ndarray, gu: np.ndarray,
+                   joint_curvature: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The Newton step (dV (N, 3), ddu (n,)) for the gradients gV (N, 3) (held components zero) and gu (n,): by
         conjugate gradients preconditioned by the pattern's kept factorisation where it serves (Factor), else by a
-        new factorisation of the soft part and a Schur complement for the rigid unknowns."""
+        new factorisation of the soft part and a Schur complement for the rigid unknowns (no soft part, group None:
+        the rigid unknowns' own dense system)."""
+        Hsr, Hrr = (self._rigid_blocks(G, joint_curvature) if self.n
+                    else (np.zeros((3 * self.N, 0)), np.zeros((0, 0))))
+        if group is None:
+            try:
+                return np.zeros((0, 3)), np.linalg.solve(Hrr, -gu)
+            except np.linalg.LinAlgError:
+                return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0]
         up, _ = self._system(group, G)
-        Hsr, Hrr = self._rigid_blocks(G) if self.n else (np.zeros((3 * self.N, 0)), np.zeros((0, 0)))
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
         if 3 * self.N >= self.owner.reuse_min and factor.usable(self.held):
@@ -705,7 +785,7 @@ class _Newton:
         parts, rows = self.parts, self.rows
         V = np.concatenate([np.where(p.held, p.value, p.guess) for p in parts]) if parts else np.zeros((0, 3))
         du = np.zeros(self.n)
-        self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs())
+        self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs()) if parts else None
         self.b = self._loads()
         free = ~self.held
         # diag(A)^-1/2, the stopping rule's scaling (SAP's)
@@ -738,8 +818,14 @@ class _Newton:
                 if self._coulomb(gamma, stick, friction) and converged:
                     break  # Coulomb's law holds with the impulses found: the bounds need not move
                 lag = gn.copy()
+        joint_gamma = self._joint_law(du)[0] if self.joints is not None else np.zeros(0)
         return Solution(self._split(V), du, gamma, vc, stick, iterations, self.factorizations, cost, residual,
-                        converged, rounds)
+                        converged, rounds, joint_gamma)
+
+    def _joint_law(self, du: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The joint rows' (impulses (k,), curvatures (k,), costs (k,)) at du (box_law)."""
+        j = self.joints
+        return box_law(j.free + j.coefficients @ du, self.Rj, j.target, *self.joint_bounds)
 
     def _coulomb(self, gamma: np.ndarray, stick: np.ndarray, friction: np.ndarray) -> bool:
         """Whether the impulses gamma (m, 3) obey Coulomb's law with their own normal impulses, to LAG_TOL: a sliding
@@ -752,14 +838,20 @@ class _Newton:
         return bool(np.all(np.abs(self.bound - cone)[sliding] <= scale) and np.all((gt - cone)[friction & stick] <= scale))
 
     def _evaluate(self, V: np.ndarray, du: np.ndarray, hessian: bool = True):
-        """(vc, gamma, G, stick, A V, cost) at (V, du) under the current law (self.law)."""
+        """(vc, gamma, G, stick, A V, cost, joint) at (V, du) under the current law (self.law); joint: the joint rows'
+        (impulses, curvatures) or None."""
         vc = self.velocities(V, du)
         gamma, G, cost_c, stick = self.law(vc, self.R, hessian)
         AV = self._A_products(V)
         cost = 0.5 * float(np.vdot(V, AV)) - float(np.vdot(self.b, V)) + float(cost_c.sum())
         if self.n:
             cost += 0.5 * float(du @ self.M @ du)
-        return vc, gamma, G, stick, AV, cost
+        joint = None
+        if self.joints is not None:
+            gj, cj, cost_j = self._joint_law(du)
+            cost += float(cost_j.sum())
+            joint = (gj, cj)
+        return vc, gamma, G, stick, AV, cost, joint
 
     def _newton(self, V: np.ndarray, du: np.ndarray, rel_tol: float, max_iter: int):
         """Newton's method from (V, du) under the current bounds; returns (V, du, gamma, vc, stick, iterations,
@@ -767,11 +859,13 @@ class _Newton:
         impulses, or when a full-length step, or two steps in a row, no longer lower the cost beyond round-off (a
         direction that round-off in the gradient spoils gets only a vanishing step from the line search)."""
         free = ~self.held
-        vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
+        vc, gamma, G, stick, AV, cost, joint = self._evaluate(V, du)
         it, converged, residual, flat = 0, False, np.inf, False
         for it in range(max_iter + 1):
             jc = self._impulses_on_soft(gamma)
             jr = self._impulse_on_rigid(gamma)
+            if joint is not None:
+                jr = jr + self.joints.coefficients.T @ joint[0]
             gV = np.where(free, AV - self.b - jc, 0.0)
             gu = self.M @ du - jr if self.n else np.zeros(0)
             grad = math.hypot(float(np.linalg.norm(gV * self.scale_s)), float(np.linalg.norm(gu * self.scale_r)))
@@ -779,17 +873,17 @@ class _Newton:
                              float(np.linalg.norm(self.M @ du * self.scale_r)) if self.n else 0.0)
             imp = math.hypot(float(np.linalg.norm(jc * self.scale_s)), float(np.linalg.norm(jr * self.scale_r)))
             residual = grad / max(mom, imp, 1e-300)
-            if grad <= ABS_TOL + rel_tol * max(mom, imp) or (not len(self.rows) and it > 0):
+            if grad <= ABS_TOL + rel_tol * max(mom, imp) or (not len(self.rows) and joint is None and it > 0):
                 converged = True
                 break
             if it == max_iter:
                 break
-            dV, ddu = self._direction(self.group, G, gV, gu)
-            alpha = self._line_search(V, du, dV, ddu, AV, gamma)
+            dV, ddu = self._direction(self.group, G, gV, gu, None if joint is None else joint[1])
+            alpha = self._line_search(V, du, dV, ddu, AV, gamma, None if joint is None else joint[0])
             V = V + alpha * dV
             du = du + alpha * ddu
             previous = cost
-            vc, gamma, G, stick, AV, cost = self._evaluate(V, du)
+            vc, gamma, G, stick, AV, cost, joint = self._evaluate(V, du)
             still = abs(previous - cost) <= COST_TOL * max(abs(cost), abs(previous), 1e-300)
             if still and (alpha > 0.5 or flat):
                 converged = True  # at round-off: the cost no longer falls
@@ -798,7 +892,7 @@ class _Newton:
             flat = still
         return V, du, gamma, vc, stick, it, converged, residual, cost
 
-    def _line_search(self, V, du, dV, ddu, AV, gamma) -> float:
+    def _line_search(self, V, du, dV, ddu, AV, gamma, joint_gamma=None) -> float:
         """The minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step, to where its slope is
         LINE_TOL of the slope at the start: Newton on dl/dalpha safeguarded by bisection (Castro et al.'s line
         search)."""
@@ -806,28 +900,43 @@ class _Newton:
         AdV = self._A_products(dV)
         dAd = float(np.vdot(dV, AdV)) + (float(ddu @ self.M @ ddu) if self.n else 0.0)
         g0 = float(np.vdot(dV, AV - self.b)) + (float(ddu @ self.M @ du) if self.n else 0.0)
-        if not len(rows):
+        if not len(rows) and self.joints is None:
             return 1.0
-        vc0 = self.velocities(V, du)
-        # velocities() is affine in (V, du): its constant part, the rigid side's free motion, added back
-        dvc = self.velocities(dV, ddu) + np.einsum("mji,mj->mi", rows.frames, rows.rigid_velocity)
+        if len(rows):
+            vc0 = self.velocities(V, du)
+            # velocities() is affine in (V, du): its constant part, the rigid side's free motion, added back
+            dvc = self.velocities(dV, ddu) + np.einsum("mji,mj->mi", rows.frames, rows.rigid_velocity)
+            d0 = g0 - float(np.sum(dvc * gamma))
+            if kernels.ENABLED:  # the slopes row by row (integration.kernels), without the impulses and Hessians
+                vc0, dvc = np.ascontiguousarray(vc0), np.ascontiguousarray(dvc)
+                param = np.ascontiguousarray(rows.mu if self.cone else self.bound, dtype=float)
+                R, v_hat, bilateral = np.ascontiguousarray(self.R), np.ascontiguousarray(rows.v_hat), rows.bilateral
 
-        if kernels.ENABLED:  # the slopes row by row (integration.kernels), without the impulses and Hessians
-            vc0, dvc = np.ascontiguousarray(vc0), np.ascontiguousarray(dvc)
-            param = np.ascontiguousarray(rows.mu if self.cone else self.bound, dtype=float)
-            R, v_hat, bilateral = np.ascontiguousarray(self.R), np.ascontiguousarray(rows.v_hat), rows.bilateral
+                def row_slopes(alpha):
+                    return kernels.law_slopes(vc0, dvc, float(alpha), R, v_hat, param, bilateral, self.cone)
+            else:
+                def row_slopes(alpha):
+                    gamma_a, G_a, _, _ = self.law(vc0 + alpha * dvc, self.R)
+                    return float(np.sum(dvc * gamma_a)), float(np.einsum("mi,mij,mj->", dvc, G_a, dvc))
+        else:
+            d0 = g0
+
+            def row_slopes(alpha):
+                return 0.0, 0.0
+        if self.joints is not None:  # the joint rows' slopes along the step (few rows: numpy)
+            j = self.joints
+            y0, dy = j.free + j.coefficients @ du, j.coefficients @ ddu
+            d0 -= float(joint_gamma @ dy)
 
             def derivatives(alpha):
-                s1, s2 = kernels.law_slopes(vc0, dvc, float(alpha), R, v_hat, param, bilateral, self.cone)
-                return g0 + alpha * dAd - s1, dAd + s2
+                s1, s2 = row_slopes(alpha)
+                gj, cj, _ = box_law(y0 + alpha * dy, self.Rj, j.target, *self.joint_bounds)
+                return g0 + alpha * dAd - s1 - float(gj @ dy), dAd + s2 + float(cj @ (dy * dy))
         else:
             def derivatives(alpha):
-                gamma_a, G_a, _, _ = self.law(vc0 + alpha * dvc, self.R)
-                d1 = g0 + alpha * dAd - float(np.sum(dvc * gamma_a))
-                d2 = dAd + float(np.einsum("mi,mij,mj->", dvc, G_a, dvc))
-                return d1, d2
+                s1, s2 = row_slopes(alpha)
+                return g0 + alpha * dAd - s1, dAd + s2
 
-        d0 = g0 - float(np.sum(dvc * gamma))
         lo, hi = 0.0, 1.5
         d_hi, _ = derivatives(hi)
         if d_hi <= 0:

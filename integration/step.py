@@ -20,6 +20,7 @@ from softbody.integrator import Timings
 
 from .collision import Contacts, FaceHits
 from .contact import ContactResult, FaceContacts, NodeContacts, PairContacts, StepSolution
+from .convex import JointRows
 from .coupling import RigidCoupling
 from .softcontact import EdgeHits, SoftHits
 
@@ -28,17 +29,19 @@ from .softcontact import EdgeHits, SoftHits
 class StepRecord:
     """What one step found and built, filled in the step's order (World._step).
 
-    t: the time at the start [s]; bodies: the stepped bodies (``sim.bodies``); timings: seconds by phase
+    t: the time at the start [s]; bodies: the stepped bodies (``sim.bodies``); h: the step [s]; timings: seconds by phase
     (exclusive, see softbody.integrator.Timings); candidates, face_hits, soft_hits, edge_hits: the contact search's;
     detected: each stepped body's (node contacts, face hits) with rigid links, as found (candidates and face_hits
     join them); member_pairs (k, 2): the soft pairs in contact by member index; coupling: the movable rigid bodies in play;
     contacts, faces, attachments: each stepped body's (by its index) node and face contacts with rigid links and its
     coupled attachments (attachment, nodes (m,), start points (m, 3), Jacobians (m, 3, n)); pairs: the soft contacts;
-    poses0: the moving links' poses at the start (key -> (centre (3,), quaternion (4,))); solution: the contact
-    solve's."""
+    poses0: the moving links' poses at the start (key -> (centre (3,), quaternion (4,))); joint_rows: the motors' and
+    joint limits' rows of the coupled bodies (motors.joint_rows), joints: those rows once pybullet stepped
+    (convex.JointRows, or None); solution: the contact solve's."""
 
     t: float
     bodies: list[FemBody]
+    h: float = 0.0
     timings: Timings = field(default_factory=Timings)
     detected: list[tuple[Contacts, FaceHits]] = field(default_factory=list)
     candidates: Contacts = field(default_factory=Contacts.empty)
@@ -52,6 +55,8 @@ class StepRecord:
     attachments: dict[int, list[tuple[Any, np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
     pairs: PairContacts | None = None
     poses0: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    joint_rows: tuple | None = None
+    joints: JointRows | None = None
     solution: StepSolution | None = None
 
     @property
@@ -68,7 +73,10 @@ class StepReport:
     in contact by member index; contact_results, face_results: stepped body index -> (contacts, result) of its node and
     face contacts with rigid links; pair_results: [(soft contacts, result)]; attachment_forces: [(attachment index,
     forces on its nodes (m, 3) [N])]; places: each member's (stepped body index, first node) in that step; timings:
-    seconds by phase, and their "total"; iterations: the contact solve's (active-set or Newton) iterations."""
+    seconds by phase, and their "total"; iterations: the contact solve's (active-set or Newton) iterations;
+    joint_forces: the coupled problem's motors and joint limits, (kind "motor" / "lower" / "upper", body, joint) ->
+    the force or torque [N or N m] each exerted on its joint over the step (a motor's along the joint's axis, a
+    limit's magnitude, pushing the joint back within the limit)."""
 
     candidates: Contacts = field(default_factory=Contacts.empty)
     face_hits: FaceHits = field(default_factory=FaceHits.empty)
@@ -82,6 +90,7 @@ class StepReport:
     places: list[tuple[int, int]] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=lambda: {"total": 0.0})
     iterations: int = 0
+    joint_forces: dict[tuple[str, int, int], float] = field(default_factory=dict)
 
     @classmethod
     def of(cls, record: StepRecord, places: list[tuple[int, int]]) -> "StepReport":
@@ -105,6 +114,10 @@ class StepReport:
                     k += len(a.nodes)
         timings = dict(record.timings)
         timings["total"] = sum(timings.values())
+        joint_forces = {}
+        if record.joints is not None and sol is not None and len(sol.joint_impulses):
+            whole = sol.joint_impulses + (0.0 if record.joints.applied is None else record.joints.applied)
+            joint_forces = {label: float(g) for label, g in zip(record.joints.labels, whole / record.h)}
         return cls(record.candidates, record.face_hits, record.soft_hits, record.edge_hits, record.member_pairs,
                    contact_results, face_results, pair_results, forces, places, timings,
-                   0 if sol is None else int(sol.iterations))
+                   0 if sol is None else int(sol.iterations), joint_forces)

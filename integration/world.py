@@ -51,6 +51,9 @@ from .distance import cross
 from .rigid import PoseScript, RigidLink, load_trimesh
 from .shapes import Box, Mesh, Plane, RigidShape, Sphere
 from .intersection import intersection_depth
+from .constraints import applied_impulses as constraint_impulses, constraint_rows
+from .convex import JointRows
+from .motors import Motor, Motors, applied_impulses, at_free_motion, joint_rows
 from .softcontact import EdgeHits, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 from .entries import SoftEntry, SteppedEntry
 from .state import WorldState
@@ -199,6 +202,7 @@ class World:
         self._one_way: set[int] = set()  # bodies pybullet moves but the coupled solve cannot (unsupported joints)
         self._warned: set = set()
         self._lagged: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (body, link, force, point) for the next step
+        self.motors = Motors()  # the joint motors registered with set_motor: rows of the coupled problem
         self._sync()
 
     # ------------------------------------------------------------------ properties
@@ -307,6 +311,7 @@ class World:
             for key in [k for k in self.rigids if k[0] == gone]:
                 del self.rigids[key]
             self._one_way.discard(gone)
+            self.motors.forget(gone)
         for b in ids:
             if b not in self._known:
                 self._register(b)
@@ -430,6 +435,51 @@ class World:
                 rb.friction = mu
 
     # ------------------------------------------------------------------ soft bodies
+    def set_motor(self, body: int, joint: int, mode: str | int = "position", target_position: float = 0.0,
+                  target_velocity: float = 0.0, force: float = 100000.0, position_gain: float = 0.1,
+                  velocity_gain: float = 1.0, max_velocity: float | None = None) -> Motor:
+        """Drive joint ``joint`` of pybullet body ``body`` by a motor, as ``pybullet.setJointMotorControl2`` would
+        (the same arguments and defaults; ``mode`` "position" or "velocity", or pybullet's POSITION_CONTROL and
+        VELOCITY_CONTROL), and keep it in the coupled step: while the body is in the coupled problem (in contact with
+        a soft body, or attached to one) the motor is a row of that problem with its force limit (integration.motors),
+        so that it pushes through a soft body with at most ``force`` [N or N m] at any dt, as it does against a rigid
+        body in plain pybullet. Elsewhere pybullet runs it in its own step. Set again to change it; ``force=0``
+        leaves the joint free. Returns the Motor."""
+        import pybullet as p
+
+        self._sync()
+        ids = self.adapter.body_ids()
+        if body not in ids:
+            raise InvalidInputError(f"set_motor: no pybullet body {body} in the World's client (bodies: {ids})")
+        movable, _ = self.adapter.joints(body)
+        if joint not in movable:
+            raise InvalidInputError(f"set_motor: joint {joint} of body {body} is not a revolute or prismatic joint "
+                                    f"(those are {movable})")
+        modes = {p.POSITION_CONTROL: "position", p.VELOCITY_CONTROL: "velocity"}
+        if not isinstance(mode, str):
+            if mode not in modes:
+                raise InvalidInputError(f"set_motor: mode must be 'position' or 'velocity' (POSITION_CONTROL, "
+                                        f"VELOCITY_CONTROL); torque control acts in pybullet's step as a force, "
+                                        f"with no limit to hold (got {mode!r})")
+            mode = modes[mode]
+        motor = Motor(int(body), int(joint), mode, finite_number(target_position, "target_position"),
+                      finite_number(target_velocity, "target_velocity"), finite_number(force, "force", 0.0, False, "[N or N m]"),
+                      finite_number(position_gain, "position_gain", 0.0, False),
+                      finite_number(velocity_gain, "velocity_gain", 0.0, False),
+                      math.inf if max_velocity is None or max_velocity < 0 else float(max_velocity))
+        self.motors.set(motor)
+        self.adapter.set_motor(motor)
+        return motor
+
+    def motor_force(self, body: int, joint: int) -> float:
+        """The force or torque [N or N m] the motor of joint ``joint`` of body ``body`` exerted over the last step:
+        the coupled problem's where the body was in it (a registered motor, :meth:`set_motor`), else pybullet's own
+        (its applied joint motor torque)."""
+        key = ("motor", int(body), int(joint))
+        if key in self.report.joint_forces:
+            return self.report.joint_forces[key]
+        return float(self.adapter.motor_torques(int(body), [int(joint)])[0])
+
     def add_soft(self, body: FemBody, friction: float = 0.0, ignore: Iterable = (), self_contact: bool = False
                  ) -> FemBody:
         """Add a soft body; ``friction`` is its Coulomb coefficient against rigid bodies (>= 0) and, the
@@ -917,14 +967,20 @@ class World:
                 for b, o in coupling.offset.items():
                     u[o:o + coupling.dynamics[b].n] = self.adapter.generalized_velocity(coupling.dynamics[b])
                 steps = self._body_steps(record, systems, supports, u)
+                joints = None
+                if record.joint_rows is not None:  # what pybullet's step gave the rows counts against their bounds
+                    applied = (applied_impulses(record.joint_rows, self.adapter.motor_torques, self.dt)
+                               + constraint_impulses(record.joint_rows, self.adapter.constraint_forces, self.dt))
+                    joints = at_free_motion(record.joint_rows, u, applied)
             M = coupling.mass_matrix() if coupling.n else None
-            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs)
+            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints)
             for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
                 if not self._end_contacts(record, sol.velocities, sol.du):
                     break
                 with timed(timings, "rigid"):
                     steps = self._body_steps(record, systems, supports, u)
-                sol = self.contact_solver.solve(steps, self.dt, M, record.pairs)
+                sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints)
+        record.joints = joints
         record.solution = sol
         return sol.velocities
 
@@ -942,7 +998,7 @@ class World:
         """One step, top to bottom: sync the rigid scene, collide, build the contact problem, let pybullet step,
         solve the soft bodies' systems with the contact problem, commit, check; then publish the report."""
         h = self.dt
-        record = StepRecord(self.t, self._stepped_now())
+        record = StepRecord(self.t, self._stepped_now(), h)
         timings = record.timings
         with timed(timings, "collision"):
             self._sync()
@@ -955,6 +1011,7 @@ class World:
             for b, lk, f, x in self._lagged:
                 self.adapter.apply_force(b, lk, f, x)
             self.adapter.step()
+            self._check_motors(record)
         try:
             with timed(timings, "other"):  # the FEM step's own phases (factorize, solve, ...) nest in it
                 new = self.sim.solve_step(
@@ -1017,10 +1074,26 @@ class World:
         coupled attachments, the soft contacts, the moving links' start poses."""
         c, f = record.candidates, record.face_hits
         in_play = set(c.rigid.tolist()) | set(f.rigid.tolist()) | {a.rigid.id for a in self.attachments if a.coupled}
-        dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)
-                    if any(rb.movable for k, rb in self.rigids.items() if k[0] == b)}
+        movable = {k[0] for k, rb in self.rigids.items() if rb.movable} if in_play else set()
+        in_play &= movable
+        constraints = self.adapter.user_constraints() if in_play else []
+        grown = bool(constraints)
+        while grown:  # the bodies a user constraint joins to a body in play join it
+            grown = False
+            for uc in constraints:
+                if uc.coupled and in_play & set(uc.bodies):
+                    more = {b for b in uc.bodies if b not in in_play and b not in self._one_way
+                            and (b in movable or self.adapter.movable(b))}
+                    in_play |= more
+                    grown |= bool(more)
+        dynamics = {b: self.adapter.dynamics(b) for b in sorted(in_play)}
         record.coupling = coupling = RigidCoupling.of(dynamics)
-        self._check_constraints(dynamics)
+        if dynamics:  # what acts on their joints and between them: rows on their velocities
+            record.joint_rows = JointRows.concat([
+                joint_rows(coupling, self.motors.of(dynamics), {b: self.adapter.joint_limits(b) for b in dynamics},
+                           self.dt),
+                constraint_rows(constraints, coupling, self.adapter, self.dt)], coupling.n)
+            self._check_constraints(dynamics, constraints)
         self._group_dense(record)
         for i, (found, hits) in enumerate(record.detected):
             if len(found):
@@ -1192,16 +1265,36 @@ class World:
                         "them (a feature the contact search does not model, see docs/contact.md 'What is not "
                         f"modelled', or a body driven through the other); they may pass through each other{hint}"))
 
-    def _check_constraints(self, dynamics: dict[int, BodyDynamics]) -> None:
-        """Warn once when a coupled body is held by a user constraint the coupled solve does not see."""
-        if not dynamics:
-            return
-        for cid, bodies in self.adapter.constrained_bodies().items():
-            for b in bodies:
+    def _check_motors(self, record: StepRecord) -> None:
+        """Warn once per body when a motor the World does not know (set in pybullet directly, or pybullet's default
+        velocity motor) acted on a joint of a body in the coupled problem: it ran in pybullet's step, before the
+        soft contacts, which the coupled solve then adds as if the joint were free."""
+        for b, dyn in record.coupling.dynamics.items():
+            unknown = [j for j in dyn.joints if self.motors.get(b, j) is None]
+            if not unknown or ("motor", b) in self._warned:
+                continue
+            torques = self.adapter.motor_torques(b, unknown)
+            acting = [j for j, t in zip(unknown, torques.tolist()) if abs(t) > 1e-9]
+            if acting:
+                self._warn_once(("motor", b), f"body {b} ({self.adapter.body_name(b)!r}): the motors of joints "
+                                f"{acting} were set in pybullet directly (or are pybullet's default velocity motors) and "
+                                "act in pybullet's step, before the soft contacts: in soft contact they push with "
+                                "less than their force limit (about m kp (q - q*) / dt^2 for a position motor, so "
+                                "a grip depends on dt). Set them with World.set_motor to make them rows of the "
+                                "coupled problem, or give them force=0 to leave the joints free")
+
+    def _check_constraints(self, dynamics: dict[int, BodyDynamics], constraints: list) -> None:
+        """Warn once when a coupled body is held by a user constraint the coupled solve does not hold (a kind other
+        than point-to-point, fixed and gear)."""
+        for uc in constraints:
+            if uc.coupled:
+                continue
+            for b in uc.bodies:
                 if b in dynamics:
-                    self._warn_once(("constraint", cid), f"pybullet constraint {cid} holds body {b}: the coupled "
-                                    "solve treats the body as free and pybullet enforces the constraint in its next "
-                                    "step (a joint of a multibody is coupled exactly)")
+                    self._warn_once(("constraint", uc.id), f"pybullet constraint {uc.id} (joint type {uc.kind}) "
+                                    f"holds body {b}: the coupled solve holds point-to-point, fixed and gear "
+                                    "constraints only, so it treats the body as free and pybullet enforces this one "
+                                    "in its next step")
 
     def _one_way_reactions(self, record: StepRecord) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
         """Reactions on bodies the coupled solve cannot move (unsupported joints), for pybullet's next step."""

@@ -221,3 +221,91 @@ def test_sliding_rows_do_not_lift_off_beyond_glide_tol(monkeypatch):
     monkeypatch.setattr(convex, "GLIDE_TOL", np.inf)  # the cone's solution as it is
     cone = convex.ConvexSolver().solve(parts, rows, M, h)
     assert cone.rounds == 1 and lift_off(cone) > 10 * tol
+
+
+def test_box_law_is_the_gradient_of_its_cost():
+    """The joint rows' law (motors, limits, equalities): gamma = -d cost / d y and the curvature d^2 cost / dy^2 by
+    central differences, in every regime (within the bounds, at the upper and at the lower bound, a one-sided row
+    apart, unbounded rows); the impulses never leave their bounds."""
+    rng = np.random.default_rng(13)
+    k = 3000
+    y, target = rng.normal(size=k), rng.normal(size=k)
+    R = np.exp(rng.normal(size=k))
+    kind = rng.integers(3, size=k)  # 0: a motor (-F h, F h), 1: a limit (0, inf), 2: an equality (-inf, inf)
+    F = np.exp(rng.normal(size=k))
+    lo = np.where(kind == 0, -F, np.where(kind == 1, 0.0, -np.inf))
+    hi = np.where(kind == 0, F, np.inf)
+    gamma, curvature, cost = convex.box_law(y, R, target, lo, hi)
+    eps = 1e-7
+    gp, cp_, costp = convex.box_law(y + eps, R, target, lo, hi)
+    gm, cm_, costm = convex.box_law(y - eps, R, target, lo, hi)
+    away = np.isclose((costp - costm) / (2 * eps), -gamma, rtol=1e-5, atol=1e-6)
+    assert away.mean() > 0.999
+    assert (np.abs(-(gp - gm) / (2 * eps) - curvature) <= 1e-4 * (1 + curvature)).mean() > 0.999
+    assert (gamma >= lo).all() and (gamma <= hi).all() and np.isfinite(cost).all() and (cost >= 0).all()
+    assert ((gamma == F) & (kind == 0)).sum() > 100 and ((gamma == -F) & (kind == 0)).sum() > 100
+    assert ((gamma == 0) & (kind == 1)).sum() > 100 and (curvature[kind == 2] > 0).all()
+
+
+def _joint_rows(rng, n, k=6):
+    """Random scalar rows on n rigid unknowns: motors (tight force limits, so that some saturate), limits and an
+    equality."""
+    C = rng.normal(size=(k, n))
+    F = np.exp(rng.normal(size=k) - 3.0)
+    kind = np.arange(k) % 3
+    return convex.JointRows(C, 0.2 * rng.normal(size=k), 0.2 * rng.normal(size=k),
+                            np.where(kind == 0, -F, np.where(kind == 1, 0.0, -np.inf)), np.where(kind == 0, F, np.inf))
+
+
+def test_joint_rows_join_the_coupled_minimum():
+    """Motors, limits and an equality on the rigid unknowns of the random coupled problem: the sparse Newton solve
+    reaches the minimum scipy's L-BFGS finds for the dense cost with their costs added, and each row's impulse obeys
+    its law at the solution (a motor within its force limit, at the limit only where its target is not reached)."""
+    rng = np.random.default_rng(17)
+    parts, rows, M, h = _problem(rng)
+    joints = _joint_rows(rng, len(M))
+    solver = convex.ConvexSolver(rel_tol=1e-12)
+    sol = solver.solve(parts, rows, M, h, joints)
+    assert sol.converged
+    newton = convex._Newton(solver, parts, rows, M, h, joints)
+    f0, z0, _ = _dense_cost(parts, rows, M, newton.R, rows.mu * sol.gamma[:, 0])
+    n = len(M)
+
+    def f(z):
+        cost, grad = f0(z)
+        du = z[-n:]
+        g, _, c = convex.box_law(joints.free + joints.coefficients @ du, newton.Rj, joints.target, joints.lo, joints.hi)
+        grad = grad.copy()
+        grad[-n:] -= joints.coefficients.T @ g
+        return cost + c.sum(), grad
+
+    # the near-rigid joint rows make the dense cost too stiff for L-BFGS to resolve the point (it stops at its
+    # evaluation limit short of it): the minimum is where the dense gradient vanishes, and no lower cost is found
+    ref = so.minimize(f, z0(), jac=True, method="L-BFGS-B", options={"maxiter": 20000, "ftol": 1e-16, "gtol": 1e-12})
+    V = np.concatenate(sol.velocities).ravel()
+    z = np.concatenate([V[np.concatenate([~p.held.ravel() for p in parts])], sol.du])
+    cost, grad = f(z)
+    assert cost <= ref.fun + 1e-9 * abs(ref.fun)
+    assert np.abs(grad).max() < 1e-6 * np.abs(f(z0())[1]).max()
+    y = joints.free + joints.coefficients @ sol.du
+    g = sol.joint_gamma
+    assert (g >= joints.lo - 1e-15).all() and (g <= joints.hi + 1e-15).all()
+    inside = (g > joints.lo) & (g < joints.hi)
+    assert np.allclose(y[inside], (joints.target - newton.Rj * g)[inside], atol=1e-9)  # near rigid: on target
+    assert (np.abs(g[inside]) * newton.Rj[inside] < 1e-3).all()
+    saturated = np.isfinite(joints.hi) & (np.abs(g) == joints.hi)
+    assert saturated.any() and (np.sign(joints.target - y)[saturated] == np.sign(g[saturated])).all()
+
+
+def test_a_motor_alone_reaches_its_target_or_pushes_with_its_limit():
+    """No soft part: a body of mass m (one unknown) moving at u_free, a motor driving it to v*: within its force
+    limit it reaches v* (to the near-rigid regularisation), beyond it the velocity changes by exactly F h / m."""
+    m, h = 2.0, 0.01
+    for F, expect in ((1e3, 0.5), (10.0, 0.1 + 10.0 * h / m)):
+        joints = convex.JointRows(np.ones((1, 1)), np.array([0.1]), np.array([0.5]), np.array([-F * h]),
+                                  np.array([F * h]))
+        rows = convex.Rows.concat([], 1)
+        sol = convex.ConvexSolver().solve([], rows, np.array([[m]]), h, joints)
+        assert sol.converged
+        assert abs(0.1 + sol.du[0] - expect) < 1e-3 * expect
+        assert abs(sol.joint_gamma[0] - m * sol.du[0]) < 1e-9 * abs(sol.joint_gamma[0])  # the impulse is the momentum

@@ -1,0 +1,142 @@
+"""Joint motors and joint limits inside the coupled step (integration/motors.py): a motor's target is pybullet's own,
+a position motor pressing through a soft pad exerts its force limit at any dt (as against a rigid block in plain
+pybullet), a joint limit holds in soft contact, and a motor set in pybullet directly is warned about."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pybullet as p
+import pytest
+
+import softbody as sb
+from integration import World
+from integration.motors import Motor
+
+URDF = """<?xml version="1.0"?>
+<robot name="finger">
+  <link name="base"/>
+  <link name="finger">
+    <inertial><mass value="{mass}"/><inertia ixx="1e-5" iyy="1e-5" izz="1e-5" ixy="0" ixz="0" iyz="0"/></inertial>
+    <collision><geometry><box size="{size} {size} {size}"/></geometry></collision>
+  </link>
+  <joint name="slide" type="prismatic">
+    <parent link="base"/><child link="finger"/><axis xyz="1 0 0"/>
+    <limit lower="{lower}" upper="{upper}" effort="1000" velocity="100"/>
+  </joint>
+</robot>
+"""
+SIZE = 0.024  # [m] the finger's cube; its face's rim lies between the pad's nodes (1 cm apart)
+HEIGHT = 0.1
+
+
+def _finger(cid: int, tmp_path, lower: float = -1.0, upper: float = 1.0, mass: float = 0.1) -> int:
+    """A 0.1 kg cube on a prismatic joint along x (a fixed base at (0, 0, HEIGHT)): pybullet body id."""
+    path = tmp_path / "finger.urdf"
+    path.write_text(URDF.format(mass=mass, size=SIZE, lower=lower, upper=upper))
+    body = p.loadURDF(str(path), [0, 0, HEIGHT], useFixedBase=True, physicsClientId=cid)
+    p.changeDynamics(body, 0, linearDamping=0, angularDamping=0, jointDamping=0, physicsClientId=cid)
+    return body
+
+
+def _pad(world: World, E: float = 1e6) -> sb.FemBody:
+    """A 2 x 4 x 4 cm soft pad 0.2 mm in front of the finger's face (x), its back face fixed."""
+    x0 = SIZE / 2 + 0.0002
+    mesh = sb.box_mesh((0.02, 0.04, 0.04), (2, 4, 4), "tet4", center=(x0 + 0.01, 0, HEIGHT))
+    pad = sb.FemBody(mesh, sb.LinearElastic(E, 0.3, 1000.0), damping=(0.1, 0.002))
+    pad.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], mesh.nodes[:, 0].max())))
+    world.add_soft(pad)
+    return pad
+
+
+@pytest.mark.parametrize("mode", ["position", "velocity"])
+def test_a_motors_target_is_pybullets_own(tmp_path, mode):
+    """Motor.target, the velocity a motor drives its joint to over a step, against pybullet's own motor: the finger
+    in plain pybullet (no gravity along the joint, a force limit that does not bind) from a given position and
+    velocity, one step; and a force limit that binds changes the velocity by exactly F h / m."""
+    h = 0.01
+    cid = p.connect(p.DIRECT)
+    try:
+        p.setTimeStep(h, physicsClientId=cid)
+        body = _finger(cid, tmp_path)
+        for q, qd, F in ((0.01, 0.2, 1e4), (-0.02, -0.1, 1e4), (0.01, 0.0, 0.5)):
+            motor = Motor(body, 0, mode, position=0.03, velocity=0.4, force=F, position_gain=0.3, velocity_gain=0.7)
+            p.resetJointState(body, 0, q, qd, physicsClientId=cid)
+            control, kw = motor.pybullet_args(p)
+            p.setJointMotorControl2(body, 0, control, physicsClientId=cid, **kw)
+            p.stepSimulation(physicsClientId=cid)
+            v = p.getJointState(body, 0, physicsClientId=cid)[1]
+            want = motor.target(q, qd, h)
+            if F > 1e3:
+                assert v == pytest.approx(want, rel=1e-6, abs=1e-9)
+            else:
+                assert v == pytest.approx(qd + np.sign(want - qd) * F * h / 0.1, rel=1e-6)
+    finally:
+        p.disconnect(cid)
+
+
+@pytest.mark.parametrize("dt", [0.01, 1 / 240, 1 / 1000])
+def test_a_motor_presses_through_a_soft_pad_with_its_force_limit(tmp_path, dt):
+    """A position motor (force limit 20 N) driving the finger far into a soft pad whose back is fixed: at rest the pad
+    pushes back with the motor's limit, 20 N within 1%, at dt 0.01, 1/240 and 1/1000 (as the same motor does
+    against a rigid block in plain pybullet). Measured on the contact side (World.contact_force), not the motor's."""
+    world = World(dt=dt, gravity=(0, 0, -9.81))
+    finger = _finger(world.client, tmp_path)
+    pad = _pad(world)
+    world.set_motor(finger, 0, "position", target_position=0.05, force=20.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning: nothing lagged, nothing intersecting
+        world.run(0.3)
+    force = world.contact_force(finger, 0)
+    assert force[0] == pytest.approx(-20.0, rel=0.01)
+    assert world.motor_force(finger, 0) == pytest.approx(20.0, rel=1e-6)  # at its limit, pushing
+    assert np.abs(pad.velocities).max() < 1e-3  # at rest
+
+
+def test_a_motor_set_in_pybullet_directly_is_warned_about(tmp_path):
+    """The same motor set with pybullet's setJointMotorControl2 acts in pybullet's step, before the soft contacts:
+    at dt 0.01 it presses with about m kp (q* - q) / dt^2 (5 N here, for a 20 N limit), and the World says so."""
+    world = World(dt=0.01)
+    finger = _finger(world.client, tmp_path)
+    _pad(world)
+    p.setJointMotorControl2(finger, 0, p.POSITION_CONTROL, targetPosition=0.05, force=20.0,
+                            physicsClientId=world.client)
+    with pytest.warns(UserWarning, match="set in pybullet directly"):
+        world.run(0.3)
+    q = p.getJointState(finger, 0, physicsClientId=world.client)[0]
+    lagged = 0.1 * 0.1 * (0.05 - q) / 0.01 ** 2
+    assert -world.contact_force(finger, 0)[0] == pytest.approx(lagged, rel=0.05)
+    assert lagged < 10.0
+
+
+def test_a_joint_limit_holds_in_soft_contact(tmp_path):
+    """The motor (20 N) presses the finger against the pad, but the joint's upper limit (URDF) stops it 0.1 mm into
+    the pad: the joint stays at its limit (not beyond, as the coupled solve would carry it without the limit's row),
+    and the pad's reaction plus the limit's equals the motor's 20 N."""
+    upper = 0.0003  # 0.1 mm into the pad (its face 0.2 mm in front of the finger; 20 N would take 0.25 mm)
+    world = World(dt=0.01)
+    finger = _finger(world.client, tmp_path, upper=upper)
+    _pad(world)
+    world.set_motor(finger, 0, "position", target_position=0.05, force=20.0)
+    world.run(0.3)
+    q = p.getJointState(finger, 0, physicsClientId=world.client)[0]
+    assert q == pytest.approx(upper, abs=1e-6)
+    pad_force = -world.contact_force(finger, 0)[0]
+    limit = world.report.joint_forces[("upper", finger, 0)]  # pushing the joint back (a limit only pushes)
+    assert 1.0 < pad_force < 19.0 and limit > 1.0
+    assert pad_force + limit == pytest.approx(20.0, rel=1e-3)
+
+
+def test_set_motor_names_bad_input(tmp_path):
+    world = World(dt=0.01)
+    finger = _finger(world.client, tmp_path)
+    with pytest.raises(sb.InvalidInputError, match="no pybullet body 99"):
+        world.set_motor(99, 0)
+    with pytest.raises(sb.InvalidInputError, match="joint 3 of body"):
+        world.set_motor(finger, 3)
+    with pytest.raises(sb.InvalidInputError, match="force must be"):
+        world.set_motor(finger, 0, force=-1.0)
+    with pytest.raises(sb.InvalidInputError, match="torque control"):
+        world.set_motor(finger, 0, mode=p.TORQUE_CONTROL)
+    with pytest.raises(sb.InvalidInputError, match="mode must be one of"):
+        world.set_motor(finger, 0, mode="torque")
