@@ -15,18 +15,23 @@ constrained bodies' generalized velocities u at the end of the step:
 The pivots are given in each link's centre-of-mass frame (pybullet's convention; the child -1 is the world, its pivot
 in world coordinates). Each row's whole impulse, pybullet's (its reported constraint force times h) and the solve's,
 stays within +-maxForce h, as pybullet bounds each row. A partner body that pybullet moves joins the coupled problem
-with the body it holds (World._build_problem).
+with the body it holds (World._build_problem); a constraint with a partner the problem cannot move (a body with
+spherical or planar joints) stays pybullet's alone (``skip``), with a warning.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .bullet import quat_matrix
 from .convex import JointRows
 from .coupling import RigidCoupling
+
+if TYPE_CHECKING:
+    from .bullet import BulletAdapter
 
 POINT2POINT, FIXED, GEAR = 5, 4, 6  # pybullet.JOINT_POINT2POINT, JOINT_FIXED, JOINT_GEAR
 KINDS = {POINT2POINT: "point2point", FIXED: "fixed", GEAR: "gear"}
@@ -68,7 +73,7 @@ class UserConstraint:
         return self.kind in KINDS
 
 
-def _frame(adapter, body: int, link: int) -> tuple[np.ndarray, np.ndarray]:
+def _frame(adapter: "BulletAdapter", body: int, link: int) -> tuple[np.ndarray, np.ndarray]:
     """(centre of mass (3,), rotation (3, 3)) of a link, the world's for body -1."""
     if body < 0:
         return np.zeros(3), np.eye(3)
@@ -84,13 +89,15 @@ def _rotation_vector(R: np.ndarray) -> np.ndarray:
     return w * (angle / s) if s > 1e-12 else w
 
 
-def constraint_rows(constraints: list[UserConstraint], coupling: RigidCoupling, adapter, h: float) -> JointRows:
+def constraint_rows(constraints: list[UserConstraint], coupling: RigidCoupling, adapter: "BulletAdapter", h: float,
+                    skip: set[int] = frozenset()) -> JointRows:
     """The rows of the user ``constraints`` that hold a body of ``coupling``, at the start configuration, over a step h
-    [s]; labels (kind name, constraint id, row within it)."""
+    [s], but for those joining a body in ``skip`` (moved by pybullet, not by the problem); labels (kind name,
+    constraint id, row within it)."""
     n = coupling.n
     parts = []
     for uc in constraints:
-        if not uc.coupled or not any(b in coupling.dynamics for b in uc.bodies):
+        if not uc.coupled or not any(b in coupling.dynamics for b in uc.bodies) or set(uc.bodies) & skip:
             continue
         if uc.kind == GEAR:
             C = np.zeros((1, n))
@@ -119,14 +126,15 @@ def constraint_rows(constraints: list[UserConstraint], coupling: RigidCoupling, 
     return JointRows.concat(parts, n)
 
 
-def _point_jacobian(coupling: RigidCoupling, adapter, body: int, link: int, point: np.ndarray) -> np.ndarray:
+def _point_jacobian(coupling: RigidCoupling, adapter: "BulletAdapter", body: int, link: int, point: np.ndarray
+                    ) -> np.ndarray:
     """(3, n): the velocity of a material point of a link per unit u (zero for bodies the problem does not move)."""
     if body not in coupling.dynamics:
         return np.zeros((3, coupling.n))
     return coupling.jacobians(adapter, np.array([body]), np.array([link]), point[None])[0]
 
 
-def _angular_jacobian(coupling: RigidCoupling, adapter, body: int, link: int) -> np.ndarray:
+def _angular_jacobian(coupling: RigidCoupling, adapter: "BulletAdapter", body: int, link: int) -> np.ndarray:
     """(3, n): a link's angular velocity per unit u (zero for bodies the problem does not move)."""
     out = np.zeros((3, coupling.n))
     dyn = coupling.dynamics.get(body)
@@ -136,17 +144,28 @@ def _angular_jacobian(coupling: RigidCoupling, adapter, body: int, link: int) ->
     return out
 
 
-def applied_impulses(rows: JointRows, state, h: float) -> np.ndarray:
+def applied_impulses(rows: JointRows, constraints: list[UserConstraint], adapter: "BulletAdapter", state,
+                     h: float) -> np.ndarray:
     """The impulses (k,) [N s or N m s] pybullet's last step of h [s] gave the constraint rows of ``rows`` (labels
-    (kind, id, row)), on the parent along the rows, from ``state(id)``: pybullet's getConstraintState in world axes,
-    which for a point-to-point constraint is the force [N] on the child, for a fixed one the force and torque [N m] on
-    the parent (measured: a rod hung by either reports -m g and +m g); zero for gears (not reported) and for rows of
-    other kinds."""
+    (kind, id, row)), on the parent along the rows, from ``state(id)``: pybullet's getConstraintState, measured to be
+    for a point-to-point constraint the force [N] on the child in world axes (a rod hung by it reports -m g), for a
+    fixed one the force on the parent in world axes (+m g) and the torque [N m] on it in the axes of the parent's
+    constraint frame, for a gear the impulse along the row; zero for rows of other kinds. One query per constraint;
+    ``constraints`` and ``adapter``: for the fixed constraints' frames (at the step's start, as the rows)."""
     out = np.zeros(len(rows))
-    sign = {"point2point": -1.0, "fixed": 1.0}
-    for r, label in enumerate(rows.labels):
-        if label[0] in sign:
-            forces = state(label[1])
-            if label[2] < len(forces):
-                out[r] = sign[label[0]] * forces[label[2]] * h
+    sign = {"point2point": -1.0, "fixed": 1.0, "gear": 1.0}
+    by_id = {uc.id: uc for uc in constraints}
+    states: dict[int, np.ndarray] = {}
+    for r, (kind, cid, row) in enumerate(rows.labels):
+        if kind not in sign:
+            continue
+        if cid not in states:
+            s = np.asarray(state(cid), float)
+            if kind == "fixed" and len(s) == 6:  # its torque from the constraint frame's axes to the world's
+                uc = by_id[cid]
+                _, Ra = _frame(adapter, uc.parent, uc.parent_link)
+                s[3:] = Ra @ quat_matrix(uc.frame_parent) @ s[3:]
+            states[cid] = s
+        if row < len(states[cid]):
+            out[r] = sign[kind] * states[cid][row] * h
     return out

@@ -35,13 +35,14 @@ class StepRecord:
     join them); member_pairs (k, 2): the soft pairs in contact by member index; coupling: the movable rigid bodies in play;
     contacts, faces, attachments: each stepped body's (by its index) node and face contacts with rigid links and its
     coupled attachments (attachment, nodes (m,), start points (m, 3), Jacobians (m, 3, n)); pairs: the soft contacts;
-    poses0: the moving links' poses at the start (key -> (centre (3,), quaternion (4,))); joint_rows: the motors' and
-    joint limits' rows of the coupled bodies (motors.joint_rows), joints: those rows once pybullet stepped
-    (convex.JointRows, or None); solution: the contact solve's."""
+    poses0: the moving links' poses at the start (key -> (centre (3,), quaternion (4,))); joint_rows: the rows of the
+    coupled bodies' motors, joint limits (joints.joint_rows) and user constraints (constraints.constraint_rows, the
+    client's ``constraints``), joints: those rows once pybullet stepped (convex.JointRows, or None); solution: the
+    contact solve's."""
 
     t: float
     bodies: list[FemBody]
-    h: float = 0.0
+    h: float
     timings: Timings = field(default_factory=Timings)
     detected: list[tuple[Contacts, FaceHits]] = field(default_factory=list)
     candidates: Contacts = field(default_factory=Contacts.empty)
@@ -55,7 +56,8 @@ class StepRecord:
     attachments: dict[int, list[tuple[Any, np.ndarray, np.ndarray, np.ndarray]]] = field(default_factory=dict)
     pairs: PairContacts | None = None
     poses0: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    joint_rows: tuple | None = None
+    joint_rows: JointRows | None = None
+    constraints: list = field(default_factory=list)
     joints: JointRows | None = None
     solution: StepSolution | None = None
 
@@ -74,9 +76,10 @@ class StepReport:
     face contacts with rigid links; pair_results: [(soft contacts, result)]; attachment_forces: [(attachment index,
     forces on its nodes (m, 3) [N])]; places: each member's (stepped body index, first node) in that step; timings:
     seconds by phase, and their "total"; iterations: the contact solve's (active-set or Newton) iterations;
-    joint_forces: the coupled problem's motors and joint limits, (kind "motor" / "lower" / "upper", body, joint) ->
-    the force or torque [N or N m] each exerted on its joint over the step (a motor's along the joint's axis, a
-    limit's magnitude, pushing the joint back within the limit)."""
+    joint_forces: the coupled problem's scalar rows and the force or torque [N or N m] each exerted over the step:
+    (kind "motor" / "lower" / "upper", body, joint) -> a motor's along the joint's axis, a limit's magnitude (pushing
+    the joint back within it); ("point2point" / "fixed" / "gear", constraint id, row) -> the constraint's on its parent
+    (world axes: force rows 0-2, a fixed constraint's torque rows 3-5; a gear's along its row)."""
 
     candidates: Contacts = field(default_factory=Contacts.empty)
     face_hits: FaceHits = field(default_factory=FaceHits.empty)

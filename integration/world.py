@@ -53,7 +53,7 @@ from .shapes import Box, Mesh, Plane, RigidShape, Sphere
 from .intersection import intersection_depth
 from .constraints import applied_impulses as constraint_impulses, constraint_rows
 from .convex import JointRows
-from .motors import Motor, Motors, applied_impulses, at_free_motion, joint_rows
+from .joints import Motor, Motors, applied_impulses, at_free_motion, joint_rows
 from .softcontact import EdgeHits, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 from .entries import SoftEntry, SteppedEntry
 from .state import WorldState
@@ -466,7 +466,7 @@ class World:
                       finite_number(target_velocity, "target_velocity"), finite_number(force, "force", 0.0, False, "[N or N m]"),
                       finite_number(position_gain, "position_gain", 0.0, False),
                       finite_number(velocity_gain, "velocity_gain", 0.0, False),
-                      math.inf if max_velocity is None or max_velocity < 0 else float(max_velocity))
+                      math.inf if max_velocity is None else finite_number(max_velocity, "max_velocity", 0.0, False))
         self.motors.set(motor)
         self.adapter.set_motor(motor)
         return motor
@@ -970,7 +970,8 @@ class World:
                 joints = None
                 if record.joint_rows is not None:  # what pybullet's step gave the rows counts against their bounds
                     applied = (applied_impulses(record.joint_rows, self.adapter.motor_torques, self.dt)
-                               + constraint_impulses(record.joint_rows, self.adapter.constraint_forces, self.dt))
+                               + constraint_impulses(record.joint_rows, record.constraints, self.adapter,
+                                                     self.adapter.constraint_forces, self.dt))
                     joints = at_free_motion(record.joint_rows, u, applied)
             M = coupling.mass_matrix() if coupling.n else None
             sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints)
@@ -1092,7 +1093,8 @@ class World:
             record.joint_rows = JointRows.concat([
                 joint_rows(coupling, self.motors.of(dynamics), {b: self.adapter.joint_limits(b) for b in dynamics},
                            self.dt),
-                constraint_rows(constraints, coupling, self.adapter, self.dt)], coupling.n)
+                constraint_rows(constraints, coupling, self.adapter, self.dt, self._one_way)], coupling.n)
+            record.constraints = constraints
             self._check_constraints(dynamics, constraints)
         self._group_dense(record)
         for i, (found, hits) in enumerate(record.detected):
@@ -1285,16 +1287,19 @@ class World:
 
     def _check_constraints(self, dynamics: dict[int, BodyDynamics], constraints: list) -> None:
         """Warn once when a coupled body is held by a user constraint the coupled solve does not hold (a kind other
-        than point-to-point, fixed and gear)."""
+        than point-to-point, fixed and gear, or joining a body it cannot move)."""
         for uc in constraints:
-            if uc.coupled:
+            if not any(b in dynamics for b in uc.bodies):
                 continue
-            for b in uc.bodies:
-                if b in dynamics:
-                    self._warn_once(("constraint", uc.id), f"pybullet constraint {uc.id} (joint type {uc.kind}) "
-                                    f"holds body {b}: the coupled solve holds point-to-point, fixed and gear "
-                                    "constraints only, so it treats the body as free and pybullet enforces this one "
-                                    "in its next step")
+            if not uc.coupled:
+                self._warn_once(("constraint", uc.id), f"pybullet constraint {uc.id} (joint type {uc.kind}) holds "
+                                f"bodies {uc.bodies}: the coupled solve holds point-to-point, fixed and gear "
+                                "constraints only, so it treats the bodies as free and pybullet enforces this one in "
+                                "its next step")
+            elif set(uc.bodies) & self._one_way:
+                self._warn_once(("constraint", uc.id), f"pybullet constraint {uc.id} joins bodies {uc.bodies}, one of "
+                                "which has spherical or planar joints the coupled solve cannot move: the constraint "
+                                "stays pybullet's alone, enforced in its next step")
 
     def _one_way_reactions(self, record: StepRecord) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
         """Reactions on bodies the coupled solve cannot move (unsupported joints), for pybullet's next step."""

@@ -277,8 +277,12 @@ def static_box_on_block(mass: float, offset: float, E: float = 1e5, nu: float = 
     raise AssertionError("no consistent contact set")
 
 
-@pytest.mark.parametrize("mass", [0.1, 0.5, 2.0])
-@pytest.mark.parametrize("dt", [0.01, 0.002])
+# dt 0.002 costs 20-50 s a case: the heavy box stays in the default run, the lighter two are slow (-m slow)
+BOX_CASES = [pytest.param(dt, mass, marks=pytest.mark.slow if dt == 0.002 and mass < 2.0 else (), id=f"{dt}-{mass}")
+             for dt in (0.01, 0.002) for mass in (0.1, 0.5, 2.0)]
+
+
+@pytest.mark.parametrize("dt, mass", BOX_CASES)
 @pytest.mark.parametrize("offset", [0.0, 0.00625], ids=["centred", "near-edge"])
 def test_light_and_heavy_boxes_settle_on_a_soft_block(mass, dt, offset):
     """Boxes of 0.1 to 2 kg set 1 mm above a 1 kg soft block (E = 1e5) on a plane: each settles, never rises,
@@ -545,6 +549,23 @@ def test_grasp_example_picks_the_cube_and_records_the_robot(tmp_path):
     links = {e for e in data if e.startswith("/world/rigid/panda")}
     assert len(links) == 11  # the base and the ten links with a collision shape move, each with its pose
     assert sum(e.startswith("/world/rigid/panda") and e.endswith("shape0") for e in static) == 11
+
+
+@pytest.mark.slow  # about two minutes: 4,400 steps
+def test_grasp_grips_with_the_motors_limit_at_a_small_step_too():
+    """The grasp at dt 0.001: the grip is the finger motors' force limit as at dt 0.01 (within 5%), so whether the cube
+    slips does not depend on the step (pybullet's own motors gripped with 1.1 of 20 N at dt 0.01, 3.7 at 0.005)."""
+    import importlib.util
+    from pathlib import Path
+
+    sys_path = Path(__file__).resolve().parents[1] / "examples" / "robot_grasp.py"
+    spec = importlib.util.spec_from_file_location("robot_grasp", sys_path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    rows = {r["phase"]: r for r in example.run(hold=0.2, dt=0.001)}
+    for side in ("grip_left", "grip_right"):
+        assert rows["hold"][side] == pytest.approx(example.FINGER_FORCE, rel=0.05)
+    assert rows["hold"]["cube_z"] > 0.2
 
 
 @pytest.mark.slow  # about a minute: the Newton step costs several solves per step

@@ -1,4 +1,4 @@
-"""Joint motors and joint limits inside the coupled step (integration/motors.py): a motor's target is pybullet's own,
+"""Joint motors and joint limits inside the coupled step (integration/joints.py): a motor's target is pybullet's own,
 a position motor pressing through a soft pad exerts its force limit at any dt (as against a rigid block in plain
 pybullet), a joint limit holds in soft contact, and a motor set in pybullet directly is warned about."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 
 import softbody as sb
 from integration import World
-from integration.motors import Motor
+from integration.joints import Motor
 
 URDF = """<?xml version="1.0"?>
 <robot name="finger">
@@ -109,22 +109,47 @@ def test_a_motor_set_in_pybullet_directly_is_warned_about(tmp_path):
     assert lagged < 10.0
 
 
-def test_a_joint_limit_holds_in_soft_contact(tmp_path):
-    """The motor (20 N) presses the finger against the pad, but the joint's upper limit (URDF) stops it 0.1 mm into
-    the pad: the joint stays at its limit (not beyond, as the coupled solve would carry it without the limit's row),
-    and the pad's reaction plus the limit's equals the motor's 20 N."""
-    upper = 0.0003  # 0.1 mm into the pad (its face 0.2 mm in front of the finger; 20 N would take 0.25 mm)
-    world = World(dt=0.01)
-    finger = _finger(world.client, tmp_path, upper=upper)
-    _pad(world)
-    world.set_motor(finger, 0, "position", target_position=0.05, force=20.0)
-    world.run(0.3)
-    q = p.getJointState(finger, 0, physicsClientId=world.client)[0]
-    assert q == pytest.approx(upper, abs=1e-6)
-    pad_force = -world.contact_force(finger, 0)[0]
-    limit = world.report.joint_forces[("upper", finger, 0)]  # pushing the joint back (a limit only pushes)
-    assert 1.0 < pad_force < 19.0 and limit > 1.0
-    assert pad_force + limit == pytest.approx(20.0, rel=1e-3)
+def test_a_position_target_beyond_the_limits_is_clamped_as_pybullet_does(tmp_path):
+    """pybullet clamps a position motor's target to the joint's URDF limits: one step from rest towards a target 0.5
+    m beyond the upper limit 0.02 m gives the velocity Motor.target gives with the limits, not without them."""
+    h = 0.01
+    cid = p.connect(p.DIRECT)
+    try:
+        p.setTimeStep(h, physicsClientId=cid)
+        body = _finger(cid, tmp_path, lower=-0.02, upper=0.02)
+        motor = Motor(body, 0, "position", position=0.5, force=1e4)
+        p.resetJointState(body, 0, 0.01, 0.0, physicsClientId=cid)
+        control, kw = motor.pybullet_args(p)
+        p.setJointMotorControl2(body, 0, control, physicsClientId=cid, **kw)
+        p.stepSimulation(physicsClientId=cid)
+        v = p.getJointState(body, 0, physicsClientId=cid)[1]
+        assert v == pytest.approx(motor.target(0.01, 0.0, h, (-0.02, 0.02)), rel=1e-6)
+        assert v != pytest.approx(motor.target(0.01, 0.0, h), rel=0.1)
+    finally:
+        p.disconnect(cid)
+
+
+def test_a_joint_limit_holds_when_a_soft_body_pushes_the_joint_into_it(tmp_path):
+    """A free soft block (no gravity) hits the finger, whose joint is free (a motor of force 0) and has its lower limit
+    1 mm behind: the push reaches the finger only in the coupled solve (pybullet's step sees no contact), and the
+    limit's row stops the joint at its limit (to 1 um) at the end of every step, instead of pybullet pulling it back
+    a step later; the block bounces off."""
+    lower = -0.001
+    world = World(dt=0.005, gravity=(0, 0, 0))
+    finger = _finger(world.client, tmp_path, lower=lower)
+    world.set_motor(finger, 0, "velocity", force=0.0)
+    x0 = SIZE / 2 + 0.0005
+    mesh = sb.box_mesh((0.02, 0.03, 0.03), (2, 3, 3), "tet4", center=(x0 + 0.01, 0, HEIGHT))
+    block = sb.FemBody(mesh, sb.LinearElastic(1e6, 0.3, 1000.0), damping=(0.0, 0.001))
+    block.velocities[:] = (-0.5, 0.0, 0.0)
+    world.add_soft(block)
+    lowest = np.inf
+    for _ in range(60):
+        world.step()
+        lowest = min(lowest, p.getJointState(finger, 0, physicsClientId=world.client)[0])
+    assert lowest == pytest.approx(lower, abs=1e-6)  # pushed to the limit, not beyond
+    assert block.velocities[:, 0].mean() > 0.0  # bounced off
+    assert world.report.joint_forces.get(("lower", finger, 0), 0.0) >= 0.0
 
 
 def test_set_motor_names_bad_input(tmp_path):
@@ -140,3 +165,5 @@ def test_set_motor_names_bad_input(tmp_path):
         world.set_motor(finger, 0, mode=p.TORQUE_CONTROL)
     with pytest.raises(sb.InvalidInputError, match="mode must be one of"):
         world.set_motor(finger, 0, mode="torque")
+    with pytest.raises(sb.InvalidInputError, match="max_velocity must be"):
+        world.set_motor(finger, 0, max_velocity=-1.0)

@@ -1,5 +1,6 @@
 """What acts on a robot's joints inside the coupled step: joint motors with their force limits, and joint limits, as
-scalar rows of the convex problem (convex.JointRows) on the movable bodies' generalized velocities.
+scalar rows of the convex problem (convex.JointRows) on the movable bodies' generalized velocities (pybullet's user
+constraints between bodies: constraints.py).
 
 pybullet runs a motor (``setJointMotorControl2``, POSITION_CONTROL or VELOCITY_CONTROL) as a velocity constraint of
 its own step (btMultiBodyJointMotor): it drives the joint's velocity to
@@ -7,7 +8,9 @@ its own step (btMultiBodyJointMotor): it drives the joint's velocity to
     v* = kp (q* - q) / h + qd + kd (qd* - qd)       (VELOCITY_CONTROL: kp = 0; by default kd = 1: v* = qd*)
 
 (q, qd the joint's position and velocity at the start of the step, kp and kd pybullet's positionGain and velocityGain,
-|v*| at most maxVelocity) with an impulse of at most F h (F its force limit). Run there alone, before the soft
+|v*| at most maxVelocity, q* within the joint's limits) with an impulse of at most F h (F its force limit). (pybullet
+takes qd after the step's external forces, before its constraints: with kd other than 1 and a force along the joint,
+its target differs from this one by (1 - kd) h qdd.) Run there alone, before the soft
 bodies' reactions are known, a motor pressing through a soft body reaches its target velocity within its limit, and
 the coupled solve, which sees the joints free, then takes that velocity away: the grip settles at m kp (q - q*) /
 h^2, not at F. A motor registered with the World (``World.set_motor``) is also a row of the coupled problem whenever
@@ -69,12 +72,14 @@ class Motor:
             if getattr(self, name) < 0:
                 raise InvalidInputError(f"motor {name} must be >= 0, got {getattr(self, name)}")
 
-    def target(self, q: float, qd: float, h: float) -> float:
+    def target(self, q: float, qd: float, h: float, limits: tuple[float, float] | None = None) -> float:
         """The velocity v* the motor drives the joint to over a step h [s] from position q and velocity qd
-        (btMultiBodyJointMotor's right-hand side)."""
+        (btMultiBodyJointMotor's right-hand side); ``limits`` (lower, upper): the joint's, which pybullet clamps a
+        position target to."""
         v = qd + self.velocity_gain * (self.velocity - qd)
         if self.mode == "position":
-            v += self.position_gain * (self.position - q) / h
+            goal = self.position if limits is None else min(max(self.position, limits[0]), limits[1])
+            v += self.position_gain * (goal - q) / h
         return float(np.clip(v, -self.max_velocity, self.max_velocity))
 
     def pybullet_args(self, p) -> tuple[int, dict]:
@@ -131,7 +136,9 @@ def joint_rows(coupling: RigidCoupling, motors: list[Motor], limits: dict[int, t
         row = np.zeros(n)
         row[col] = 1.0
         C.append(row)
-        target.append(m.target(float(dyn.q[j]), float(dyn.u[col - coupling.offset[m.body]]), h))
+        lower, upper = limits.get(m.body, (np.zeros(0), np.zeros(0)))
+        bounds = (float(lower[j]), float(upper[j])) if len(lower) and lower[j] < upper[j] else None
+        target.append(m.target(float(dyn.q[j]), float(dyn.u[col - coupling.offset[m.body]]), h, bounds))
         lo.append(-m.force * h)
         hi.append(m.force * h)
         labels.append(("motor", m.body, m.joint))
