@@ -6,6 +6,7 @@ from .body import FemBody
 from .elements import ELEMENT_TYPES, ElementType, element_type
 from .equilibrium import solve_equilibrium
 from .linearisation import LinearisationWarning
+from .locking import LockingWarning
 from .errors import InvalidInputError, MeshError, SimulationDiverged, SolverError
 from .integrator import Constraints
 from .material import LinearElastic
@@ -18,7 +19,7 @@ from .surface import tetrahedralize
 
 __all__ = [
     "BodyStack", "stack_key",
-    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "LinearisationWarning", "Mesh",
+    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "LinearisationWarning", "LockingWarning", "Mesh",
     "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
     "solve_equilibrium", "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]

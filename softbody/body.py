@@ -15,7 +15,8 @@ from . import kernels
 from .assembly import BlockPattern, UpperAssembly
 from .elements import shape_gradients
 from .errors import InvalidInputError
-from .material import LinearElastic
+from .locking import check_locking
+from .material import LinearElastic, isotropic_elasticity
 from .mesh import Mesh
 from .rotation import polar_rotation_components
 from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix, rest_load_operator,
@@ -107,6 +108,12 @@ class FemBody:
         X = mesh.nodes[mesh.elements]  # (E, k, 3)
         E, k = mesh.elements.shape
         D = material.elasticity_matrix()
+        lam, mu = material.lame
+        if not np.allclose(D, isotropic_elasticity(lam, mu), rtol=1e-12, atol=0.0):
+            raise InvalidInputError(f"material {type(material).__name__}: its elasticity matrix is not the isotropic "
+                                    "one of its Lame parameters, which the warped step uses; anisotropic materials "
+                                    "are not modelled (give a LinearElastic)")
+        check_locking(et.name, material.nu)
 
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
 

@@ -9,6 +9,15 @@ import numpy as np
 from .errors import InvalidInputError, finite_number
 
 
+def isotropic_elasticity(lam: float, mu: float) -> np.ndarray:
+    """The (6, 6) isotropic elasticity matrix of Lame parameters lam, mu [Pa] (Voigt order, engineering shear)."""
+    D = np.zeros((6, 6))
+    D[:3, :3] = lam
+    D[[0, 1, 2], [0, 1, 2]] = lam + 2.0 * mu
+    D[[3, 4, 5], [3, 4, 5]] = mu
+    return D
+
+
 @dataclass(frozen=True)
 class LinearElastic:
     """Isotropic linear elasticity.
@@ -40,12 +49,7 @@ class LinearElastic:
 
     def elasticity_matrix(self) -> np.ndarray:
         """The (6, 6) matrix D mapping Voigt strain (xx, yy, zz, xy, yz, zx; engineering shear) to stress [Pa]."""
-        lam, mu = self.lame
-        D = np.zeros((6, 6))
-        D[:3, :3] = lam
-        D[[0, 1, 2], [0, 1, 2]] = lam + 2.0 * mu
-        D[[3, 4, 5], [3, 4, 5]] = mu
-        return D
+        return isotropic_elasticity(*self.lame)
 
     def wave_speed(self) -> float:
         """Dilatational (P-)wave speed sqrt((lam + 2 mu) / rho) in m/s."""
