@@ -65,6 +65,38 @@ def _components(R: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(R.reshape(len(R), 9).T)
 
 
+def _warped_upper(R9: np.ndarray, Gw: np.ndarray, P: np.ndarray, ua: UpperAssembly, rotate_grads, lame: tuple,
+                  iso: np.ndarray, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The warped stiffness sum_e R_e K_e R_e^T of elements with weighted gradients Gw (E, q, k, 3) and isotropic
+    ``lame`` (``iso`` its (9, 9) map) as upper blocks (n_upper, 9) on ``ua``, and (compiled paths) the warped rest loads
+    sum_e R_e P_e (N, 3) of P (E, k, 3) = K_e X_e (None: FemBody.rest_loads makes them); R9 (9, E) the rotations
+    component-major; ``rotate_grads`` the one-point elements' rotated_gradient_operator, else None."""
+    E, q, k, _ = Gw.shape
+    n_nodes = ua.pattern.n_nodes
+    load = None
+    if rotate_grads is not None and kernels.ENABLED:  # the lines below and rest_loads, element by element
+        U, load = np.zeros(9 * ua.n_upper), np.zeros((n_nodes, 3))
+        kernels.warped_pairs(R9, Gw[:, 0], P, elements, ua.pairs, ua.element_scatter(), U, load)
+        S = ua.with_diagonal(U.reshape(-1, 9))
+    elif kernels.ENABLED:  # the Gram matrices' pairs and the rest loads, element by element
+        U, load = np.zeros(9 * ua.n_upper), np.zeros((n_nodes, 3))
+        kernels.warped_gram(R9, Gw, P, elements, ua.pairs, ua.element_scatter(), U, load)
+        S = U.reshape(-1, 9)
+    elif rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
+        g = (rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
+        S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
+    else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
+        RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
+        g = (Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
+        S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
+    if kernels.ENABLED:  # the map in closed form, block by block (3.5x the matrix product's speed)
+        K = np.empty_like(S)
+        kernels.isotropic_blocks(np.ascontiguousarray(S, dtype=float), *lame, K)
+    else:
+        K = isotropic_blocks(S, iso)
+    return K, load
+
+
 class FemBody:
     """A deformable body discretised by finite elements.
 
@@ -76,12 +108,16 @@ class FemBody:
     decay as before; a body with fixed or prescribed nodes has no free rigid motion and is
     damped as classic Rayleigh. mass: "consistent" or "lumped" (HRZ diagonal scaling);
     hex_rotation: "average" (mean F of both Freudenthal inner tets) or "single" (the {0,2,5,7} tet).
+    volumetric: "full" (the volumetric strain at every quadrature point) or "mean" (B-bar, hex8 only: its
+    volume-weighted mean over the element; the deviatoric strain stays at every point): hex8 stops locking as nu nears
+    0.5 (a cantilever within 2.5% of the converged value at nu 0.499, docs/materials.md). Its stiffness is assembled
+    (no matrix-free product).
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
     """
 
     def __init__(self, mesh: Mesh, material: LinearElastic, warping: bool = True,
                  damping: tuple[float, float] = (0.1, 0.001), mass: str = "consistent",
-                 hex_rotation: str = "average", damp_rigid: bool = False):
+                 hex_rotation: str = "average", damp_rigid: bool = False, volumetric: str = "full"):
         if not isinstance(mesh, Mesh):
             raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
         if not isinstance(material, LinearElastic):
@@ -90,6 +126,13 @@ class FemBody:
             raise InvalidInputError(f"mass must be 'consistent' or 'lumped', got {mass!r}")
         if hex_rotation not in ("average", "single"):
             raise InvalidInputError(f"hex_rotation must be 'average' or 'single', got {hex_rotation!r}")
+        if volumetric not in ("full", "mean"):
+            raise InvalidInputError(f"volumetric must be 'full' or 'mean' (B-bar), got {volumetric!r}")
+        if volumetric == "mean" and mesh.element_type.name != "hex8":
+            raise InvalidInputError(f"volumetric='mean' (B-bar) is for hex8 elements, got {mesh.element_type.name}: a "
+                                    "tet4's one quadrature point is its own mean, and a tet10's mean dilatation relaxes "
+                                    "it too far (a cantilever 1.6x too soft); tet10 does not lock as it is "
+                                    "(docs/materials.md)")
         try:
             alpha, beta = (float(d) for d in damping)
         except (TypeError, ValueError):
@@ -103,6 +146,7 @@ class FemBody:
         self.damp_rigid = bool(damp_rigid)
         self.mass_kind = mass
         self.hex_rotation = hex_rotation
+        self.volumetric = volumetric
         et = mesh.element_type
         self.element_type = et
         X = mesh.nodes[mesh.elements]  # (E, k, 3)
@@ -113,7 +157,8 @@ class FemBody:
             raise InvalidInputError(f"material {type(material).__name__}: its elasticity matrix is not the isotropic "
                                     "one of its Lame parameters, which the warped step uses; anisotropic materials "
                                     "are not modelled (give a LinearElastic)")
-        check_locking(et.name, material.nu)
+        if volumetric == "full":
+            check_locking(et.name, material.nu)
 
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
 
@@ -121,7 +166,16 @@ class FemBody:
         xi, w = et.stiffness_rule
         G, detJ = shape_gradients(et, X, xi)
         B = strain_displacement(G)  # (E, q, 6, 3k)
+        mean = volumetric == "mean"
+        if mean:  # B-bar: D = D(-2 mu / 3, mu) at every point (deviatoric) + kappa m m^T on the mean gradients
+            kappa, lam = lam + 2.0 * mu / 3.0, -2.0 * mu / 3.0
+            D = isotropic_elasticity(lam, mu)
+            volume = (detJ * w).sum(axis=1)  # (E,)
+            g_mean = np.einsum("eq,eqka->eka", detJ * w, G) / volume[:, None, None]  # (E, k, 3)
         self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, D, B, optimize=True)
+        if mean:
+            b = g_mean.reshape(E, 3 * k)
+            self.Ke += (kappa * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
         self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
         # weighted gradients sqrt(w_q detJ_q) dN/dX (E, q, k, 3) and the operators that rotate them and
         # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
@@ -136,12 +190,19 @@ class FemBody:
             self._rotate_grads = rotated_gradient_operator(self._Gw)
         else:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
-        lam, mu = material.lame
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
         self._lame = (lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
-        self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
         self._rest_P = np.ascontiguousarray(P)  # for kernels.warped_pairs and warped_gram
+        # B-bar's volumetric part: a one-point element of the mean gradients (weight the volume), lame (kappa, 0)
+        self._mean_part = None
+        if mean:
+            g1 = (np.sqrt(volume)[:, None, None] * g_mean)[:, None]  # (E, 1, k, 3)
+            P1 = np.ascontiguousarray(3.0 * kappa * volume[:, None, None] * g_mean)  # its K_e X_e
+            self._mean_part = (g1, P1, UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs"),
+                               rotated_gradient_operator(g1), (kappa, 0.0), isotropic_matrix(kappa, 0.0))
+            P = P + P1
+        self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
@@ -553,31 +614,15 @@ class FemBody:
         """
         if R is None and "_rest_upper" in self.__dict__:
             return self._rest_upper
-        E, q, k, _ = self._Gw.shape
+        E = self._Gw.shape[0]
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
-        ua = self._upper
-        load = None
-        if self._rotate_grads is not None and kernels.ENABLED:  # the lines below and rest_loads, element by element
-            U, load = np.zeros(9 * ua.n_upper), np.zeros((self.n_nodes, 3))
-            kernels.warped_pairs(R9, self._Gw[:, 0], self._rest_P, self.mesh.elements, ua.pairs, ua.element_scatter(),
-                                 U, load)
-            S = ua.with_diagonal(U.reshape(-1, 9))
-        elif kernels.ENABLED:  # the Gram matrices' pairs and the rest loads, element by element
-            U, load = np.zeros(9 * ua.n_upper), np.zeros((self.n_nodes, 3))
-            kernels.warped_gram(R9, self._Gw, self._rest_P, self._elements_c, ua.pairs, ua.element_scatter(), U, load)
-            S = U.reshape(-1, 9)
-        elif self._rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
-            g = (self._rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
-            S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
-        else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
-            RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
-            g = (self._Gw.reshape(E, q * k, 3) @ RT).reshape(E, q, 3 * k)
-            S = ua.assemble(np.swapaxes(g, 1, 2) @ g)
-        if kernels.ENABLED:  # the map in closed form, block by block (3.5x the matrix product's speed)
-            K = np.empty_like(S)
-            kernels.isotropic_blocks(np.ascontiguousarray(S, dtype=float), *self._lame, K)
-        else:
-            K = isotropic_blocks(S, self._isotropic)
+        K, load = _warped_upper(R9, self._Gw, self._rest_P, self._upper, self._rotate_grads, self._lame,
+                                self._isotropic, self._elements_c)
+        if self._mean_part is not None:  # B-bar's volumetric part, a one-point element on the mean gradients
+            g1, P1, ua1, rotate1, lame1, iso1 = self._mean_part
+            K1, load1 = _warped_upper(R9, g1, P1, ua1, rotate1, lame1, iso1, self._elements_c)
+            K = K + K1
+            load = None if load is None or load1 is None else load + load1
         result = K, self.rest_loads(R) if load is None else load
         if R is None:  # warping off: the same every step
             for a in result:
@@ -609,6 +654,9 @@ class FemBody:
     def rotated_gradients(self, R: np.ndarray | None) -> np.ndarray:
         """sqrt(w detJ) R_e dN_a/dX at every quadrature point, (E, k, 3q), entry (e, a, 3 q + j) [m^0.5]:
         what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None (read-only then)."""
+        if self._mean_part is not None:
+            raise InvalidInputError("a body with volumetric='mean' (B-bar) has no matrix-free product: its stiffness is "
+                                    "assembled (IterativeSettings(operator='assembled'), the default 'auto' does)")
         E, q, k, _ = self._Gw.shape
         G, _ = self._matrix_free_data()
         if R is None:
@@ -637,7 +685,7 @@ class FemBody:
         against 40), where assembly dominates. One-point elements (tet4) have their own cheap assembly,
         and hex8 (36 pairs, 64 gradients) is faster assembled."""
         E, q, k, _ = self._Gw.shape
-        return self.warping and q > 1 and k * (k + 1) // 2 > q * k
+        return self.warping and q > 1 and k * (k + 1) // 2 > q * k and self._mean_part is None
 
     @property
     def diagonal_upper(self) -> np.ndarray:

@@ -13,12 +13,14 @@ call at the start of every step).
 """
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 import numpy as np
 
 from .body import FemBody
 from .errors import InvalidInputError
+from .locking import LockingWarning
 from .mesh import Mesh
 
 
@@ -27,7 +29,7 @@ def stack_key(body: FemBody) -> tuple:
     hex rotation (everything a step reads apart from the mesh and the state)."""
     m = body.material
     return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.warping, body.damping,
-            body.damp_rigid, body.mass_kind, body.hex_rotation)
+            body.damp_rigid, body.mass_kind, body.hex_rotation, body.volumetric)
 
 
 class BodyStack(FemBody):
@@ -53,8 +55,10 @@ class BodyStack(FemBody):
         nodes = np.concatenate([b.mesh.nodes for b in members])
         elements = np.concatenate([b.mesh.elements + o for b, o in zip(members, self.offsets[:-1])])
         self.element_offsets = np.concatenate([[0], np.cumsum([b.mesh.n_elements for b in members])])
-        super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
-                         first.mass_kind, first.hex_rotation, first.damp_rigid)
+        with warnings.catch_warnings():  # the members have said it
+            warnings.simplefilter("ignore", LockingWarning)
+            super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
+                             first.mass_kind, first.hex_rotation, first.damp_rigid, first.volumetric)
         self.members = members
         self._views: tuple[list, list] = ([], [])  # the members' positions and velocities as last made views
         self._supports_seen: tuple | None = None  # (members' fixed (N,), their prescriptions) as last read
