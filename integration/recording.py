@@ -438,7 +438,7 @@ class Recorder:
         self._lut = _colormap(colormap) if "colors" in self.content else None
         self._color_floor = self._color_high = 0.0
         if "colors" in self.content and bodies and color_range is None:
-            sizes = [b.material.E for b in bodies] if color_by == "von_mises" else \
+            sizes = [getattr(b.material, "softest", b.material.E) for b in bodies] if color_by == "von_mises" else \
                 [float(np.ptp(b.rest, axis=0).max()) for b in bodies]
             self._color_floor = self._color_high = COLOR_FLOOR_FRACTION * min(sizes)
         self._setup_ms: float | None = None  # wall time of the first step [ms]

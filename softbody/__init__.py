@@ -9,7 +9,7 @@ from .linearisation import LinearisationWarning
 from .locking import LockingWarning
 from .errors import InvalidInputError, MeshError, SimulationDiverged, SolverError
 from .integrator import Constraints
-from .material import LinearElastic
+from .material import LinearElastic, Regions
 from .mesh import Mesh
 from .meshing import ball_mesh, box_mesh, read_mesh, to_tet10, tube_mesh
 from .simulation import Simulation, solve_static
@@ -19,7 +19,7 @@ from .surface import tetrahedralize
 
 __all__ = [
     "BodyStack", "stack_key",
-    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "LinearisationWarning", "LockingWarning", "Mesh",
+    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Regions", "LinearisationWarning", "LockingWarning", "Mesh",
     "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
     "solve_equilibrium", "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]

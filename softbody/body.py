@@ -16,7 +16,7 @@ from .assembly import BlockPattern, UpperAssembly
 from .elements import shape_gradients
 from .errors import InvalidInputError
 from .locking import check_locking
-from .material import LinearElastic, isotropic_elasticity
+from .material import LinearElastic, Regions, isotropic_elasticity
 from .mesh import Mesh
 from .rotation import polar_rotation_components
 from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix, rest_load_operator,
@@ -120,8 +120,9 @@ class FemBody:
                  hex_rotation: str = "average", damp_rigid: bool = False, volumetric: str = "full"):
         if not isinstance(mesh, Mesh):
             raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
-        if not isinstance(material, LinearElastic):
-            raise InvalidInputError(f"material must be a softbody.LinearElastic, got {type(material).__name__}")
+        if not isinstance(material, (LinearElastic, Regions)):
+            raise InvalidInputError(f"material must be a softbody.LinearElastic or softbody.Regions, got "
+                                    f"{type(material).__name__}")
         if mass not in ("consistent", "lumped"):
             raise InvalidInputError(f"mass must be 'consistent' or 'lumped', got {mass!r}")
         if hex_rotation not in ("average", "single"):
@@ -151,14 +152,21 @@ class FemBody:
         self.element_type = et
         X = mesh.nodes[mesh.elements]  # (E, k, 3)
         E, k = mesh.elements.shape
-        D = material.elasticity_matrix()
-        lam, mu = material.lame
-        if not np.allclose(D, isotropic_elasticity(lam, mu), rtol=1e-12, atol=0.0):
-            raise InvalidInputError(f"material {type(material).__name__}: its elasticity matrix is not the isotropic "
-                                    "one of its Lame parameters, which the warped step uses; anisotropic materials "
-                                    "are not modelled (give a LinearElastic)")
+        regions = isinstance(material, Regions)
+        if regions:
+            if len(material.labels) != E:
+                raise InvalidInputError(f"Regions labels: one per element, {E}, got {len(material.labels)}")
+            lam, mu = material.lame  # (E,) each
+            nu_most = material.largest_nu
+        else:
+            lam, mu = material.lame
+            if not np.allclose(material.elasticity_matrix(), isotropic_elasticity(lam, mu), rtol=1e-12, atol=0.0):
+                raise InvalidInputError(f"material {type(material).__name__}: its elasticity matrix is not the "
+                                        "isotropic one of its Lame parameters, which the warped step uses; anisotropic "
+                                        "materials are not modelled (give a LinearElastic)")
+            nu_most = material.nu
         if volumetric == "full":
-            check_locking(et.name, material.nu)
+            check_locking(et.name, nu_most)
 
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
 
@@ -166,21 +174,38 @@ class FemBody:
         xi, w = et.stiffness_rule
         G, detJ = shape_gradients(et, X, xi)
         B = strain_displacement(G)  # (E, q, 6, 3k)
-        mean = volumetric == "mean"
-        if mean:  # B-bar: D = D(-2 mu / 3, mu) at every point (deviatoric) + kappa m m^T on the mean gradients
-            kappa, lam = lam + 2.0 * mu / 3.0, -2.0 * mu / 3.0
-            D = isotropic_elasticity(lam, mu)
-            volume = (detJ * w).sum(axis=1)  # (E,)
-            g_mean = np.einsum("eq,eqka->eka", detJ * w, G) / volume[:, None, None]  # (E, k, 3)
-        self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, D, B, optimize=True)
-        if mean:
-            b = g_mean.reshape(E, 3 * k)
-            self.Ke += (kappa * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
-        self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
+        sqrt_w = np.sqrt(detJ * w)
         # weighted gradients sqrt(w_q detJ_q) dN/dX (E, q, k, 3) and the operators that rotate them and
         # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
-        sqrt_w = np.sqrt(detJ * w)
-        self._Gw = G * sqrt_w[:, :, None, None]
+        Gw = G * sqrt_w[:, :, None, None]
+        mean = volumetric == "mean"
+        # split: the shear part (mu, at every point) and the bulk part (kappa = lam + 2 mu / 3: at every point, or
+        # B-bar's on the mean gradients) apart, each a scaled-gradient "element" of its own: K = kappa S + mu (S^T +
+        # tr(S) I - 2/3 S), both weights positive, per element (regions) or B-bar's
+        split = mean or regions
+        if split:
+            lam_e, mu_e = np.broadcast_to(lam, (E,)), np.broadcast_to(mu, (E,))
+            kappa_e = lam_e + 2.0 * mu_e / 3.0
+            self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w * mu_e[:, None], B,
+                                isotropic_elasticity(-2.0 / 3.0, 1.0), B, optimize=True)
+            if mean:  # B-bar: the volumetric strain's volume-weighted mean over the element
+                volume = (detJ * w).sum(axis=1)  # (E,)
+                g_mean = np.einsum("eq,eqka->eka", detJ * w, G) / volume[:, None, None]  # (E, k, 3)
+                b = g_mean.reshape(E, 3 * k)
+                self.Ke += (kappa_e * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
+                g1 = (np.sqrt(kappa_e * volume)[:, None, None] * g_mean)[:, None]  # (E, 1, k, 3)
+                P1 = 3.0 * (kappa_e * volume)[:, None, None] * g_mean
+            else:
+                self.Ke += np.einsum("eq,eqia,ij,eqjb->eab", detJ * w * kappa_e[:, None], B,
+                                     isotropic_elasticity(1.0, 0.0), B, optimize=True)
+                g1 = Gw * np.sqrt(kappa_e)[:, None, None, None]
+                P1 = 3.0 * kappa_e[:, None, None] * np.einsum("eq,eqka->eka", sqrt_w, Gw)
+            Gw = Gw * np.sqrt(mu_e)[:, None, None, None]
+            lam, mu = -2.0 / 3.0, 1.0  # the shear part's, on gradients scaled by sqrt(mu_e)
+        else:
+            self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, isotropic_elasticity(lam, mu), B, optimize=True)
+        self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
+        self._Gw = Gw
         # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
         # products of component-major rotated gradients for one-point elements (tet4), else from whole
         # Gram matrices per element (one batched matmul)
@@ -194,13 +219,14 @@ class FemBody:
         self._lame = (lam, mu)
         P = (3.0 * lam + 2.0 * mu) * np.einsum("eq,eqka->eka", sqrt_w, self._Gw)  # K_e X_e, (E, k, 3)
         self._rest_P = np.ascontiguousarray(P)  # for kernels.warped_pairs and warped_gram
-        # B-bar's volumetric part: a one-point element of the mean gradients (weight the volume), lame (kappa, 0)
-        self._mean_part = None
-        if mean:
-            g1 = (np.sqrt(volume)[:, None, None] * g_mean)[:, None]  # (E, 1, k, 3)
-            P1 = np.ascontiguousarray(3.0 * kappa * volume[:, None, None] * g_mean)  # its K_e X_e
-            self._mean_part = (g1, P1, UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs"),
-                               rotated_gradient_operator(g1), (kappa, 0.0), isotropic_matrix(kappa, 0.0))
+        # the bulk part of a split stiffness, assembled beside the first (lame (1, 0) on its scaled gradients)
+        self._bulk_part = None
+        if split:
+            one = g1.shape[1] == 1
+            ua1 = self._upper if one == (self._rotate_grads is not None) else \
+                UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs" if one else "matrices")
+            self._bulk_part = (np.ascontiguousarray(g1), np.ascontiguousarray(P1), ua1,
+                               rotated_gradient_operator(g1) if one else None, (1.0, 0.0), isotropic_matrix(1.0, 0.0))
             P = P + P1
         self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
@@ -209,11 +235,12 @@ class FemBody:
         xim, wm = et.mass_rule
         _, detJm = shape_gradients(et, X, xim)
         N = et.shape(xim)
-        Me = material.density * np.einsum("eq,qa,qb->eab", detJm * wm, N, N, optimize=True)
+        density = np.broadcast_to(material.density, (E,))
+        Me = density[:, None, None] * np.einsum("eq,qa,qb->eab", detJm * wm, N, N, optimize=True)
         self.volumes = detJm @ wm
         if mass == "lumped":  # HRZ: diagonal scaled to the element mass; positive for every element type
             d = np.einsum("eaa->ea", Me)
-            d *= (material.density * self.volumes / d.sum(axis=1))[:, None]
+            d *= (density * self.volumes / d.sum(axis=1))[:, None]
             Me = np.einsum("ea,ab->eab", d, np.eye(k))
         self.Me = Me
 
@@ -234,7 +261,9 @@ class FemBody:
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
         self.Bc = strain_displacement(Gc[:, 0])  # (E, 6, 3k)
-        self.D = D
+        # the elasticity matrix (6, 6), or per element (E, 6, 6) for regions, for stress output
+        self.D = (np.array([isotropic_elasticity(*m.lame) for m in material.materials])[material.labels] if regions
+                  else material.elasticity_matrix())
 
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
         self._mass_upper = self.M_data[self._upper.upper]  # (n_upper,) on the upper blocks
@@ -302,7 +331,7 @@ class FemBody:
 
     @property
     def total_mass(self) -> float:
-        return float(self.material.density * self.volumes.sum())
+        return float(np.sum(self.material.density * self.volumes))
 
     def part_offsets(self) -> np.ndarray:
         """Offsets (k + 1,) of the node ranges that move as bodies of their own: here the whole body; a BodyStack's
@@ -618,8 +647,8 @@ class FemBody:
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
         K, load = _warped_upper(R9, self._Gw, self._rest_P, self._upper, self._rotate_grads, self._lame,
                                 self._isotropic, self._elements_c)
-        if self._mean_part is not None:  # B-bar's volumetric part, a one-point element on the mean gradients
-            g1, P1, ua1, rotate1, lame1, iso1 = self._mean_part
+        if self._bulk_part is not None:  # B-bar's volumetric part, a one-point element on the mean gradients
+            g1, P1, ua1, rotate1, lame1, iso1 = self._bulk_part
             K1, load1 = _warped_upper(R9, g1, P1, ua1, rotate1, lame1, iso1, self._elements_c)
             K = K + K1
             load = None if load is None or load1 is None else load + load1
@@ -642,40 +671,56 @@ class FemBody:
             self._rest_loads0 = loads
         return loads
 
-    def _matrix_free_data(self) -> tuple[np.ndarray, np.ndarray]:
-        """The weighted gradients node-major (E, k q, 3) and the stress map (9q, 9q), made at first use."""
-        if "_Gw_nodes" not in self.__dict__:
-            E, q = self._Gw.shape[:2]
-            G = np.ascontiguousarray(self._Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
+    def _matrix_free_data(self, part: int = 0) -> tuple[np.ndarray, np.ndarray, tuple]:
+        """Of the stiffness's ``part`` (0: the body's, 1: a split body's bulk part): its weighted gradients
+        node-major (E, k q, 3), its stress map (9q, 9q) and its Lame parameters, made at first use."""
+        if "_mf" not in self.__dict__:
+            self._mf = {}
+        if part not in self._mf:
+            Gw, lame = (self._Gw, self._lame) if part == 0 else (self._bulk_part[0], self._bulk_part[4])
+            E, q = Gw.shape[:2]
+            G = np.ascontiguousarray(Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
             G.flags.writeable = False
-            self._Gw_nodes, self._stress = G, stress_map(*self._lame, q)
-        return self._Gw_nodes, self._stress
+            self._mf[part] = (G, stress_map(*lame, q), lame)
+        return self._mf[part]
 
-    def rotated_gradients(self, R: np.ndarray | None) -> np.ndarray:
+    def rotated_gradients(self, R: np.ndarray | None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         """sqrt(w detJ) R_e dN_a/dX at every quadrature point, (E, k, 3q), entry (e, a, 3 q + j) [m^0.5]:
-        what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None (read-only then)."""
-        if self._mean_part is not None:
-            raise InvalidInputError("a body with volumetric='mean' (B-bar) has no matrix-free product: its stiffness is "
-                                    "assembled (IterativeSettings(operator='assembled'), the default 'auto' does)")
-        E, q, k, _ = self._Gw.shape
-        G, _ = self._matrix_free_data()
-        if R is None:
-            return G.reshape(E, k, 3 * q)
-        return (G @ np.swapaxes(R, 1, 2)).reshape(E, k, 3 * q)
+        what ``warped_product`` needs to apply K' = sum_e R_e K_e R_e^T. R: (E, 3, 3) or None (read-only then). A
+        body whose stiffness is split (regions, volumetric='mean') gets a pair: its shear and bulk parts'."""
+        parts = (0,) if self._bulk_part is None else (0, 1)
+        out = []
+        for part in parts:
+            G, _, _ = self._matrix_free_data(part)
+            E, kq, _ = G.shape
+            k = self.mesh.elements.shape[1]
+            out.append(G.reshape(E, k, 3 * (kq // k)) if R is None
+                       else (G @ np.swapaxes(R, 1, 2)).reshape(E, k, 3 * (kq // k)))
+        return out[0] if len(out) == 1 else tuple(out)
 
-    def warped_product(self, g: np.ndarray, y: np.ndarray) -> np.ndarray:
+    def warped_product(self, g: np.ndarray | tuple, y: np.ndarray) -> np.ndarray:
         """K' y (N, 3) [N] for y (N, 3) [m], with g = ``rotated_gradients(R)``; K' is never formed. Per
         product this costs more than a sparse product with an assembled K', but it needs no assembly."""
-        E, q, k, _ = self._Gw.shape
-        if np.shape(g) != (E, k, 3 * q) or np.shape(y) != (self.n_nodes, 3):
-            raise InvalidInputError(f"warped_product needs g of shape {(E, k, 3 * q)} (rotated_gradients) and y of "
-                                    f"shape {(self.n_nodes, 3)}, got {np.shape(g)} and {np.shape(y)}")
-        if kernels.ENABLED:  # the same sums element by element, the stress in closed form (softbody.kernels)
-            out = np.empty((self.n_nodes, 3))
-            kernels.warped_product(np.ascontiguousarray(g, dtype=float), self._elements_c, *self._lame,
-                                   np.ascontiguousarray(y, dtype=float), out)
-            return out
-        return warped_product(g, self.mesh.elements, self._matrix_free_data()[1], self._scatter, y)
+        parts = g if isinstance(g, tuple) else (g,)
+        if len(parts) != (1 if self._bulk_part is None else 2) or np.shape(y) != (self.n_nodes, 3):
+            raise InvalidInputError(f"warped_product needs g from rotated_gradients and y of shape "
+                                    f"{(self.n_nodes, 3)}, got {len(parts)} part(s) and {np.shape(y)}")
+        out = np.zeros((self.n_nodes, 3))
+        for part, gp in enumerate(parts):
+            G, stress, lame = self._matrix_free_data(part)
+            E, kq, _ = G.shape
+            k = self.mesh.elements.shape[1]
+            if np.shape(gp) != (E, k, 3 * (kq // k)):
+                raise InvalidInputError(f"warped_product needs g of shape {(E, k, 3 * (kq // k))} (rotated_gradients), "
+                                        f"got {np.shape(gp)}")
+            if kernels.ENABLED:  # the same sums element by element, the stress in closed form (softbody.kernels)
+                one = np.empty((self.n_nodes, 3))
+                kernels.warped_product(np.ascontiguousarray(gp, dtype=float), self._elements_c, *lame,
+                                       np.ascontiguousarray(y, dtype=float), one)
+                out += one
+            else:
+                out += warped_product(gp, self.mesh.elements, stress, self._scatter, y)
+        return out
 
     @property
     def prefers_matrix_free(self) -> bool:
@@ -685,7 +730,7 @@ class FemBody:
         against 40), where assembly dominates. One-point elements (tet4) have their own cheap assembly,
         and hex8 (36 pairs, 64 gradients) is faster assembled."""
         E, q, k, _ = self._Gw.shape
-        return self.warping and q > 1 and k * (k + 1) // 2 > q * k and self._mean_part is None
+        return self.warping and q > 1 and k * (k + 1) // 2 > q * k
 
     @property
     def diagonal_upper(self) -> np.ndarray:
@@ -739,6 +784,8 @@ class FemBody:
 
     def stress(self, x: np.ndarray | None = None) -> np.ndarray:
         """Cauchy stress (small strain, unrotated frame) at each element centre, Voigt (E, 6) [Pa]."""
+        if self.D.ndim == 3:  # by element (Regions)
+            return np.einsum("eij,ej->ei", self.D, self.strain(x))
         return self.strain(x) @ self.D.T
 
     def von_mises(self, x: np.ndarray | None = None) -> np.ndarray:

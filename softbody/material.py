@@ -55,3 +55,58 @@ class LinearElastic:
         """Dilatational (P-)wave speed sqrt((lam + 2 mu) / rho) in m/s."""
         lam, mu = self.lame
         return math.sqrt((lam + 2.0 * mu) / self.density)
+
+
+@dataclass(frozen=True, eq=False)
+class Regions:
+    """Isotropic linear elastic materials by element: a body of several regions. ``materials`` (R,) LinearElastic;
+    ``labels`` (E,) int: each element's region (0 <= label < R). ``E``, ``nu``, ``density``: the per-element arrays
+    (E,) of the regions' values (``softest`` and ``largest_nu``: what one number stands for, in colour scales and the
+    locking warning)."""
+
+    materials: tuple
+    labels: np.ndarray
+
+    def __post_init__(self) -> None:
+        mats = tuple(self.materials) if isinstance(self.materials, (list, tuple)) else None
+        if not mats or not all(isinstance(m, LinearElastic) for m in mats):
+            raise InvalidInputError("Regions(materials, labels): materials must be a non-empty list of LinearElastic, "
+                                    f"got {self.materials!r}")
+        labels = np.asarray(self.labels)
+        if labels.ndim != 1 or not np.issubdtype(labels.dtype, np.integer):
+            raise InvalidInputError(f"Regions labels must be a 1-D integer array (one region per element), got shape "
+                                    f"{labels.shape} of {labels.dtype}")
+        if len(labels) and (labels.min() < 0 or labels.max() >= len(mats)):
+            raise InvalidInputError(f"Regions labels must lie in [0, {len(mats)}) (one per material), got "
+                                    f"{labels.min()} to {labels.max()}")
+        object.__setattr__(self, "materials", mats)
+        object.__setattr__(self, "labels", labels.astype(np.int64))
+
+    def _per_element(self, name: str) -> np.ndarray:
+        return np.array([getattr(m, name) for m in self.materials], float)[self.labels]
+
+    @property
+    def E(self) -> np.ndarray:
+        return self._per_element("E")
+
+    @property
+    def nu(self) -> np.ndarray:
+        return self._per_element("nu")
+
+    @property
+    def density(self) -> np.ndarray:
+        return self._per_element("density")
+
+    @property
+    def lame(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lame parameters (lambda (E,), mu (E,)) per element [Pa]."""
+        lm = np.array([m.lame for m in self.materials], float)[self.labels]
+        return lm[:, 0], lm[:, 1]
+
+    @property
+    def softest(self) -> float:
+        return float(min(m.E for m in self.materials))
+
+    @property
+    def largest_nu(self) -> float:
+        return float(max(m.nu for m in self.materials))

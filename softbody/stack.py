@@ -21,6 +21,7 @@ import numpy as np
 from .body import FemBody
 from .errors import InvalidInputError
 from .locking import LockingWarning
+from .material import Regions
 from .mesh import Mesh
 
 
@@ -28,6 +29,8 @@ def stack_key(body: FemBody) -> tuple:
     """What must agree for bodies to share a stack: element kind, material, warping, damping, mass kind and
     hex rotation (everything a step reads apart from the mesh and the state)."""
     m = body.material
+    if isinstance(m, Regions):  # a body of regions stacks with none (its labels are its own mesh's)
+        return ("regions", body)
     return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.warping, body.damping,
             body.damp_rigid, body.mass_kind, body.hex_rotation, body.volumetric)
 
