@@ -6,6 +6,7 @@ K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of
 from __future__ import annotations
 
 import math
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -65,12 +66,24 @@ def _components(R: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(R.reshape(len(R), 9).T)
 
 
+def _lazy(make: Callable[[], object]) -> Callable[[], object]:
+    """A function returning make()'s result, made at its first call."""
+    kept = []
+
+    def get():
+        if not kept:
+            kept.append(make())
+        return kept[0]
+    return get
+
+
 def _warped_upper(R9: np.ndarray, Gw: np.ndarray, P: np.ndarray, ua: UpperAssembly, rotate_grads, lame: tuple,
                   iso: np.ndarray, elements: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     """The warped stiffness sum_e R_e K_e R_e^T of elements with weighted gradients Gw (E, q, k, 3) and isotropic
     ``lame`` (``iso`` its (9, 9) map) as upper blocks (n_upper, 9) on ``ua``, and (compiled paths) the warped rest loads
     sum_e R_e P_e (N, 3) of P (E, k, 3) = K_e X_e (None: FemBody.rest_loads makes them); R9 (9, E) the rotations
-    component-major; ``rotate_grads`` the one-point elements' rotated_gradient_operator, else None."""
+    component-major; ``rotate_grads``: for one-point elements, a function giving their rotated_gradient_operator (made
+    only on the numpy path), else None."""
     E, q, k, _ = Gw.shape
     n_nodes = ua.pattern.n_nodes
     load = None
@@ -83,7 +96,7 @@ def _warped_upper(R9: np.ndarray, Gw: np.ndarray, P: np.ndarray, ua: UpperAssemb
         kernels.warped_gram(R9, Gw, P, elements, ua.pairs, ua.element_scatter(), U, load)
         S = U.reshape(-1, 9)
     elif rotate_grads is not None:  # outer products g_a g_b^T of the node pairs a < b, (P, 3, 3, E)
-        g = (rotate_grads @ R9.reshape(-1)).reshape(k, 3, E)
+        g = (rotate_grads() @ R9.reshape(-1)).reshape(k, 3, E)
         S = ua.assemble(g[ua.pairs[:, 0], :, None, :] * g[ua.pairs[:, 1], None, :, :])
     else:  # Gram matrices sum_q g_q g_q^T (E, 3k, 3k) of the rotated gradients g = Gw R^T
         RT = np.ascontiguousarray(R9[[0, 3, 6, 1, 4, 7, 2, 5, 8]].T).reshape(E, 3, 3)
@@ -173,7 +186,6 @@ class FemBody:
         # stiffness: K_e = sum_q w_q detJ_q B_q^T D B_q
         xi, w = et.stiffness_rule
         G, detJ = shape_gradients(et, X, xi)
-        B = strain_displacement(G)  # (E, q, 6, 3k)
         sqrt_w = np.sqrt(detJ * w)
         # weighted gradients sqrt(w_q detJ_q) dN/dX (E, q, k, 3) and the operators that rotate them and
         # give the warped rest loads, for the step's warped stiffness and forces (warped_stiffness_blocks)
@@ -186,33 +198,24 @@ class FemBody:
         if split:
             lam_e, mu_e = np.broadcast_to(lam, (E,)), np.broadcast_to(mu, (E,))
             kappa_e = lam_e + 2.0 * mu_e / 3.0
-            self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w * mu_e[:, None], B,
-                                isotropic_elasticity(-2.0 / 3.0, 1.0), B, optimize=True)
             if mean:  # B-bar: the volumetric strain's volume-weighted mean over the element
                 volume = (detJ * w).sum(axis=1)  # (E,)
                 g_mean = np.einsum("eq,eqka->eka", detJ * w, G) / volume[:, None, None]  # (E, k, 3)
-                b = g_mean.reshape(E, 3 * k)
-                self.Ke += (kappa_e * volume)[:, None, None] * b[:, :, None] * b[:, None, :]
                 g1 = (np.sqrt(kappa_e * volume)[:, None, None] * g_mean)[:, None]  # (E, 1, k, 3)
                 P1 = 3.0 * (kappa_e * volume)[:, None, None] * g_mean
             else:
-                self.Ke += np.einsum("eq,eqia,ij,eqjb->eab", detJ * w * kappa_e[:, None], B,
-                                     isotropic_elasticity(1.0, 0.0), B, optimize=True)
                 g1 = Gw * np.sqrt(kappa_e)[:, None, None, None]
                 P1 = 3.0 * kappa_e[:, None, None] * np.einsum("eq,eqka->eka", sqrt_w, Gw)
             Gw = Gw * np.sqrt(mu_e)[:, None, None, None]
             lam, mu = -2.0 / 3.0, 1.0  # the shear part's, on gradients scaled by sqrt(mu_e)
-        else:
-            self.Ke = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B, isotropic_elasticity(lam, mu), B, optimize=True)
-        self.Ke = 0.5 * (self.Ke + self.Ke.transpose(0, 2, 1))
         self._Gw = Gw
         # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
         # products of component-major rotated gradients for one-point elements (tet4), else from whole
         # Gram matrices per element (one batched matmul)
-        self._rotate_grads = None
+        self._rotate_grads = None  # one-point elements: the function giving their operator (numpy path), made at first use
         if self._Gw.shape[1] == 1:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs")
-            self._rotate_grads = rotated_gradient_operator(self._Gw)
+            self._rotate_grads = _lazy(lambda: rotated_gradient_operator(self._Gw))
         else:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
@@ -226,9 +229,8 @@ class FemBody:
             ua1 = self._upper if one == (self._rotate_grads is not None) else \
                 UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs" if one else "matrices")
             self._bulk_part = (np.ascontiguousarray(g1), np.ascontiguousarray(P1), ua1,
-                               rotated_gradient_operator(g1) if one else None, (1.0, 0.0), isotropic_matrix(1.0, 0.0))
-            P = P + P1
-        self._rest_load = rest_load_operator(mesh.elements, P, mesh.n_nodes)
+                               _lazy(lambda: rotated_gradient_operator(g1)) if one else None, (1.0, 0.0),
+                               isotropic_matrix(1.0, 0.0))
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
@@ -253,8 +255,6 @@ class FemBody:
         # F = mean over the c tets of Ds Dm^-1 = sum_a x_a g_a^T over their nodes, with the linear-tet
         # gradients g_a (rows of Dm^-1, and minus their sum for the first node) divided by c
         gc = np.concatenate([-Dm_inv.sum(axis=2, keepdims=True), Dm_inv], axis=2) / len(ct)
-        self._char_F = deformation_gradient_operator(mesh.elements[:, ct.reshape(-1)], gc.reshape(E, -1, 3),
-                                                     mesh.n_nodes)
         self._char_grads = gc.reshape(E, -1, 3)  # (E, 4c, 3), on the element's local nodes ct.reshape(-1)
         self._char_nodes = np.ascontiguousarray(mesh.elements[:, ct.reshape(-1)], dtype=np.int64)  # (E, 4c) global
 
@@ -328,6 +328,37 @@ class FemBody:
     @property
     def n_dofs(self) -> int:
         return 3 * self.mesh.n_nodes
+
+    @cached_property
+    def _char_F(self) -> sp.csr_matrix:
+        """The characteristic tetrahedra's deformation-gradient operator (numpy path of char_gradients; made at first
+        use: the compiled path works on _char_nodes and _char_grads)."""
+        return deformation_gradient_operator(self._char_nodes, self._char_grads, self.mesh.n_nodes)
+
+    @cached_property
+    def _rest_load(self) -> sp.csr_matrix:
+        """The warped rest loads' operator (numpy path of rest_loads; made at first use: the compiled assembly gives
+        the loads with the stiffness)."""
+        P = self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part[1]
+        return rest_load_operator(self.mesh.elements, P, self.mesh.n_nodes)
+
+    @cached_property
+    def Ke(self) -> np.ndarray:
+        """Element stiffness matrices K_e (E, 3k, 3k) [N/m] (interleaved dofs), sum_q w detJ B^T D B over each part of
+        the stiffness (a split one: shear and bulk): made at first use (the static solve, the Newton scheme, the
+        elastic energy), not by the warped step, which works on the gradients (E * (3k)^2 doubles: 1.2 kB per tet4
+        element)."""
+        parts = [(self._Gw, self._lame)]
+        if self._bulk_part is not None:
+            parts.append((self._bulk_part[0], self._bulk_part[4]))
+        Ke = None
+        for Gw, lame in parts:
+            B = strain_displacement(Gw)  # weighted: sqrt(w detJ) B (E, q, 6, 3k)
+            part = np.einsum("eqia,ij,eqjb->eab", B, isotropic_elasticity(*lame), B, optimize=True)
+            Ke = part if Ke is None else Ke + part
+        Ke = 0.5 * (Ke + Ke.transpose(0, 2, 1))
+        Ke.flags.writeable = False
+        return Ke
 
     @property
     def total_mass(self) -> float:
