@@ -76,10 +76,8 @@ class Grasp:
                                              maxNumIterations=50, physicsClientId=self.cid)
             # the World's motors, as pybullet's setJointMotorControl2: while the hand holds the cube they are rows of
             # the coupled problem, so that a finger presses with its force limit whatever the step
-            for j in ARM:
-                self.world.set_motor(self.panda, j, "position", q[j], force=200)
-            for j in FINGERS:
-                self.world.set_motor(self.panda, j, "position", opening, force=FINGER_FORCE)
+            self.world.set_motors(self.panda, ARM, "position", [q[j] for j in ARM], forces=200)
+            self.world.set_motors(self.panda, FINGERS, "position", [opening] * len(FINGERS), forces=FINGER_FORCE)
             tic = time.perf_counter()
             self.world.step()
             self.seconds += time.perf_counter() - tic

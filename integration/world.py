@@ -471,6 +471,30 @@ class World:
         self.adapter.set_motor(motor)
         return motor
 
+    def set_motors(self, body: int, joints: Iterable[int], mode: str | int = "position",
+                   target_positions: Iterable[float] | None = None, target_velocities: Iterable[float] | None = None,
+                   forces: Iterable[float] | float = 100000.0, position_gains: Iterable[float] | float = 0.1,
+                   velocity_gains: Iterable[float] | float = 1.0) -> list[Motor]:
+        """:meth:`set_motor` for several joints of one body, as ``pybullet.setJointMotorControlArray``: the targets,
+        forces and gains one per joint (a single number: the same for all). Returns the Motors."""
+        joints = [int(j) for j in joints]
+
+        def each(values, name: str, default: float) -> list[float]:
+            if values is None:
+                return [default] * len(joints)
+            if np.ndim(values) == 0:
+                return [float(values)] * len(joints)
+            values = list(values)
+            if len(values) != len(joints):
+                raise InvalidInputError(f"set_motors: {name} needs one value per joint ({len(joints)}), got "
+                                        f"{len(values)}")
+            return values
+
+        columns = zip(each(target_positions, "target_positions", 0.0), each(target_velocities, "target_velocities", 0.0),
+                      each(forces, "forces", 100000.0), each(position_gains, "position_gains", 0.1),
+                      each(velocity_gains, "velocity_gains", 1.0))
+        return [self.set_motor(body, j, mode, q, v, f, kp, kd) for j, (q, v, f, kp, kd) in zip(joints, columns)]
+
     def motor_force(self, body: int, joint: int) -> float:
         """The force or torque [N or N m] the motor of joint ``joint`` of body ``body`` exerted over the last step:
         the coupled problem's where the body was in it (a registered motor, :meth:`set_motor`), else pybullet's own

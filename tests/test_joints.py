@@ -167,3 +167,15 @@ def test_set_motor_names_bad_input(tmp_path):
         world.set_motor(finger, 0, mode="torque")
     with pytest.raises(sb.InvalidInputError, match="max_velocity must be"):
         world.set_motor(finger, 0, max_velocity=-1.0)
+
+
+def test_set_motors_sets_each_joint_as_set_motor_does(tmp_path):
+    """set_motors (setJointMotorControlArray's form): one Motor per joint with its own target and the shared force;
+    a list of the wrong length is refused, naming it."""
+    world = World(dt=0.01)
+    finger = _finger(world.client, tmp_path)
+    motors = world.set_motors(finger, [0], "velocity", target_velocities=[0.3], forces=7.0)
+    assert motors == [world.motors.get(finger, 0)] and motors[0].velocity == 0.3 and motors[0].force == 7.0
+    assert motors[0] == Motor(finger, 0, "velocity", 0.0, 0.3, 7.0)
+    with pytest.raises(sb.InvalidInputError, match="forces needs one value per joint"):
+        world.set_motors(finger, [0], forces=[1.0, 2.0])
