@@ -163,7 +163,8 @@ class UpperAssembly:
     pattern: BlockPattern
     layout: str
     pairs: np.ndarray  # (P, 2) local nodes a < b ("pairs") or a <= b ("matrices")
-    scatter: np.ndarray  # target in (n_upper, 9).ravel() of each pair's block entries (P, 3, 3, E)
+    scatter: np.ndarray | None  # target in (n_upper, 9).ravel() of each pair's block entries (P, 3, 3, E); None once
+    # element_scatter holds it (pair_scatter)
     summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2), made at first use (_summation)
     n_upper: int
     upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
@@ -200,7 +201,7 @@ class UpperAssembly:
                                  shape=(2 * N, n_upper))
         src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
         entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
-        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1)
+        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1).astype(itype)
         return cls(pattern, layout, pairs, scatter, None, n_upper, upper, ub[pattern.diag], sums, full_from_upper)
 
     def assemble(self, contributions: np.ndarray) -> np.ndarray:
@@ -209,22 +210,23 @@ class UpperAssembly:
         w = contributions.reshape(-1)
         if self.layout == "matrices":
             return (self._summation() @ w).reshape(-1, 9)
-        return self.with_diagonal(np.bincount(self.scatter, weights=w, minlength=9 * self.n_upper).reshape(-1, 9))
+        return self.with_diagonal(np.bincount(self.pair_scatter(), weights=w, minlength=9 * self.n_upper).reshape(-1, 9))
 
     def _summation(self) -> sp.csr_matrix:
         """"matrices" layout: the 0/1 summation matrix (9 n_upper, E (3k)^2), a row per upper entry, made at first
         use (the compiled pass, kernels.warped_gram, sums through the scatter instead): entry (e, 3 a + i, 3 b + j) of
         the element matrices, the CSR built directly, rows sorted."""
         if self.summation is None:
-            E, k = self.scatter.size // (9 * len(self.pairs)), int(self.pairs.max()) + 1
+            scatter = self.pair_scatter()
+            E, k = scatter.size // (9 * len(self.pairs)), int(self.pairs.max()) + 1
             i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-            itype = self.scatter.dtype
+            itype = scatter.dtype
             pairs = self.pairs
             within = ((3 * pairs[:, 0, None, None] + i) * 3 * k + 3 * pairs[:, 1, None, None] + j).astype(itype)
-            order = np.argsort(self.scatter, kind="stable")
+            order = np.argsort(scatter, kind="stable")
             cols = (within.reshape(-1, 1) + (9 * k * k) * np.arange(E, dtype=itype)).reshape(-1)[order]
             indptr = np.zeros(9 * self.n_upper + 1, dtype=itype)
-            np.cumsum(np.bincount(self.scatter, minlength=9 * self.n_upper), out=indptr[1:])
+            np.cumsum(np.bincount(scatter, minlength=9 * self.n_upper), out=indptr[1:])
             self.summation = sp.csr_matrix((np.ones(len(cols)), cols, indptr), shape=(9 * self.n_upper, 9 * k * k * E))
         return self.summation
 
@@ -243,11 +245,19 @@ class UpperAssembly:
 
     def element_scatter(self) -> np.ndarray:
         """The scatter as (E, P, 3, 3), element-major (made at first use; for a pass over the elements,
-        softbody.kernels.warped_pairs or warped_gram, whose reads of it then run along memory)."""
+        softbody.kernels.warped_pairs or warped_gram, whose reads of it then run along memory). The pair-major copy
+        is let go then: the compiled passes read only this one (``pair_scatter`` makes it again for numpy's)."""
         if "_element_scatter" not in self.__dict__:
             P = len(self.pairs)
             self._element_scatter = np.ascontiguousarray(self.scatter.reshape(P, 3, 3, -1).transpose(3, 0, 1, 2))
+            self.scatter = None
         return self._element_scatter
+
+    def pair_scatter(self) -> np.ndarray:
+        """The scatter pair-major (P 3 3 E,): the target in (n_upper, 9).ravel() of each contribution (p, i, j, e)."""
+        if self.scatter is not None:
+            return self.scatter
+        return np.ascontiguousarray(self._element_scatter.transpose(1, 2, 3, 0)).reshape(-1)
 
     def full_sources(self) -> tuple[np.ndarray, np.ndarray]:
         """What ``full`` copies block by block: the upper block (nnzb,) of each block, and whether transposed (nnzb,)

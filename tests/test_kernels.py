@@ -673,3 +673,28 @@ def test_line_search_slopes_equal_the_laws_impulses_and_hessians(cone):
         assert s1 == pytest.approx(want1, rel=1e-10, abs=1e-12 * np.abs(dvc * gamma).sum())
         assert s2 == pytest.approx(want2, rel=1e-10)
     assert stuck > 50 and slid > 50  # both regions were tried
+
+
+@pytest.mark.parametrize("layout, kind", [("pairs", "tet4"), ("matrices", "hex8")])
+def test_the_pair_scatter_comes_back_from_the_element_scatter(layout, kind, monkeypatch):
+    """UpperAssembly lets its pair-major scatter go once the element-major one is made (the compiled passes read only
+    that); numpy's assembly after that gives the same upper blocks as before it."""
+    from softbody import box_mesh
+    from softbody.assembly import BlockPattern, UpperAssembly
+
+    mesh = box_mesh((0.3, 0.2, 0.2), (3, 2, 2), kind)
+    pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
+    ua = UpperAssembly.from_elements(pattern, mesh.elements, layout)
+    rng = np.random.default_rng(9)
+    E, k = mesh.elements.shape
+    if layout == "pairs":
+        c = rng.standard_normal((len(ua.pairs), 3, 3, E))
+    else:
+        c = rng.standard_normal((E, 3 * k, 3 * k))
+        c = c + np.swapaxes(c, 1, 2)
+    monkeypatch.setattr(kernels, "ENABLED", False)
+    before = ua.assemble(c.copy())
+    ua.summation = None
+    ua.element_scatter()
+    assert ua.scatter is None
+    np.testing.assert_array_equal(ua.assemble(c.copy()), before)
