@@ -477,7 +477,15 @@ class World:
                    velocity_gains: Iterable[float] | float = 1.0) -> list[Motor]:
         """:meth:`set_motor` for several joints of one body, as ``pybullet.setJointMotorControlArray``: the targets,
         forces and gains one per joint (a single number: the same for all). Returns the Motors."""
-        joints = [int(j) for j in joints]
+        try:
+            joints = [int(j) for j in joints]
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"set_motors: joints must be joint indices, got {joints!r}") from None
+        movable, _ = self.adapter.joints(body) if body in self.adapter.body_ids() else ([], [])
+        bad = [j for j in joints if j not in movable]
+        if bad:  # all checked before any is set
+            raise InvalidInputError(f"set_motors: joints {bad} of body {body} are not revolute or prismatic joints "
+                                    f"(those are {movable})")
 
         def each(values, name: str, default: float) -> list[float]:
             if values is None:

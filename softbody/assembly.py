@@ -255,9 +255,9 @@ class UpperAssembly:
 
     def pair_scatter(self) -> np.ndarray:
         """The scatter pair-major (P 3 3 E,): the target in (n_upper, 9).ravel() of each contribution (p, i, j, e)."""
-        if self.scatter is not None:
-            return self.scatter
-        return np.ascontiguousarray(self._element_scatter.transpose(1, 2, 3, 0)).reshape(-1)
+        if self.scatter is None:  # the numpy path after the compiled one (kernels switched off): kept from now on
+            self.scatter = np.ascontiguousarray(self._element_scatter.transpose(1, 2, 3, 0)).reshape(-1)
+        return self.scatter
 
     def full_sources(self) -> tuple[np.ndarray, np.ndarray]:
         """What ``full`` copies block by block: the upper block (nnzb,) of each block, and whether transposed (nnzb,)

@@ -123,8 +123,7 @@ class FemBody:
     hex_rotation: "average" (mean F of both Freudenthal inner tets) or "single" (the {0,2,5,7} tet).
     volumetric: "full" (the volumetric strain at every quadrature point) or "mean" (B-bar, hex8 only: its
     volume-weighted mean over the element; the deviatoric strain stays at every point): hex8 stops locking as nu nears
-    0.5 (a cantilever within 2.5% of the converged value at nu 0.499, docs/materials.md). Its stiffness is assembled
-    (no matrix-free product).
+    0.5 (a cantilever within 2.5% of the converged value at nu 0.499, docs/materials.md).
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
     """
 
@@ -166,6 +165,12 @@ class FemBody:
         X = mesh.nodes[mesh.elements]  # (E, k, 3)
         E, k = mesh.elements.shape
         regions = isinstance(material, Regions)
+        for m in material.materials if regions else (material,):
+            D = np.asarray(m.elasticity_matrix(), dtype=float)
+            if D.shape != (6, 6) or not np.allclose(D, isotropic_elasticity(*m.lame), rtol=1e-12, atol=0.0):
+                raise InvalidInputError(f"material {type(m).__name__}: its elasticity matrix is not the isotropic "
+                                        "(6, 6) one of its Lame parameters, which the warped step uses; anisotropic "
+                                        "materials are not modelled (give a LinearElastic)")
         if regions:
             if len(material.labels) != E:
                 raise InvalidInputError(f"Regions labels: one per element, {E}, got {len(material.labels)}")
@@ -173,10 +178,6 @@ class FemBody:
             nu_most = material.largest_nu
         else:
             lam, mu = material.lame
-            if not np.allclose(material.elasticity_matrix(), isotropic_elasticity(lam, mu), rtol=1e-12, atol=0.0):
-                raise InvalidInputError(f"material {type(material).__name__}: its elasticity matrix is not the "
-                                        "isotropic one of its Lame parameters, which the warped step uses; anisotropic "
-                                        "materials are not modelled (give a LinearElastic)")
             nu_most = material.nu
         if volumetric == "full":
             check_locking(et.name, nu_most)
@@ -215,7 +216,7 @@ class FemBody:
         self._rotate_grads = None  # one-point elements: the function giving their operator (numpy path), made at first use
         if self._Gw.shape[1] == 1:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs")
-            self._rotate_grads = _lazy(lambda: rotated_gradient_operator(self._Gw))
+            self._rotate_grads = _lazy(lambda: rotated_gradient_operator(Gw))  # not self: no reference cycle
         else:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
@@ -225,12 +226,13 @@ class FemBody:
         # the bulk part of a split stiffness, assembled beside the first (lame (1, 0) on its scaled gradients)
         self._bulk_part = None
         if split:
-            one = g1.shape[1] == 1
-            ua1 = self._upper if one == (self._rotate_grads is not None) else \
-                UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs" if one else "matrices")
-            self._bulk_part = (np.ascontiguousarray(g1), np.ascontiguousarray(P1), ua1,
-                               _lazy(lambda: rotated_gradient_operator(g1)) if one else None, (1.0, 0.0),
-                               isotropic_matrix(1.0, 0.0))
+            # on the first part's assembly: "pairs" (tet4: both parts one-point) or "matrices" (Gram matrices of any
+            # number of points: B-bar's one-point part too)
+            self._bulk_part = (np.ascontiguousarray(g1), np.ascontiguousarray(P1), self._upper,
+                               _lazy(lambda: rotated_gradient_operator(g1)) if self._rotate_grads is not None else None,
+                               (1.0, 0.0), isotropic_matrix(1.0, 0.0))
+            if mean:  # the mean divergence rows (E, 3k), for B-bar's strain output
+                self._mean_divergence = g_mean.reshape(E, 3 * k)
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
         # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
@@ -339,8 +341,12 @@ class FemBody:
     def _rest_load(self) -> sp.csr_matrix:
         """The warped rest loads' operator (numpy path of rest_loads; made at first use: the compiled assembly gives
         the loads with the stiffness)."""
-        P = self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part[1]
-        return rest_load_operator(self.mesh.elements, P, self.mesh.n_nodes)
+        return rest_load_operator(self.mesh.elements, self.rest_element_loads, self.mesh.n_nodes)
+
+    @property
+    def rest_element_loads(self) -> np.ndarray:
+        """K_e X_e per element (E, k, 3) [N] (the rest loads before assembly, of every part of the stiffness)."""
+        return self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part[1]
 
     @cached_property
     def Ke(self) -> np.ndarray:
@@ -811,7 +817,10 @@ class FemBody:
         """Small (unrotated) strain at each element centre, Voigt (E, 6)."""
         x = self.positions if x is None else x
         u = self.local_displacements(x, self.rotations(x))
-        return (self.Bc @ u[:, :, None])[:, :, 0]
+        eps = (self.Bc @ u[:, :, None])[:, :, 0]
+        if self.volumetric == "mean":  # B-bar: the volume change is the element's mean, not the centre's
+            eps[:, :3] += ((np.einsum("ej,ej->e", self._mean_divergence, u) - eps[:, :3].sum(axis=1)) / 3.0)[:, None]
+        return eps
 
     def stress(self, x: np.ndarray | None = None) -> np.ndarray:
         """Cauchy stress (small strain, unrotated frame) at each element centre, Voigt (E, 6) [Pa]."""

@@ -79,8 +79,10 @@ class Regions:
         if len(labels) and (labels.min() < 0 or labels.max() >= len(mats)):
             raise InvalidInputError(f"Regions labels must lie in [0, {len(mats)}) (one per material), got "
                                     f"{labels.min()} to {labels.max()}")
+        labels = labels.astype(np.int64)  # a copy, read-only: a body's element matrices were made of it
+        labels.flags.writeable = False
         object.__setattr__(self, "materials", mats)
-        object.__setattr__(self, "labels", labels.astype(np.int64))
+        object.__setattr__(self, "labels", labels)
 
     def _per_element(self, name: str) -> np.ndarray:
         return np.array([getattr(m, name) for m in self.materials], float)[self.labels]

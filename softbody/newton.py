@@ -213,8 +213,7 @@ class NewtonStepper:
         v = [rigid_prediction(b, h) for b in bodies]
         # the residual's own round-off [N s]: the elastic forces are differences of terms of the size of
         # sum_e |K_e X_e|, which a stiff body at rest makes far larger than the step's impulses
-        roundoff = ROUNDOFF * h * np.sqrt(sum(float(np.sum((b.Ke @ b.rest[b.mesh.elements].reshape(
-            b.mesh.n_elements, -1, 1)) ** 2)) for b in bodies))
+        roundoff = ROUNDOFF * h * np.sqrt(sum(float(np.sum(b.rest_element_loads ** 2)) for b in bodies))
         scale = None
         impulses = None  # A v' - b of the last solve, per body: the constraints' impulses
         alpha = 1.0

@@ -26,8 +26,9 @@ from .mesh import Mesh
 
 
 def stack_key(body: FemBody) -> tuple:
-    """What must agree for bodies to share a stack: element kind, material, warping, damping, mass kind and
-    hex rotation (everything a step reads apart from the mesh and the state)."""
+    """What must agree for bodies to share a stack: element kind, material, warping, damping, mass kind, hex rotation
+    and volumetric form (everything a step reads apart from the mesh and the state); a body of Regions stacks with
+    none."""
     m = body.material
     if isinstance(m, Regions):  # a body of regions stacks with none (its labels are its own mesh's)
         return ("regions", body)

@@ -179,3 +179,21 @@ def test_set_motors_sets_each_joint_as_set_motor_does(tmp_path):
     assert motors[0] == Motor(finger, 0, "velocity", 0.0, 0.3, 7.0)
     with pytest.raises(sb.InvalidInputError, match="forces needs one value per joint"):
         world.set_motors(finger, [0], forces=[1.0, 2.0])
+
+
+def test_set_motors_gives_each_joint_its_own_target():
+    """The KUKA iiwa's seven joints in one call: seven Motors, each with its own target and the shared force; a
+    joint that is not revolute or prismatic is refused before any is set."""
+    import pybullet_data
+
+    world = World(dt=0.01)
+    cid = world.client
+    p.setAdditionalSearchPath(pybullet_data.getDataPath(), physicsClientId=cid)
+    kuka = p.loadURDF("kuka_iiwa/model.urdf", useFixedBase=True, physicsClientId=cid)
+    targets = [0.1 * j for j in range(7)]
+    motors = world.set_motors(kuka, range(7), "position", targets, forces=300)
+    assert [m.position for m in motors] == targets and all(m.force == 300 for m in motors)
+    assert [world.motors.get(kuka, j) for j in range(7)] == motors
+    with pytest.raises(sb.InvalidInputError, match=r"joints \[7\] of body"):
+        world.set_motors(kuka, [0, 7], "position", [1.0, 1.0])
+    assert world.motors.get(kuka, 0).position == 0.0  # untouched

@@ -59,7 +59,7 @@ def test_a_material_whose_elasticity_is_not_its_lame_parameters_is_refused():
         def elasticity_matrix(self):
             return 2.0 * super().elasticity_matrix()
 
-    with pytest.raises(sb.InvalidInputError, match="Stiffer: its elasticity matrix is not the isotropic one"):
+    with pytest.raises(sb.InvalidInputError, match="Stiffer: its elasticity matrix is not the isotropic"):
         sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (1, 1, 1), "tet4"), Stiffer(1e5, 0.3, 1000.0))
 
 
@@ -144,3 +144,39 @@ def test_volumetric_names_bad_input():
         with pytest.raises(sb.InvalidInputError, match="is for hex8 elements"):
             sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (1, 1, 1), kind), sb.LinearElastic(1e5, 0.3, 1000.0),
                        volumetric="mean")
+
+
+def _distorted_hex8(seed=2):
+    mesh = sb.box_mesh((0.3, 0.2, 0.2), (3, 2, 2), "hex8")
+    x = mesh.nodes.copy()
+    inner = np.flatnonzero((np.abs(x) < np.array([0.15, 0.1, 0.1]) - 1e-9).all(axis=1))
+    x[inner] += np.random.default_rng(seed).uniform(-0.02, 0.02, size=(len(inner), 3))
+    return sb.Mesh(x, mesh.elements, "hex8")
+
+
+def test_mean_dilatation_element_matrices_are_the_textbook_b_bar():
+    """K_e of volumetric='mean' against Hughes' B-bar written out here point by point on a distorted mesh: B_bar_q =
+    B_q + m (b_mean - b_q) / 3 (m = (1, 1, 1, 0, 0, 0), b the divergence row), K_e = sum_q w detJ B_bar^T D B_bar with
+    the full isotropic D."""
+    from softbody.body import strain_displacement
+    from softbody.elements import shape_gradients
+
+    mesh = _distorted_hex8()
+    material = sb.LinearElastic(1e6, 0.49, 1000.0)
+    body = sb.FemBody(mesh, material, volumetric="mean")
+    xi, w = mesh.element_type.stiffness_rule
+    G, detJ = shape_gradients(mesh.element_type, mesh.nodes[mesh.elements], xi)
+    B = strain_displacement(G)  # (E, q, 6, 24)
+    b = B[:, :, :3].sum(axis=2)  # the divergence rows (E, q, 24)
+    b_mean = np.einsum("eq,eqj->ej", detJ * w, b) / (detJ * w).sum(axis=1)[:, None]
+    m = np.array([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
+    B_bar = B + m[None, None, :, None] * (b_mean[:, None, None, :] - b[:, :, None, :]) / 3.0
+    want = np.einsum("eq,eqia,ij,eqjb->eab", detJ * w, B_bar, material.elasticity_matrix(), B_bar)
+    assert np.abs(body.Ke - want).max() < 1e-12 * np.abs(want).max()
+    # and its strain output: the volume change is the element's mean, b_mean . u, not the centre's
+    u = np.random.default_rng(5).normal(scale=1e-3, size=mesh.nodes.shape)
+    body.positions = mesh.nodes + u
+    eps = body.strain()
+    R = body.rotations(body.positions)
+    local = body.local_displacements(body.positions, R)
+    assert np.allclose(eps[:, :3].sum(axis=1), np.einsum("ej,ej->e", b_mean, local), rtol=1e-10, atol=1e-15)

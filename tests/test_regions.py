@@ -115,3 +115,33 @@ def test_the_matrix_free_product_of_a_split_stiffness_is_the_assembled_one(kind,
     K = body.pattern.to_csr(body.stiffness_blocks(body.warped_stiffness_upper(R)[0]))
     Ky = body.warped_product(body.rotated_gradients(R), y)
     assert np.abs(Ky.ravel() - K @ y.ravel()).max() < 1e-10 * np.abs(K @ y.ravel()).max()
+
+
+def test_each_region_has_its_materials_element_matrices():
+    """nu 0.3 and 0.45, tet10 and B-bar hex8: every element's K_e and mass of the body of regions equal those of a
+    body made of that element's material alone."""
+    for kind, volumetric in (("tet10", "full"), ("hex8", "mean")):
+        mesh = sb.box_mesh((0.3, 0.2, 0.1), (3, 2, 2), kind)
+        labels = np.arange(mesh.n_elements) % 2
+        mats = [sb.LinearElastic(1e6, 0.3, 1000.0), sb.LinearElastic(3e6, 0.45, 2500.0)]
+        both = sb.FemBody(mesh, sb.Regions(mats, labels), volumetric=volumetric)
+        for r, m in enumerate(mats):
+            alone = sb.FemBody(mesh, m, volumetric=volumetric)
+            on = labels == r
+            assert np.allclose(both.Ke[on], alone.Ke[on], rtol=1e-12, atol=1e-12 * np.abs(alone.Ke).max())
+            assert np.allclose(both.Me[on], alone.Me[on], rtol=1e-14)
+
+
+def test_regions_labels_are_read_only_and_their_materials_isotropic():
+    m = sb.LinearElastic(1e6, 0.3, 1000.0)
+    regions = sb.Regions([m], np.zeros(8, int))
+    with pytest.raises(ValueError):
+        regions.labels[:] = 1
+
+    class Stiffer(sb.LinearElastic):
+        def elasticity_matrix(self):
+            return 2.0 * super().elasticity_matrix()
+
+    mesh = sb.box_mesh((0.1, 0.1, 0.1), (1, 1, 1), "hex8")
+    with pytest.raises(sb.InvalidInputError, match="Stiffer: its elasticity matrix is not the isotropic"):
+        sb.FemBody(mesh, sb.Regions([m, Stiffer(1e6, 0.3, 1000.0)], np.array([1])))
