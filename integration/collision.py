@@ -679,6 +679,7 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
         t = _golden(f, len(e_near))
         closest, normal, d = shape.distance(la + t[:, None] * (lb - la))
         which = np.zeros(len(e_near), np.int64)
+        spanned = np.zeros(len(e_near), dtype=bool)  # rows at a face's rims (face_span)
         outward = edge_normals(positions, triangles, edge_tris[e_near]) @ Rw  # the edges' outward normals, part frame
         span = shape.face_span(la, lb, la + t[:, None] * (lb - la), outward)
         if span is not None:  # across a flat face: rows at both its rims, held by the face's plane
@@ -695,11 +696,16 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
                 normal = np.concatenate([normal[keep], face_n[idx]])
                 closest = np.concatenate([closest[keep], pts - d2[:, None] * face_n[idx]])
                 which = np.concatenate([which[keep], np.zeros(len(across), np.int64), np.ones(len(across), np.int64)])
+                spanned = np.concatenate([spanned[keep], np.ones(2 * len(across), dtype=bool)])
                 e_near, la, lb, d_a, d_b = (np.concatenate([v[keep], v[idx]]) for v in (e_near, la, lb, d_a, d_b))
         held = held_gap(np.column_stack([1 - t, t]), node_gap[E[e_near]])
         # the part lies between the nodes: the point nearer to it than either end, and than the ends' contacts hold
         # (a movable link: always, see above; the convex solve takes rows beside rows)
         ok = (t > EDGE_END) & (t < 1 - EDGE_END)
+        # a face's rim at a node that the node's own contact does not hold against that face (a node on the line of
+        # a box's rim, held by the side beside it, while the face has pushed the node's neighbours on: the surface
+        # between them lies inside the box): the rim row, deeper than the node's contacts hold it
+        ok |= spanned & (d < held - EDGE_EXPLAINED)
         if not rigid.movable:
             ok &= d < np.minimum(np.minimum(d_a, d_b), held) - EDGE_EXPLAINED
         if not ok.any():

@@ -30,18 +30,18 @@ SIZE = 0.024  # [m] the finger's cube; its face's rim lies between the pad's nod
 HEIGHT = 0.1
 
 
-def _finger(cid: int, tmp_path, lower: float = -1.0, upper: float = 1.0, mass: float = 0.1) -> int:
+def _finger(cid: int, tmp_path, lower: float = -1.0, upper: float = 1.0, mass: float = 0.1, size: float = SIZE) -> int:
     """A 0.1 kg cube on a prismatic joint along x (a fixed base at (0, 0, HEIGHT)): pybullet body id."""
     path = tmp_path / "finger.urdf"
-    path.write_text(URDF.format(mass=mass, size=SIZE, lower=lower, upper=upper))
+    path.write_text(URDF.format(mass=mass, size=size, lower=lower, upper=upper))
     body = p.loadURDF(str(path), [0, 0, HEIGHT], useFixedBase=True, physicsClientId=cid)
     p.changeDynamics(body, 0, linearDamping=0, angularDamping=0, jointDamping=0, physicsClientId=cid)
     return body
 
 
-def _pad(world: World, E: float = 1e6) -> sb.FemBody:
-    """A 2 x 4 x 4 cm soft pad 0.2 mm in front of the finger's face (x), its back face fixed."""
-    x0 = SIZE / 2 + 0.0002
+def _pad(world: World, E: float = 1e6, size: float = SIZE) -> sb.FemBody:
+    """A 2 x 4 x 4 cm soft pad 0.2 mm in front of the face of a finger of ``size`` (x), its back face fixed."""
+    x0 = size / 2 + 0.0002
     mesh = sb.box_mesh((0.02, 0.04, 0.04), (2, 4, 4), "tet4", center=(x0 + 0.01, 0, HEIGHT))
     pad = sb.FemBody(mesh, sb.LinearElastic(E, 0.3, 1000.0), damping=(0.1, 0.002))
     pad.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], mesh.nodes[:, 0].max())))
@@ -197,3 +197,20 @@ def test_set_motors_gives_each_joint_its_own_target():
     with pytest.raises(sb.InvalidInputError, match=r"joints \[7\] of body"):
         world.set_motors(kuka, [0, 7], "position", [1.0, 1.0])
     assert world.motors.get(kuka, 0).position == 0.0  # untouched
+
+
+def test_a_finger_whose_rim_lies_on_the_pads_node_lines_does_not_cut_in(tmp_path):
+    """A 2 cm finger on the 1 cm grid of the pad: its face's rim lies exactly on lines of the pad's nodes, which its
+    side faces then hold sideways. The pad's faces from those nodes inward used to slide into the finger (1.4 mm deep);
+    the rows at the face's rims hold them: pressing with its 20 N limit, nothing is inside the finger by 0.1 mm
+    (measured apart from the contact search: triangle samples against the box, its edge points inside the pad)."""
+    import geometry as geo
+
+    world = World(dt=0.01)
+    finger = _finger(world.client, tmp_path, size=0.02)
+    pad = _pad(world, size=0.02)
+    world.set_motor(finger, 0, "position", target_position=0.05, force=20.0)
+    world.run(0.4)
+    assert world.contact_force(finger, 0)[0] == pytest.approx(-20.0, rel=0.01)
+    depth = geo.rigid_penetration(world.client, finger, pad.positions, pad.mesh.surface_triangles(), link=0)
+    assert depth < 1e-4
