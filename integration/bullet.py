@@ -243,7 +243,7 @@ class BulletAdapter:
         return self._limits[body]
 
     def set_motor(self, motor) -> None:
-        """Run a motor (motors.Motor) in pybullet's step, as the user set it."""
+        """Run a motor (joints.Motor) in pybullet's step, as the user set it."""
         mode, kw = motor.pybullet_args(p)
         p.setJointMotorControl2(motor.body, motor.joint, mode, physicsClientId=self.client, **kw)
 

@@ -441,7 +441,7 @@ class World:
         """Drive joint ``joint`` of pybullet body ``body`` by a motor, as ``pybullet.setJointMotorControl2`` would
         (the same arguments and defaults; ``mode`` "position" or "velocity", or pybullet's POSITION_CONTROL and
         VELOCITY_CONTROL), and keep it in the coupled step: while the body is in the coupled problem (in contact with
-        a soft body, or attached to one) the motor is a row of that problem with its force limit (integration.motors),
+        a soft body, or attached to one) the motor is a row of that problem with its force limit (integration.joints),
         so that it pushes through a soft body with at most ``force`` [N or N m] at any dt, as it does against a rigid
         body in plain pybullet. Elsewhere pybullet runs it in its own step. Set again to change it; ``force=0``
         leaves the joint free. Returns the Motor."""
