@@ -6,8 +6,8 @@ K_e (E, 3k, 3k) and mass are computed once at construction by the quadratures of
 from __future__ import annotations
 
 import math
-from functools import cached_property
-from typing import Callable
+from functools import cache, cached_property
+from typing import Callable, NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -66,15 +66,17 @@ def _components(R: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(R.reshape(len(R), 9).T)
 
 
-def _lazy(make: Callable[[], object]) -> Callable[[], object]:
-    """A function returning make()'s result, made at its first call."""
-    kept = []
+class _Part(NamedTuple):
+    """A split stiffness's second (bulk) part, stepped as an element of its own: weighted gradients (E, q, k, 3), rest
+    loads K_e X_e (E, k, 3), the assembly it shares with the first part, a function giving its rotated-gradient
+    operator (one-point elements, numpy path; else None), Lame parameters and their (9, 9) isotropic map."""
 
-    def get():
-        if not kept:
-            kept.append(make())
-        return kept[0]
-    return get
+    gradients: np.ndarray
+    rest: np.ndarray
+    assembly: UpperAssembly
+    rotate: Callable[[], sp.csr_matrix] | None
+    lame: tuple[float, float]
+    iso: np.ndarray
 
 
 def _warped_upper(R9: np.ndarray, Gw: np.ndarray, P: np.ndarray, ua: UpperAssembly, rotate_grads, lame: tuple,
@@ -216,7 +218,7 @@ class FemBody:
         self._rotate_grads = None  # one-point elements: the function giving their operator (numpy path), made at first use
         if self._Gw.shape[1] == 1:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "pairs")
-            self._rotate_grads = _lazy(lambda: rotated_gradient_operator(Gw))  # not self: no reference cycle
+            self._rotate_grads = cache(lambda: rotated_gradient_operator(Gw))  # not self: no reference cycle
         else:
             self._upper = UpperAssembly.from_elements(self.pattern, mesh.elements, "matrices")
         self._isotropic = isotropic_matrix(lam, mu)  # (9, 9) map from Gram to stiffness blocks
@@ -228,9 +230,9 @@ class FemBody:
         if split:
             # on the first part's assembly: "pairs" (tet4: both parts one-point) or "matrices" (Gram matrices of any
             # number of points: B-bar's one-point part too)
-            self._bulk_part = (np.ascontiguousarray(g1), np.ascontiguousarray(P1), self._upper,
-                               _lazy(lambda: rotated_gradient_operator(g1)) if self._rotate_grads is not None else None,
-                               (1.0, 0.0), isotropic_matrix(1.0, 0.0))
+            self._bulk_part = _Part(np.ascontiguousarray(g1), np.ascontiguousarray(P1), self._upper,
+                                    cache(lambda: rotated_gradient_operator(g1)) if self._rotate_grads is not None
+                                    else None, (1.0, 0.0), isotropic_matrix(1.0, 0.0))
             if mean:  # the mean divergence rows (E, 3k), for B-bar's strain output
                 self._mean_divergence = g_mean.reshape(E, 3 * k)
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
@@ -346,7 +348,7 @@ class FemBody:
     @property
     def rest_element_loads(self) -> np.ndarray:
         """K_e X_e per element (E, k, 3) [N] (the rest loads before assembly, of every part of the stiffness)."""
-        return self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part[1]
+        return self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part.rest
 
     @cached_property
     def Ke(self) -> np.ndarray:
@@ -356,7 +358,7 @@ class FemBody:
         element)."""
         parts = [(self._Gw, self._lame)]
         if self._bulk_part is not None:
-            parts.append((self._bulk_part[0], self._bulk_part[4]))
+            parts.append((self._bulk_part.gradients, self._bulk_part.lame))
         Ke = None
         for Gw, lame in parts:
             B = strain_displacement(Gw)  # weighted: sqrt(w detJ) B (E, q, 6, 3k)
@@ -684,9 +686,8 @@ class FemBody:
         R9 = _components(np.broadcast_to(np.eye(3), (E, 3, 3)) if R is None else R)
         K, load = _warped_upper(R9, self._Gw, self._rest_P, self._upper, self._rotate_grads, self._lame,
                                 self._isotropic, self._elements_c)
-        if self._bulk_part is not None:  # B-bar's volumetric part, a one-point element on the mean gradients
-            g1, P1, ua1, rotate1, lame1, iso1 = self._bulk_part
-            K1, load1 = _warped_upper(R9, g1, P1, ua1, rotate1, lame1, iso1, self._elements_c)
+        if self._bulk_part is not None:  # a split stiffness's bulk part (regions, B-bar), an element of its own
+            K1, load1 = _warped_upper(R9, *self._bulk_part, self._elements_c)
             K = K + K1
             load = None if load is None or load1 is None else load + load1
         result = K, self.rest_loads(R) if load is None else load
@@ -714,7 +715,7 @@ class FemBody:
         if "_mf" not in self.__dict__:
             self._mf = {}
         if part not in self._mf:
-            Gw, lame = (self._Gw, self._lame) if part == 0 else (self._bulk_part[0], self._bulk_part[4])
+            Gw, lame = (self._Gw, self._lame) if part == 0 else (self._bulk_part.gradients, self._bulk_part.lame)
             E, q = Gw.shape[:2]
             G = np.ascontiguousarray(Gw.transpose(0, 2, 1, 3)).reshape(E, -1, 3)
             G.flags.writeable = False

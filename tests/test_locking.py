@@ -100,26 +100,6 @@ def test_mean_dilatation_passes_the_patch_test_and_keeps_rigid_modes():
     assert np.abs(f[inner]).max() < 1e-9 * scale
 
 
-@pytest.mark.parametrize("compiled", [True, False])
-def test_mean_dilatation_warped_stiffness_is_the_rotated_element_stiffness(compiled, monkeypatch):
-    """The warped step's stiffness and rest loads for B-bar (the deviatoric part at every point plus a one-point part
-    on the mean gradients) equal R K R^T and R K X of the element matrices K_e, for the compiled kernels and their
-    numpy twins alike."""
-    from softbody import kernels
-
-    if not compiled:
-        monkeypatch.setattr(kernels, "ENABLED", False)
-    mesh = sb.box_mesh((0.3, 0.2, 0.1), (3, 2, 2), "hex8")
-    body = _mean_body(mesh, nu=0.49)
-    K = body.pattern.to_csr(body.pattern.assemble(body.Ke)).toarray()
-    R = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]
-    R *= np.sign(np.linalg.det(R))
-    Kw, load = body.warped_stiffness_upper(np.broadcast_to(R, (mesh.n_elements, 3, 3)).copy())
-    T = np.kron(np.eye(mesh.n_nodes), R)
-    assert np.abs(body.pattern.to_csr(body.stiffness_blocks(Kw)).toarray() - T @ K @ T.T).max() < 1e-12 * np.abs(K).max()
-    assert np.abs(load.ravel() - T @ K @ mesh.nodes.ravel()).max() < 1e-12 * np.abs(load).max()
-
-
 def test_mean_dilatation_dynamics_settle_at_the_static_solution():
     """A nearly incompressible B-bar hex8 cantilever stepped (warped, damped) from rest comes to rest where the
     static solve puts it (small deflection: the two agree to 1% at the tip)."""
