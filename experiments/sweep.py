@@ -205,9 +205,9 @@ def _choices() -> dict[str, tuple[str, ...]]:
     """The values the canonical scenes' text parameters take (a user's file may mean anything by its own)."""
     from softbody.elements import ELEMENT_TYPES
     from softbody.linsolve import BACKENDS
-    from softbody.simulation import SCHEMES
+    from integration.world import WORLD_SCHEMES
 
-    return {"element": tuple(sorted(ELEMENT_TYPES)), "scheme": tuple(SCHEMES), "solver": tuple(BACKENDS)}
+    return {"element": tuple(sorted(ELEMENT_TYPES)), "scheme": WORLD_SCHEMES, "solver": tuple(BACKENDS)}
 
 
 _ANNOTATED = {"float": float, "int": int, "bool": bool, "str": str}

@@ -80,6 +80,8 @@ CHECK_EVERY = 10
 # the step is solved again, up to END_ROUNDS times (World._end_contacts)
 END_TOL = 1e-4
 END_ROUNDS = 2
+# the soft bodies' schemes the coupled step takes (softbody.schemes): the backward Euler ones
+WORLD_SCHEMES = ("warped", "newton")
 
 
 def _concat_contacts(a: NodeContacts, b: NodeContacts) -> NodeContacts:
@@ -165,6 +167,13 @@ class World:
                  movable_edges: bool = True):
         if client is not None and gui:
             raise InvalidInputError("gui=True opens a client of the World's own; it cannot be combined with client=")
+        if scheme not in WORLD_SCHEMES:
+            raise InvalidInputError(
+                f"World steps soft bodies with scheme 'warped' or 'newton', got {scheme!r}"
+                + (": the coupled contact solve is a backward Euler solve over dt (one impulse over the step, rigid "
+                   "bodies stepped by pybullet over dt), which BDF2's step of 2 dt / 3 from two past states does not "
+                   "match; softbody.Simulation(..., scheme='bdf2') steps bodies without contact"
+                   if scheme == "bdf2" else ""))
         self.adapter = BulletAdapter(client, gui)
         try:
             if client is not None:

@@ -584,8 +584,11 @@ class FemBody:
         R = self.rotations(x) if R is None else R
         return self.scatter_nodal(self.element_energy_gradients(x[self.mesh.elements], R))
 
-    def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
-        """dPsi_e/dx_e (E, k, 3) [N] of each element's warped strain energy at its node positions xe (E, k, 3).
+    def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None,
+                                 offset: np.ndarray | None = None) -> np.ndarray:
+        """dPsi_e/dx_e (E, k, 3) [N] of each element's warped strain energy at its node positions xe (E, k, 3);
+        offset (E, 3k) [m]: measure the unrotated displacement from it, u_e = R^T x_e - X_e - offset_e (the Newton
+        scheme's damping: the strain since the start of the step).
 
         It is R_e K_e u_e (minus the warped forces) plus the change of R_e itself: with Y_e = sum_a x_a
         (K_e u_e)_a^T, S = R^T F, z = (tr(S) I - S)^-1 axial(skew(R^T Y)), the energy's derivative by the
@@ -600,6 +603,8 @@ class FemBody:
             R = polar_rotation_components(_components(F)).T.reshape(E, 3, 3) if self.warping else \
                 np.broadcast_to(np.eye(3), (E, 3, 3))
         u = (xe @ R).reshape(E, -1) - self.rest[self.mesh.elements].reshape(E, -1)
+        if offset is not None:
+            u = u - offset
         fh = (self.Ke @ u[:, :, None]).reshape(E, k, 3)  # K_e u_e, unrotated
         grad = fh @ np.swapaxes(R, 1, 2)
         if not self.warping:

@@ -5,16 +5,18 @@ Over a step that turns elements far, that rotation is stale: a spinning body str
 solves the nonlinear backward Euler step instead: with v the new velocities and x = x_n + h v, it minimises
 the incremental potential
 
-    Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C_n v + Psi(x_n + h v) - h f_ext^T v
+    Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + Psi(x_n + h v) - h f_ext^T v
 
-(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; C_n = alpha M + beta K'_n
-the Rayleigh damping at the start of the step; f_ext gravity and loads) under the supports, and under the
+(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; C = alpha M + beta K'_m the
+Rayleigh damping, K'_m with the rotations of the step's midpoint (x_n + x) / 2, along whose rotation the chord
+x - x_n of a turning body runs; f_ext gravity and loads) under the supports, and under the
 contacts and attachments of the integration layer's velocity hook, exactly as the warped step's solve.
 
 Iteration k, from the rigid prediction v_0 (the body's rigid motion carried through the step, the rest of
-its velocities as they are): the gradient g_k = M (v_k - v_n) + h C_n v_k + h dPsi/dx(x_k) - h f_ext (the exact
+its velocities as they are): the gradient g_k = M (v_k - v_n) + h C v_k + h dPsi/dx(x_k) - h f_ext (the exact
 gradient of Psi, FemBody.energy_gradient, rotations re-evaluated at x_k), the warped tangent
-A_k = M + h C_n + h^2 K'(x_k) (symmetric positive definite; the rotations' own derivatives left out), and
+A_k = M + h C_n + h^2 K'(x_k) (C_n the damping with the start's rotations; symmetric positive definite; the
+rotations' own derivatives left out), and
 one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a warped step (supports,
 contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
 whole step (it makes the iterate satisfy the constraints). Later steps are whole where they lower the residual;
@@ -34,13 +36,13 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
 
 from .body import FemBody
 from .errors import InvalidInputError, SimulationDiverged, SolverError
-from .integrator import Constraints, IterativeSettings, LinearSystem, Timings, assembled_system, timed
+from .integrator import IterativeSettings, LinearSystem, Timings, assembled_system, timed
 from .linsolve import SpdSolver
 from .preconditioner import Preconditioner
 
@@ -105,32 +107,65 @@ class NewtonReport:
         return self.residuals[-1] if self.residuals else float("nan")
 
 
+class Start(NamedTuple):
+    """Where a Newton step starts: positions x (N, 3) [m] (x + h v at its end), velocities v (N, 3) [m/s] (the
+    momentum change is M (v_new - v)), and the elements' unrotated displacements u (E, 3k) [m] from which its
+    damping measures the strain over the step."""
+
+    x: np.ndarray
+    v: np.ndarray
+    u: np.ndarray
+
+    @classmethod
+    def of(cls, body: FemBody) -> "Start":
+        """The body's current state: a backward Euler step's start."""
+        x = body.positions.copy()
+        return cls(x, body.velocities.copy(), body.local_displacements(x, body.rotations(x)))
+
+
 @dataclass
 class _BodyStep:
-    """One body's data over a Newton step: start state, loads, the damping stiffness at the start (its
-    product), and the current iterate's gradient and potential."""
+    """One body's data over a Newton step: its start, loads, the rigid motion's damping relief, and the iterate's
+    gradient and potential."""
 
     body: FemBody
-    x0: np.ndarray
-    v0: np.ndarray
+    start: Start
     f_ext: np.ndarray
-    damping_product: Callable[[np.ndarray], np.ndarray]
-    K_damp: np.ndarray  # upper blocks of beta h K'_n, added into every tangent
     spared: np.ndarray | float = 0.0  # alpha M v_r (N, 3) [N]: the damping force the rigid motion is spared
 
+    @property
+    def x0(self) -> np.ndarray:
+        return self.start.x
+
+    @property
+    def v0(self) -> np.ndarray:
+        return self.start.v
+
     def gradient(self, v: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-        """(g (N, 3), dPsi/dx (N, 3)) at the iterate v."""
+        """(g (N, 3) [N s], dPsi/dx (N, 3) [N]) at the iterate v."""
         body = self.body
-        dpsi = body.energy_gradient(self.x0 + h * v)
-        g = body.mass_product(v - self.v0) + h * (self.damping_product(v) - self.spared) + h * (dpsi - self.f_ext)
+        alpha, beta = body.damping
+        x = self.x0 + h * v
+        R = body.rotations(x)
+        xe = x[body.mesh.elements]
+        dpsi = body.scatter_nodal(body.element_energy_gradients(xe, R))
+        g = body.mass_product(v - self.v0) + h * (alpha * body.mass_product(v) - self.spared) + h * (dpsi - self.f_ext)
+        if beta:  # dD/dv: D = beta / (2 h) sum_e |u_e(x) - u_e,start|^2_K, rotations' derivatives included
+            g = g + beta * body.scatter_nodal(body.element_energy_gradients(xe, R, offset=self.start.u))
         return g, dpsi
 
     def potential(self, v: np.ndarray, h: float) -> float:
         """Phi(v) [J]: the incremental potential of the module doc (units of energy)."""
         body = self.body
+        alpha, beta = body.damping
         dv = v - self.v0
-        return float(0.5 * np.sum(dv * body.mass_product(dv)) + 0.5 * h * np.sum(v * self.damping_product(v))
-                     + body.elastic_energy(self.x0 + h * v) - h * np.sum((self.f_ext + self.spared) * v))
+        x = self.x0 + h * v
+        phi = (0.5 * np.sum(dv * body.mass_product(dv)) + 0.5 * h * alpha * np.sum(v * body.mass_product(v))
+               + body.elastic_energy(x) - h * np.sum((self.f_ext + self.spared) * v))
+        if beta:
+            du = body.local_displacements(x, body.rotations(x)) - self.start.u
+            phi += 0.5 * beta / h * np.sum(du * (body.Ke @ du[:, :, None])[:, :, 0])
+        return float(phi)
 
 
 def rigid_prediction(body: FemBody, h: float) -> np.ndarray:
@@ -201,16 +236,21 @@ class NewtonStepper:
     def solve(self, bodies: list[FemBody], h: float, loads: list[np.ndarray], solvers: list[SpdSolver],
               methods: list[str], iterative: IterativeSettings, timings: Timings | None,
               solve: Callable[[list[LinearSystem]], list[np.ndarray]], time: float, step: int,
-              contacts: bool = False, preconditioners: list[Preconditioner | None] | None = None) -> list[np.ndarray]:
+              contacts: bool = False, preconditioners: list[Preconditioner | None] | None = None,
+              prediction: list[np.ndarray] | None = None,
+              starts: list[Start] | None = None) -> list[np.ndarray]:
         """The new velocities (N_i, 3) of ``bodies`` after the step h [s], under loads (N_i, 3) [N]; ``solve``
         solves the step systems with every constraint (supports, contacts: the Simulation's); contacts: whether
         ``solve`` adds contacts and friction (then a residual within CYCLE tolerances that cycles, or that the
         whole step raises, is accepted: the active set and the stick/slip states switch between iterates);
-        preconditioners: the bodies' for the iterative path, kept by the stepper (None: fresh ones)."""
+        preconditioners: the bodies' for the iterative path, kept by the stepper (None: fresh ones); prediction: the
+        first iterates (N_i, 3) [m/s] (None: rigid_prediction over h); starts: per body where the step starts
+        (Start; None: the bodies' current states; a multistep scheme's combination of its past states,
+        softbody.schemes)."""
         s = self.settings
         report = self.report = NewtonReport()
-        states = [self._start(b, h, f) for b, f in zip(bodies, loads)]
-        v = [rigid_prediction(b, h) for b in bodies]
+        states = [self._start(b, h, f, None if starts is None else starts[i]) for i, (b, f) in enumerate(zip(bodies, loads))]
+        v = [rigid_prediction(b, h) for b in bodies] if prediction is None else [np.array(p, float) for p in prediction]
         # the residual's own round-off [N s]: the elastic forces are differences of terms of the size of
         # sum_e |K_e X_e|, which a stiff body at rest makes far larger than the step's impulses
         roundoff = ROUNDOFF * h * np.sqrt(sum(float(np.sum(b.rest_element_loads ** 2)) for b in bodies))
@@ -248,14 +288,16 @@ class NewtonStepper:
                 body = st.body
                 x = st.x0 + h * vi
                 with timed(timings, "assembly"):
-                    if tangent == "exact":
-                        A = body.system_blocks(st.K_damp, 1.0 + h * body.damping[0], 1.0) \
-                            + h * h * body.energy_hessian_blocks(x)
-                    else:
+                    alpha, beta = body.damping
+                    if tangent == "warped" or beta:  # the warped stiffness at the iterate (the damping's tangent)
                         with timed(timings, "rotations"):
                             R = body.rotations(x)
                         K, _ = body.warped_stiffness_upper(R)
-                        A = body.system_blocks(st.K_damp + h * h * K, 1.0 + h * body.damping[0], 1.0)
+                    if tangent == "exact":
+                        A = h * h * body.energy_hessian_blocks(x) + (
+                            body.system_blocks(K, 1.0 + h * alpha, h * beta) if beta else (1.0 + h * alpha) * body.M_blocks)
+                    else:
+                        A = body.system_blocks(K, 1.0 + h * alpha, h * beta + h * h)
                     Av = (body.pattern.to_bsr(A) @ vi.reshape(-1)).reshape(-1, 3)
                 b = Av - g
                 systems.append(assembled_system(body, A, b, solver, method, iterative, timings, vi, (Av, g), pre=pre))
@@ -323,22 +365,10 @@ class NewtonStepper:
                 and min(residuals[-3:-1]) - residuals[-1] < 0.1 * residuals[-1])
 
     @staticmethod
-    def _start(body: FemBody, h: float, f_ext: np.ndarray) -> _BodyStep:
-        alpha, beta = body.damping
-        x0, v0 = body.positions.copy(), body.velocities.copy()
-        K_n, _ = body.warped_stiffness_upper(body.rotations(x0) if body.warping else None)
-        Kb = body.pattern.to_bsr(body.stiffness_blocks(K_n)) if beta else None
-
-        relief = body.rigid_damping_relief(h, body.mass_product(v0))
-
-        def damping(v: np.ndarray) -> np.ndarray:
-            out = alpha * body.mass_product(v)
-            if Kb is not None:
-                out = out + beta * (Kb @ v.reshape(-1)).reshape(-1, 3)
-            return out
-
-        return _BodyStep(body, x0, v0, np.asarray(f_ext, float), damping, h * beta * K_n,
-                         0.0 if relief is None else relief / h)
+    def _start(body: FemBody, h: float, f_ext: np.ndarray, start: Start | None = None) -> _BodyStep:
+        start = Start.of(body) if start is None else start
+        relief = body.rigid_damping_relief(h, body.mass_product(start.v))
+        return _BodyStep(body, start, np.asarray(f_ext, float), 0.0 if relief is None else relief / h)
 
     def _line_search(self, states: list[_BodyStep], v: list[np.ndarray], d: list[np.ndarray], g: list[np.ndarray],
                      h: float) -> float | None:

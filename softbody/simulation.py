@@ -18,6 +18,7 @@ from .integrator import (Constraints, DirectSystem, IterativeSettings, LinearSys
 from .linearisation import RotationWatch
 from .linsolve import BACKENDS, SpdSolver
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
+from .schemes import SCHEMES, Scheme
 from .solvers import BodySolvers
 from .stack import BodyStack
 from .state import SimulationState, copy_pairs, not_copyable, read_state
@@ -28,7 +29,6 @@ VelocitySolver = Callable[[list[FemBody], list[LinearSystem], list[Constraints],
 
 
 METHODS = ("auto", "direct", "iterative")
-SCHEMES = ("warped", "newton")
 # below this a direct factorisation per step is about as cheap; above it the iterative path is 3-7x
 # faster without contact (benchmarks/step_no_contact.py) and faster over whole runs with contact
 ITERATIVE_MIN_DOFS = 1500
@@ -102,15 +102,17 @@ def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
 
 
 class Simulation:
-    """Steps one or more soft bodies with backward Euler.
+    """Steps one or more soft bodies with backward Euler or an energy-momentum scheme (softbody.schemes).
 
     bodies: a FemBody or a list of them; dt: step [s] > 0; gravity [m/s^2]; solver: linear solver
     backend ("auto", "pardiso", "superlu"); max_energy: optional bound [J] on each body's kinetic plus
     elastic energy, above which a step raises SimulationDiverged; method: the linear solve ("auto",
     "direct", "iterative"), tol its relative tolerance on the iterative path; scheme: "warped" (the
-    paper's step: rotations at the start of the step, one solve) or "newton" (the nonlinear backward Euler
+    paper's step: rotations at the start of the step, one solve), "newton" (the nonlinear backward Euler
     step, softbody.newton: rotations re-evaluated, Newton iterations to the residual newton_tol, at most
-    newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals).
+    newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals) or
+    "energy-momentum" (the implicit midpoint rule with a discrete gradient, by the same Newton iterations: second
+    order, no numerical damping, linear and angular momentum and the undamped energy kept; softbody.schemes).
     ``external_forces[body] = f`` adds loads f (N, 3) [N] to a body's gravity for every step (ExternalForces);
     :meth:`save_state` / :meth:`restore_state` checkpoint the whole state (softbody.state).
     """
@@ -140,8 +142,9 @@ class Simulation:
         self.method = method
         self.settings = IterativeSettings(tol=float(tol))
         if scheme not in SCHEMES:
-            raise InvalidInputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+            raise InvalidInputError(f"scheme must be one of {tuple(SCHEMES)}, got {scheme!r}")
         self.scheme = scheme
+        self.stepper: Scheme = SCHEMES[scheme]()  # softbody.schemes: how a step advances the bodies
         self.newton = NewtonStepper(NewtonSettings(newton_tol, newton_max_iter))
         self.max_energy = max_energy
         self.t = 0.0
@@ -205,7 +208,7 @@ class Simulation:
             self.t, self.steps, copy_pairs([(b.positions, b.velocities) for b in self.bodies]),
             self.solvers.save_state(self.bodies),
             {"cycled_steps": self.newton.cycled_steps, "report": copy.deepcopy(self.newton.report)},
-            bool(kernels.ENABLED))
+            bool(kernels.ENABLED), scheme=self.stepper.save_state())
 
     def restore_state(self, state: SimulationState | str | Path) -> None:
         """Go back to a state of :meth:`save_state` (or one written to disk, read from its path): the bodies' positions
@@ -222,6 +225,7 @@ class Simulation:
         self.solvers.load_state(self.bodies, state.preconditioners)
         self.newton.cycled_steps = int(state.newton["cycled_steps"])
         self.newton.report = copy.deepcopy(state.newton["report"])
+        self.stepper.load_state(getattr(state, "scheme", None) or {}, self.bodies)
         if state.kernels != bool(kernels.ENABLED):
             warnings.warn(f"the state was saved with the compiled kernels {'on' if state.kernels else 'off'}, they are "
                           f"{'on' if kernels.ENABLED else 'off'} now: the continuation agrees with the original to "
@@ -253,27 +257,19 @@ class Simulation:
                 b.gather()  # members whose state the user assigned anew since the last step
         supports = [support_constraints(b, t_next, self.dt) for b in self.bodies]
 
-        def solve(systems: list[LinearSystem]) -> list[np.ndarray]:
+        def solve(systems: list[LinearSystem], held: list[Constraints] | None = None) -> list[np.ndarray]:
+            held = supports if held is None else held  # a scheme may hold the supported nodes by its own velocities
             if solve_velocities is not None:
-                return solve_velocities(self.bodies, systems, supports, t_next)
-            return [system.solve(cons)[0] for system, cons in zip(systems, supports)]
+                return solve_velocities(self.bodies, systems, held, t_next)
+            return [system.solve(cons)[0] for system, cons in zip(systems, held)]
 
-        if self.scheme == "newton" and self.bodies:
-            vs = self.newton.solve(self.bodies, self.dt, [self.load(b) for b in self.bodies],
-                                   [self.solvers.solver(b, self.solver_backend) for b in self.bodies],
-                                   [self.linear_method(b) for b in self.bodies], self.settings, timings, solve,
-                                   t_next, self.steps + 1, contacts=solve_velocities is not None,
-                                   preconditioners=[None if self.linear_method(b) == "direct" else self.solvers.preconditioner(
-                                       b, self.solvers.solver(b, self.solver_backend)) for b in self.bodies])
-        else:
-            systems = [self.system(b) for b in self.bodies]
-            vs = solve(systems)
-        new = [(b.positions + self.dt * v, v) for b, v in zip(self.bodies, vs)]
+        advance = self.stepper.advance(self, solve, supports, t_next, timings, solve_velocities is not None)
+        new = advance.states
         for i, (b, (x, v)) in enumerate(zip(self.bodies, new)):
             self._check(i, b, x, v)
-        if self.scheme != "newton":  # the step is finite: did its elements turn too far for it?
-            for i, (b, (_, v), system) in enumerate(zip(self.bodies, new, systems)):
-                self.rotation_watch.check(i, b, v, self.dt, system.rotations)
+        if advance.rotations is not None:  # the step is finite: did its elements turn too far for it?
+            for i, (b, (_, v), rotations) in enumerate(zip(self.bodies, new, advance.rotations)):
+                self.rotation_watch.check(i, b, v, self.dt, rotations)
         return new
 
     def commit(self, new: list[tuple[np.ndarray, np.ndarray]]) -> None:

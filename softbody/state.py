@@ -31,7 +31,8 @@ class SimulationState:
 
     bodies: per stepped body (Simulation.bodies, a BodyStack as one) its (positions (N, 3) [m], velocities (N, 3)
     [m/s]); preconditioners: softbody.solvers.BodySolvers.save_state; newton: the Newton stepper's counters and last
-    report; kernels: whether the compiled kernels stepped when it was saved.
+    report; kernels: whether the compiled kernels stepped when it was saved; scheme: what the time-stepping scheme
+    carries across steps (softbody.schemes: a multistep scheme's past states; empty for the others).
     """
 
     t: float
@@ -41,6 +42,7 @@ class SimulationState:
     newton: dict
     kernels: bool
     format: int = FORMAT
+    scheme: dict | None = None
 
     def write(self, path: str | Path) -> Path:
         """Write this state to ``path`` (pickle); ``Simulation.restore_state(path)`` reads it back."""

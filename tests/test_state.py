@@ -38,7 +38,7 @@ def _trajectory(sim: sb.Simulation, body: sb.FemBody, steps: int) -> np.ndarray:
     return np.array(out)
 
 
-@pytest.mark.parametrize("scheme", ["warped", "newton"])
+@pytest.mark.parametrize("scheme", ["warped", "newton", "bdf2"])
 def test_a_simulation_continues_from_its_saved_state_to_the_bit(scheme, tmp_path):
     body, sim = _bar(scheme)
     assert sim.linear_method(body) == "iterative"

@@ -1,0 +1,204 @@
+"""The time-stepping schemes of a Simulation: each turns one step's systems into the bodies' new states.
+
+A scheme is a small object with ``advance(sim, solve, supports, t_next, timings, contacts) -> Advance``; the
+Simulation picks it once, by name (``SCHEMES``), and its step reads: supports, ``advance``, check, commit.
+
+- "warped" (:class:`Warped`): the paper's step, backward Euler with each element's rotation at the start of the
+  step and one linear solve. First order; its numerical damping takes energy out of every vibration and slows a
+  spin (docs/scheme_trade.md).
+- "newton" (:class:`NewtonEuler`): exact backward Euler, Newton iterations on the incremental potential
+  (softbody.newton). Keeps a spinning body's shape; first order and as dissipative as the warped step.
+- "bdf2" (:class:`Bdf2`): the second-order backward differentiation formula, by the same Newton iterations:
+  x_{n+1} = (4 x_n - x_{n-1}) / 3 + 2h/3 v_{n+1} and v_{n+1} = (4 v_n - v_{n-1}) / 3 + 2h/3 a_{n+1}, which is a
+  backward Euler step of size 2h/3 from the state ((4 x_n - x_{n-1}) / 3, (4 v_n - v_{n-1}) / 3) (its damping
+  measuring the strain rate (3 u_{n+1} - 4 u_n + u_{n-1}) / 2h alike, u the unrotated displacements). Second order:
+  its numerical damping of a motion it resolves falls as (omega h)^3 rather than backward Euler's (omega h)^1, so it
+  keeps a spin and a pendulum's swing where backward Euler slows them, yet it still damps the vibrations a step
+  cannot resolve, and it is as stable as backward Euler at large steps (L-stable). It keeps linear momentum
+  exactly, angular momentum to its order, and a spinning body's shape as the Newton scheme does. Its first step,
+  and the first after the state was changed from outside (positions or velocities assigned, a step not
+  committed), is a backward Euler step. The schemes that keep energy exactly by construction fail here: the
+  implicit midpoint rule keeps both momenta but not a warped body's energy (a stiff cube spinning at 1 rev/s,
+  dt 0.01 s, swaps 16 % of its energy into a stretch every other step, and at 5 rev/s the swing grows until
+  Newton's iteration fails); the trapezoidal rule (Newmark's average acceleration) blows up on the same spin, and
+  a discrete gradient (Gonzalez) in node coordinates is not smooth where an element turns (docs/energy_schemes.md).
+  Core bodies only: the coupled contact solve of integration.World is a backward Euler solve over dt, so World
+  refuses it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Protocol
+
+import numpy as np
+
+from .body import FemBody
+from .integrator import Constraints, Timings
+from .newton import Start, rigid_prediction
+
+if TYPE_CHECKING:
+    from .simulation import Simulation
+
+# solve(systems, held=None): the step systems' velocities under the supports (or under ``held``, per body the
+# supported nodes held by other velocities) and, in a World, its contacts
+Solve = Callable[..., list[np.ndarray]]
+
+
+@dataclass
+class Advance:
+    """One step's outcome, before it is checked and committed: per body the new (positions (N, 3) [m],
+    velocities (N, 3) [m/s]); ``rotations`` per body the element rotations the step's systems were built with
+    (the warped step's, for softbody.linearisation.RotationWatch; None for schemes that iterate on them)."""
+
+    states: list[tuple[np.ndarray, np.ndarray]]
+    rotations: list[np.ndarray] | None = None
+
+
+class Scheme(Protocol):
+    """What a time-stepping scheme does: advance every body of ``sim`` by sim.dt."""
+
+    name: str
+
+    def advance(self, sim: "Simulation", solve: Solve, supports: list[Constraints], t_next: float,
+                timings: Timings, contacts: bool) -> Advance:
+        """The bodies' new states; ``solve`` solves step systems under the supports (and, with ``contacts``, the
+        caller's contacts), ``supports`` per body hold the positions at t_next."""
+        ...
+
+    def save_state(self) -> dict:
+        """What the scheme carries from step to step, copied (softbody.state)."""
+        ...
+
+    def load_state(self, saved: dict, bodies: list[FemBody]) -> None:
+        """Take back what :meth:`save_state` gave, for ``bodies``."""
+        ...
+
+
+class _OneStep:
+    """A one-step scheme: it carries nothing from step to step."""
+
+    def save_state(self) -> dict:
+        return {}
+
+    def load_state(self, saved: dict, bodies: list[FemBody]) -> None:
+        pass
+
+
+def newton_velocities(sim: "Simulation", h: float, solve: Solve, t_next: float, timings: Timings, contacts: bool,
+                      prediction: list[np.ndarray] | None = None,
+                      starts: list[Start] | None = None) -> list[np.ndarray]:
+    """The velocities (N_i, 3) [m/s] of a backward Euler step of size h [s] from the bodies' current states (or
+    ``starts``), by the Simulation's Newton stepper (softbody.newton; prediction and starts as there)."""
+    bodies = sim.bodies
+    solvers = [sim.solvers.solver(b, sim.solver_backend) for b in bodies]
+    methods = [sim.linear_method(b) for b in bodies]
+    pres = [None if m == "direct" else sim.solvers.preconditioner(b, s) for b, s, m in zip(bodies, solvers, methods)]
+    return sim.newton.solve(bodies, h, [sim.load(b) for b in bodies], solvers, methods, sim.settings, timings, solve,
+                            t_next, sim.steps + 1, contacts=contacts, preconditioners=pres, prediction=prediction,
+                            starts=starts)
+
+
+class Warped(_OneStep):
+    """The paper's step (module doc)."""
+
+    name = "warped"
+
+    def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
+        systems = [sim.system(b) for b in sim.bodies]
+        vs = solve(systems)
+        return Advance([(b.positions + sim.dt * v, v) for b, v in zip(sim.bodies, vs)],
+                       [s.rotations for s in systems])
+
+
+class NewtonEuler(_OneStep):
+    """Exact backward Euler by Newton iterations (module doc, softbody.newton)."""
+
+    name = "newton"
+
+    def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
+        if not sim.bodies:  # nothing to iterate on: the caller's solve still runs (a World's rigid coupling)
+            return Warped().advance(sim, solve, supports, t_next, timings, contacts)
+        vs = newton_velocities(sim, sim.dt, solve, t_next, timings, contacts)
+        return Advance([(b.positions + sim.dt * v, v) for b, v in zip(sim.bodies, vs)])
+
+
+@dataclass
+class _Past:
+    """The last step a Bdf2 took: its bodies, their states at its start and the states it produced."""
+
+    bodies: list[FemBody]
+    before: list[tuple[np.ndarray, np.ndarray]]
+    after: list[tuple[np.ndarray, np.ndarray]]
+
+
+class Bdf2:
+    """BDF2 (module doc). ``past`` is its state across steps: the last step's start and end, per body."""
+
+    name = "bdf2"
+
+    def __init__(self):
+        self.past: _Past | None = None
+
+    def _continues(self, bodies: list[FemBody]) -> bool:
+        """Whether the bodies are those of the last step and now stand where it left them (it was committed and
+        nothing has moved them since)."""
+        past = self.past
+        return (past is not None and len(past.bodies) == len(bodies) and all(a is b for a, b in zip(past.bodies, bodies))
+                and all(np.array_equal(b.positions, x) and np.array_equal(b.velocities, v)
+                        for b, (x, v) in zip(bodies, past.after)))
+
+    def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
+        if not sim.bodies:
+            return Warped().advance(sim, solve, supports, t_next, timings, contacts)
+        h = sim.dt
+        bodies = list(sim.bodies)
+        now = [(b.positions.copy(), b.velocities.copy()) for b in bodies]
+        if self._continues(bodies):
+            states = self._bdf2(sim, solve, supports, t_next, timings, contacts, now)
+        else:  # the first step, or the state changed from outside: a backward Euler step
+            vs = newton_velocities(sim, h, solve, t_next, timings, contacts)
+            states = [(x + h * v, v) for (x, _), v in zip(now, vs)]
+        self.past = _Past(bodies, now, states)
+        return Advance(states)
+
+    def _bdf2(self, sim, solve, supports, t_next, timings, contacts, now) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The BDF2 step's states: a backward Euler step of 2h/3 from the combination of the two past states."""
+        h = sim.dt
+        hb = 2.0 * h / 3.0
+        starts = [Start((4.0 * x - xp) / 3.0, (4.0 * v - vp) / 3.0, (4.0 * _strain(b, x) - _strain(b, xp)) / 3.0)
+                  for b, (x, v), (xp, vp) in zip(sim.bodies, now, self.past.before)]
+        # supported nodes: the end velocity that puts them on their targets x_n + h w (w the supports' own)
+        held = [_held(c, x, st.x, h, hb) for c, (x, _), st in zip(supports, now, starts)]
+        prediction = [(x + h * rigid_prediction(b, h) - st.x) / hb for b, (x, _), st in zip(sim.bodies, now, starts)]
+        vs = newton_velocities(sim, hb, lambda systems: solve(systems, held), t_next, timings, contacts,
+                               prediction=prediction, starts=starts)
+        return [(st.x + hb * v, v) for st, v in zip(starts, vs)]
+
+    def save_state(self) -> dict:
+        """The past step's states, copied (softbody.state)."""
+        if self.past is None:
+            return {}
+        return {"before": [(x.copy(), v.copy()) for x, v in self.past.before],
+                "after": [(x.copy(), v.copy()) for x, v in self.past.after]}
+
+    def load_state(self, saved: dict, bodies: list[FemBody]) -> None:
+        """Take back a past of :meth:`save_state` for ``bodies`` (those it was saved from)."""
+        self.past = None if not saved else _Past(list(bodies), [(x.copy(), v.copy()) for x, v in saved["before"]],
+                                                 [(x.copy(), v.copy()) for x, v in saved["after"]])
+
+
+def _strain(body: FemBody, x: np.ndarray) -> np.ndarray:
+    """The elements' unrotated displacements (E, 3k) [m] at positions x (N, 3) [m]."""
+    return body.local_displacements(x, body.rotations(x))
+
+
+def _held(c: Constraints, x: np.ndarray, start: np.ndarray, h: float, hb: float) -> Constraints:
+    """The supports c of a step of h [s] from positions x (N, 3) [m] (their targets x + h w, w c's velocities),
+    as velocities of a step of hb [s] from positions ``start`` (N, 3) [m] to the same targets; c's frames kept."""
+    w = c.value if c.frames is None else np.einsum("mij,mj->mi", c.frames, c.value)  # global
+    target = (x[c.nodes] + h * w - start[c.nodes]) / hb
+    local = target if c.frames is None else np.einsum("mij,mi->mj", c.frames, target)
+    return Constraints(c.nodes, c.mask, local, c.frames)
+
+
+SCHEMES: dict[str, Callable[[], Scheme]] = {"warped": Warped, "newton": NewtonEuler, "bdf2": Bdf2}
