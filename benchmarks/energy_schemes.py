@@ -108,7 +108,7 @@ class Reference:
             self.half.step()  # x_n + h/2 v_m, v_m
             b.positions, b.velocities = 2.0 * b.positions - x0, 2.0 * b.velocities - v0
         else:
-            self.half.external_forces[b] = -b.energy_gradient(x0)
+            self.half.external_forces[b] = b.node_mass[:, None] * self.half.gravity - b.energy_gradient(x0)  # f(x_n)
             b.positions = x0 + 0.5 * h * v0
             self.half.step()  # M (u - v_n) = h/2 (f_n + f(x_n + h/2 v_n + h/2 u))
 

@@ -80,7 +80,7 @@ the canonical scenes (the error grows with h for both, and the Newton step is no
 reference than the warped one; on the hanging tube it is further). The spinning cube's trajectory error is
 a phase error of the spin that backward Euler slows for both; its shape column is where the schemes differ:
 the warped step stretches the cube by 1-61 % as h grows, the Newton step keeps it within 0.05 %. The Newton
-step costs 3-7 times a warped one. Stability at large steps: docs/stability_newton.md.
+step costs 3-10 times a warped one. Stability at large steps: docs/stability_newton.md.
 
 ![time per step against error](img/scheme_trade.png)"""
 

@@ -598,8 +598,8 @@ does work on the cube, so its energy ratio is not measured (-)."""
 
 # the warped report points to the Newton one (numbers from docs/stability_newton.md of 2026-11-25)
 NEWTON_POINTER = """The same sweep with the Newton step (`--scheme newton`, rotations updated within the step) is in
-[stability_newton.md](stability_newton.md): **886 strictly dissipative, 0 unstable, 74 refused with
-`SimulationDiverged`, of 960**; at dt = 0.1 s 193 of 240 stable (cantilever 82, free cube 111) where the step
+[stability_newton.md](stability_newton.md): **890 strictly dissipative, 0 unstable, 70 refused with
+`SimulationDiverged`, of 960**; at dt = 0.1 s 186 of 240 stable (cantilever 78, free cube 108) where the step
 below holds 54. Its refusals are very soft beams folding within a step and nearly incompressible tet10 under
 a large initial stretch; cost and accuracy of the two steps in [scheme_trade.md](scheme_trade.md)."""
 
@@ -666,33 +666,33 @@ These are accuracy, not stability, limits: the locked elements are stable, only 
 
 EXPLANATION_NEWTON = """## What the Newton step holds, and what it refuses
 
-Measured on 2026-11-25 (this report): 886 of the 960 matrix cases strictly dissipative, **none unstable**
-(the warped step: 194), 74 refused with `SimulationDiverged`. The Newton step minimises the incremental
+Measured on 2026-11-28 (this report): 890 of the 960 matrix cases strictly dissipative, **none unstable**
+(the warped step: 194), 70 refused with `SimulationDiverged`. The Newton step minimises the incremental
 potential with the rotations re-evaluated at every iterate, so a turn of theta per step no longer stretches
-the body (the spinning cubes keep their shape to 0.2 % of the edge at 10 rev/s), and at dt = 0.1 s 193 of
+the body (the spinning cubes keep their shape to 0.2 % of the edge at 10 rev/s), and at dt = 0.1 s 186 of
 the 240 matrix cases are stable (the warped step: 54). A step either converges to the residual tolerance
 (no converged run of the matrix gained energy) or stops with the residual history and the state of the
 last good step: no case ends unstable or non-finite.
 
 Where it refuses (the list above):
 
-- **Very soft beams swinging far per step** (cantilever, E <= 1e4 Pa at dt = 0.1 s: 35 of the 38 cantilever
+- **Very soft beams swinging far per step** (cantilever, E <= 1e4 Pa at dt = 0.1 s: 36 of the 42 cantilever
   refusals there; E <= 1e3 Pa at dt = 0.01 s): the beam folds through large angles within one step, the
   incremental potential is far from quadratic, and 25 Newton solves (the default cap) do not reach the
   tolerance. `newton_max_iter` higher or a smaller step gets through.
 - **Nearly incompressible tet10 under a large initial stretch** (the free cube released stretched +10 % /
-  -5 %, nu >= 0.49, at every dt, 24 cases): the corotational energy of the quadratic element, whose rotation
+  -5 %, nu >= 0.49, 12 cases, all but one at dt = 0.1 s): the corotational energy of the quadratic element, whose rotation
   comes from its characteristic tetrahedron, has a gradient whose exact tangent is indefinite there; the
-  line search finds no descent (22 of the 74 refusals say so) or the iteration stalls. The warped step
+  line search finds no descent (12 of the 70 refusals say so) or the iteration stalls. The warped step
   passes these cases only where its rotation error stays small (dt <= 0.01 s).
-- **Every element mirrored** (tet4, tet10): the first step does not converge in 25 solves (hex8 recovers);
+- **Every element mirrored** (tet10): the first step does not converge in 25 solves (tet4 and hex8 recover);
   the corotational energy of a fully inverted element, with det R = +1, is far from its quadratic model,
   and the warped step, which solves once, pushes such a body back (docs/stability.md).
 
 Refusals are never silent: `SimulationDiverged` names the step, the time and the residuals of every solve,
 and the simulation keeps the state of the last good step, so a user can lower dt, raise `newton_max_iter`
 or fall back to `scheme="warped"` from there. The warped step's limits and their physics are in
-docs/stability.md; the cost of the Newton step (3-7x a warped one) and its accuracy are in
+docs/stability.md; the cost of the Newton step (3-10x a warped one) and its accuracy are in
 docs/scheme_trade.md."""
 
 

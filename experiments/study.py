@@ -47,7 +47,7 @@ from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
 from softbody.linsolve import THREAD_VARS as THREAD_ENV
 
 FORMAT = 2  # version of the cached run files; bump to invalidate old caches
-SCHEMES = ("warped", "newton")  # softbody.Simulation's
+SCHEMES = ("warped", "newton")  # the World's (integration.world.WORLD_SCHEMES): the scenes are Worlds
 ELEMENTS = ("tet4", "hex8", "tet10")
 
 

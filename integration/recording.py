@@ -27,7 +27,7 @@ Open the file with ``rerun <file>.rrd``. Everything is logged on the ``sim_time`
     plots/step_time           wall time of each step from the second on [ms]
     plots/setup_time          wall time of the first step [ms] (symbolic analysis, first factorisation)
     plots/contacts            number of active contacts, and of candidates within reach but not touching
-    plots/newton/*            scheme "newton": iterations and log10 of the final relative residual per step
+    plots/newton/*            schemes "newton" and "bdf2": iterations and log10 of the final relative residual per step
     plots/color_range         the frame's min and max of the colour field (kPa or mm)
     colorbar                  the colour bar: an image with the map's name, numbers and unit
     legend                    a text note: which field, how it is drawn, colour map and its range, set-up time
@@ -447,7 +447,7 @@ class Recorder:
         if "rigid" in self.content:
             self._moving = [rb for rb in target.rigids.values() if rb.mode != "fixed"]
         self._attach = self._attachments() if "attachments" in self.content else []
-        self._newton = getattr(self.sim, "scheme", "warped") == "newton" and "diagnostics" in self.content
+        self._newton = getattr(getattr(self.sim, "stepper", None), "iterates", False) and "diagnostics" in self.content
         self._series = 0  # explicit series colours, handed out in order (_colors_of)
         # what the 3D views frame [m]: the soft bodies' box, and per rigid link the box of its centre's path and
         # its bounding radius; from the scene at attach (kinematic links over its duration), grown per frame

@@ -5,18 +5,22 @@ Over a step that turns elements far, that rotation is stale: a spinning body str
 solves the nonlinear backward Euler step instead: with v the new velocities and x = x_n + h v, it minimises
 the incremental potential
 
-    Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + Psi(x_n + h v) - h f_ext^T v
+    Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h alpha/2 v^T M v - h (alpha M v_r)^T v + Psi(x_n + h v)
+             + beta / (2h) sum_e |u_e(x_n + h v) - u_e(x_n)|^2_{K_e} - h f_ext^T v
 
-(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; C = alpha M + beta K'_m the
-Rayleigh damping, K'_m with the rotations of the step's midpoint (x_n + x) / 2, along whose rotation the chord
-x - x_n of a turning body runs; f_ext gravity and loads) under the supports, and under the
-contacts and attachments of the integration layer's velocity hook, exactly as the warped step's solve.
+(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; alpha M the mass-proportional
+Rayleigh damping, less the rigid motion's share alpha M v_r it spares a free body; the beta term the
+stiffness-proportional damping, the strain over the step measured from the elements' unrotated displacements
+u_e = R_e^T x_e - X_e: zero for any rigid motion, however far it turns in a step, where beta K'_n v, the warped
+step's form, damps the chord a turning node follows; f_ext gravity and loads) under the supports, and under the
+contacts and attachments of the integration layer's velocity hook, exactly as the warped step's solve. A
+multistep scheme (softbody.schemes' BDF2) starts the step elsewhere: x_n, v_n and u_e(x_n) become its Start.
 
 Iteration k, from the rigid prediction v_0 (the body's rigid motion carried through the step, the rest of
-its velocities as they are): the gradient g_k = M (v_k - v_n) + h C v_k + h dPsi/dx(x_k) - h f_ext (the exact
-gradient of Psi, FemBody.energy_gradient, rotations re-evaluated at x_k), the warped tangent
-A_k = M + h C_n + h^2 K'(x_k) (C_n the damping with the start's rotations; symmetric positive definite; the
-rotations' own derivatives left out), and
+its velocities as they are): the gradient g_k = dPhi/dv (the exact gradients of Psi and of the damping term,
+rotations' derivatives included: FemBody.element_energy_gradients, rotations re-evaluated at x_k), the warped
+tangent A_k = (1 + h alpha) M + (h beta + h^2) K'(x_k) (symmetric positive definite; the rotations' own
+derivatives left out), and
 one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a warped step (supports,
 contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
 whole step (it makes the iterate satisfy the constraints). Later steps are whole where they lower the residual;
@@ -142,17 +146,17 @@ class _BodyStep:
         return self.start.v
 
     def gradient(self, v: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
-        """(g (N, 3) [N s], dPsi/dx (N, 3) [N]) at the iterate v."""
+        """(g (N, 3) [N s], the elastic and damping forces' negative (N, 3) [N]) at the iterate v."""
         body = self.body
         alpha, beta = body.damping
         x = self.x0 + h * v
-        R = body.rotations(x)
-        xe = x[body.mesh.elements]
-        dpsi = body.scatter_nodal(body.element_energy_gradients(xe, R))
-        g = body.mass_product(v - self.v0) + h * (alpha * body.mass_product(v) - self.spared) + h * (dpsi - self.f_ext)
-        if beta:  # dD/dv: D = beta / (2 h) sum_e |u_e(x) - u_e,start|^2_K, rotations' derivatives included
-            g = g + beta * body.scatter_nodal(body.element_energy_gradients(xe, R, offset=self.start.u))
-        return g, dpsi
+        # h dPsi/dx + dD/dv (D = beta / (2h) sum_e |u_e(x) - u_e,start|^2_K) in one pass: both are the energy's
+        # gradient, rotations' derivatives included, linear in the unrotated displacement they are taken of
+        offset = None if not beta else (beta / (h + beta)) * self.start.u
+        f = (1.0 + beta / h) * body.scatter_nodal(body.element_energy_gradients(x[body.mesh.elements],
+                                                                                body.rotations(x), offset))
+        g = body.mass_product(v - self.v0) + h * (alpha * body.mass_product(v) - self.spared) + h * (f - self.f_ext)
+        return g, f
 
     def potential(self, v: np.ndarray, h: float) -> float:
         """Phi(v) [J]: the incremental potential of the module doc (units of energy)."""

@@ -55,9 +55,11 @@ class Advance:
 
 
 class Scheme(Protocol):
-    """What a time-stepping scheme does: advance every body of ``sim`` by sim.dt."""
+    """What a time-stepping scheme does: advance every body of ``sim`` by sim.dt. ``iterates``: whether its steps
+    are Newton iterations (Simulation.newton_report reports them)."""
 
     name: str
+    iterates: bool
 
     def advance(self, sim: "Simulation", solve: Solve, supports: list[Constraints], t_next: float,
                 timings: Timings, contacts: bool) -> Advance:
@@ -102,6 +104,7 @@ class Warped(_OneStep):
     """The paper's step (module doc)."""
 
     name = "warped"
+    iterates = False
 
     def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
         systems = [sim.system(b) for b in sim.bodies]
@@ -114,6 +117,7 @@ class NewtonEuler(_OneStep):
     """Exact backward Euler by Newton iterations (module doc, softbody.newton)."""
 
     name = "newton"
+    iterates = True
 
     def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
         if not sim.bodies:  # nothing to iterate on: the caller's solve still runs (a World's rigid coupling)
@@ -124,49 +128,62 @@ class NewtonEuler(_OneStep):
 
 @dataclass
 class _Past:
-    """The last step a Bdf2 took: its bodies, their states at its start and the states it produced."""
+    """A step a Bdf2 took: its size h [s], its bodies, their states at its start and the states it produced
+    (copies: the bodies' own arrays may be changed in place)."""
 
+    h: float
     bodies: list[FemBody]
     before: list[tuple[np.ndarray, np.ndarray]]
     after: list[tuple[np.ndarray, np.ndarray]]
 
+    def continues(self, bodies: list[FemBody], h: float) -> bool:
+        """Whether a step of h from the bodies' current states continues this one: the same step size and bodies,
+        standing where it left them (it was committed, and nothing has moved them since)."""
+        return (h == self.h and len(self.bodies) == len(bodies) and all(a is b for a, b in zip(self.bodies, bodies))
+                and all(np.array_equal(b.positions, x) and np.array_equal(b.velocities, v)
+                        for b, (x, v) in zip(bodies, self.after)))
+
+
+def _copies(states: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    return [(x.copy(), v.copy()) for x, v in states]
+
 
 class Bdf2:
-    """BDF2 (module doc). ``past`` is its state across steps: the last step's start and end, per body."""
+    """BDF2 (module doc). ``pasts`` is its state across steps: the last two steps it took (the latest last), so
+    that a step solved but not committed (Simulation.solve_step without commit, a step refused by its checks)
+    leaves the one before it to continue from."""
 
     name = "bdf2"
+    iterates = True
 
     def __init__(self):
-        self.past: _Past | None = None
+        self.pasts: list[_Past] = []
 
-    def _continues(self, bodies: list[FemBody]) -> bool:
-        """Whether the bodies are those of the last step and now stand where it left them (it was committed and
-        nothing has moved them since)."""
-        past = self.past
-        return (past is not None and len(past.bodies) == len(bodies) and all(a is b for a, b in zip(past.bodies, bodies))
-                and all(np.array_equal(b.positions, x) and np.array_equal(b.velocities, v)
-                        for b, (x, v) in zip(bodies, past.after)))
+    def _past(self, bodies: list[FemBody], h: float) -> _Past | None:
+        """The past step the current states continue, if any."""
+        return next((p for p in reversed(self.pasts) if p.continues(bodies, h)), None)
 
     def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
         if not sim.bodies:
             return Warped().advance(sim, solve, supports, t_next, timings, contacts)
         h = sim.dt
         bodies = list(sim.bodies)
-        now = [(b.positions.copy(), b.velocities.copy()) for b in bodies]
-        if self._continues(bodies):
-            states = self._bdf2(sim, solve, supports, t_next, timings, contacts, now)
+        now = _copies([(b.positions, b.velocities) for b in bodies])
+        past = self._past(bodies, h)
+        if past is not None:
+            states = self._bdf2(sim, solve, supports, t_next, timings, contacts, now, past)
         else:  # the first step, or the state changed from outside: a backward Euler step
             vs = newton_velocities(sim, h, solve, t_next, timings, contacts)
             states = [(x + h * v, v) for (x, _), v in zip(now, vs)]
-        self.past = _Past(bodies, now, states)
+        self.pasts = [p for p in self.pasts if p is past][-1:] + [_Past(h, bodies, now, _copies(states))]
         return Advance(states)
 
-    def _bdf2(self, sim, solve, supports, t_next, timings, contacts, now) -> list[tuple[np.ndarray, np.ndarray]]:
+    def _bdf2(self, sim, solve, supports, t_next, timings, contacts, now, past: _Past) -> list[tuple[np.ndarray, np.ndarray]]:
         """The BDF2 step's states: a backward Euler step of 2h/3 from the combination of the two past states."""
         h = sim.dt
         hb = 2.0 * h / 3.0
         starts = [Start((4.0 * x - xp) / 3.0, (4.0 * v - vp) / 3.0, (4.0 * _strain(b, x) - _strain(b, xp)) / 3.0)
-                  for b, (x, v), (xp, vp) in zip(sim.bodies, now, self.past.before)]
+                  for b, (x, v), (xp, vp) in zip(sim.bodies, now, past.before)]
         # supported nodes: the end velocity that puts them on their targets x_n + h w (w the supports' own)
         held = [_held(c, x, st.x, h, hb) for c, (x, _), st in zip(supports, now, starts)]
         prediction = [(x + h * rigid_prediction(b, h) - st.x) / hb for b, (x, _), st in zip(sim.bodies, now, starts)]
@@ -175,16 +192,13 @@ class Bdf2:
         return [(st.x + hb * v, v) for st, v in zip(starts, vs)]
 
     def save_state(self) -> dict:
-        """The past step's states, copied (softbody.state)."""
-        if self.past is None:
-            return {}
-        return {"before": [(x.copy(), v.copy()) for x, v in self.past.before],
-                "after": [(x.copy(), v.copy()) for x, v in self.past.after]}
+        """The past steps, copied (softbody.state)."""
+        return {"pasts": [(p.h, _copies(p.before), _copies(p.after)) for p in self.pasts]}
 
     def load_state(self, saved: dict, bodies: list[FemBody]) -> None:
-        """Take back a past of :meth:`save_state` for ``bodies`` (those it was saved from)."""
-        self.past = None if not saved else _Past(list(bodies), [(x.copy(), v.copy()) for x, v in saved["before"]],
-                                                 [(x.copy(), v.copy()) for x, v in saved["after"]])
+        """Take back the past steps of :meth:`save_state` for ``bodies`` (those they were saved from)."""
+        self.pasts = [_Past(h, list(bodies), _copies(before), _copies(after))
+                      for h, before, after in saved.get("pasts", [])]
 
 
 def _strain(body: FemBody, x: np.ndarray) -> np.ndarray:

@@ -102,7 +102,7 @@ def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
 
 
 class Simulation:
-    """Steps one or more soft bodies with backward Euler or an energy-momentum scheme (softbody.schemes).
+    """Steps one or more soft bodies with backward Euler or BDF2 (softbody.schemes).
 
     bodies: a FemBody or a list of them; dt: step [s] > 0; gravity [m/s^2]; solver: linear solver
     backend ("auto", "pardiso", "superlu"); max_energy: optional bound [J] on each body's kinetic plus
@@ -110,9 +110,9 @@ class Simulation:
     "direct", "iterative"), tol its relative tolerance on the iterative path; scheme: "warped" (the
     paper's step: rotations at the start of the step, one solve), "newton" (the nonlinear backward Euler
     step, softbody.newton: rotations re-evaluated, Newton iterations to the residual newton_tol, at most
-    newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals) or
-    "energy-momentum" (the implicit midpoint rule with a discrete gradient, by the same Newton iterations: second
-    order, no numerical damping, linear and angular momentum and the undamped energy kept; softbody.schemes).
+    newton_max_iter solves; ``newton_report`` holds the last step's iterations and residuals) or "bdf2" (second
+    order by the same Newton iterations: far less numerical damping of what it resolves, a spin and a swing kept;
+    bodies without contact; softbody.schemes). ``scheme`` is read-only: a new Simulation takes another.
     ``external_forces[body] = f`` adds loads f (N, 3) [N] to a body's gravity for every step (ExternalForces);
     :meth:`save_state` / :meth:`restore_state` checkpoint the whole state (softbody.state).
     """
@@ -143,7 +143,6 @@ class Simulation:
         self.settings = IterativeSettings(tol=float(tol))
         if scheme not in SCHEMES:
             raise InvalidInputError(f"scheme must be one of {tuple(SCHEMES)}, got {scheme!r}")
-        self.scheme = scheme
         self.stepper: Scheme = SCHEMES[scheme]()  # softbody.schemes: how a step advances the bodies
         self.newton = NewtonStepper(NewtonSettings(newton_tol, newton_max_iter))
         self.max_energy = max_energy
@@ -212,7 +211,8 @@ class Simulation:
 
     def restore_state(self, state: SimulationState | str | Path) -> None:
         """Go back to a state of :meth:`save_state` (or one written to disk, read from its path): the bodies' positions
-        and velocities, the time, the step count, the preconditioners and the Newton counters. The bodies must be
+        and velocities, the time, the step count, the preconditioners, the Newton counters and what the scheme
+        carries from step to step (BDF2's past steps). The bodies must be
         those it was saved from (the same meshes in the same order); loads and supports stay as they are now."""
         if isinstance(state, (str, Path)):
             state = read_state(state, SimulationState)
@@ -235,8 +235,13 @@ class Simulation:
     __reduce_ex__ = not_copyable("the bodies' solver factorisations (MKL PARDISO or compiled factors)", "Simulation")
 
     @property
+    def scheme(self) -> str:
+        """The time-stepping scheme's name ("warped", "newton", "bdf2"; softbody.schemes)."""
+        return self.stepper.name
+
+    @property
     def newton_report(self) -> NewtonReport:
-        """The last Newton step's iterations and residuals (scheme "newton")."""
+        """The last Newton step's iterations and residuals (schemes "newton" and "bdf2")."""
         return self.newton.report
 
     def solve_step(self, solve_velocities: VelocitySolver | None = None,

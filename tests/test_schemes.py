@@ -125,20 +125,101 @@ def test_bdf2_holds_prescribed_and_fixed_nodes_on_their_motion():
         assert np.abs(body.positions[right, 2] - mesh.nodes[right, 2] - 0.05 * math.sin(4 * sim.t)).max() < 1e-12
 
 
-def test_bdf2_restarts_with_a_backward_euler_step_when_the_state_is_changed_from_outside():
-    a, b = _cube("tet4", rev=1.0), _cube("tet4", rev=1.0)
-    sa = sb.Simulation(a, 0.01, gravity=(0, 0, -9.81), scheme="bdf2")
-    sb_ = sb.Simulation(b, 0.01, gravity=(0, 0, -9.81), scheme="newton")
-    for _ in range(5):
-        sa.step()
-    a.positions = a.positions + (0.0, 0.0, 0.1)  # the user moves it: no past to combine with
+def _pair(rev: float = 1.0) -> tuple[sb.FemBody, sb.Simulation, sb.FemBody, sb.Simulation]:
+    """A body stepped by BDF2 and a twin stepped by backward Euler (scheme "newton")."""
+    a, b = _cube("tet4", rev=rev), _cube("tet4", rev=rev)
+    return a, sb.Simulation(a, 0.01, gravity=(0, 0, -9.81), scheme="bdf2"), b, \
+        sb.Simulation(b, 0.01, gravity=(0, 0, -9.81), scheme="newton")
+
+
+def _restarts(a: sb.FemBody, sa: sb.Simulation, b: sb.FemBody, sb_: sb.Simulation) -> None:
+    """The next step of sa is a backward Euler step (as its twin's from the same state), the one after BDF2."""
     b.positions, b.velocities = a.positions.copy(), a.velocities.copy()
     sa.step()
     sb_.step()
     assert np.abs(a.positions - b.positions).max() < 1e-12
-    sa.step()  # and from there on, BDF2 again: not the backward Euler step
+    sa.step()
     sb_.step()
     assert np.abs(a.positions - b.positions).max() > 1e-7
+
+
+@pytest.mark.parametrize("change", ["assigned positions", "velocities changed in place", "positions changed in place",
+                                    "another step size"])
+def test_bdf2_restarts_with_a_backward_euler_step_when_the_state_is_changed_from_outside(change):
+    a, sa, b, sb_ = _pair()
+    for _ in range(5):
+        sa.step()
+    if change == "assigned positions":
+        a.positions = a.positions + (0.0, 0.0, 0.1)
+    elif change == "velocities changed in place":
+        a.velocities += (0.0, 0.0, 1.0)
+    elif change == "positions changed in place":
+        a.positions[:, 2] += 0.1
+    else:
+        sa.dt = sb_.dt = 0.005
+    _restarts(a, sa, b, sb_)
+
+
+def test_bdf2_restarts_when_a_member_of_a_stack_is_assigned():
+    from softbody.stack import BodyStack
+
+    members = [_cube("tet4", rev=1.0), _cube("tet4", rev=0.5)]
+    for k, m in enumerate(members):
+        m.positions = m.positions + (0.5 * k, 0.0, 0.0)
+    stack = BodyStack(members)
+    sim = sb.Simulation(stack, 0.01, gravity=(0, 0, 0), scheme="bdf2")
+    for _ in range(4):
+        sim.step()
+    members[1].velocities = members[1].velocities + (0.0, 0.0, 1.0)
+    x = stack.positions.copy()
+    sim.step()  # a backward Euler step from the member's new state: its centre moves by h (v + 0)
+    moved = (members[1].node_mass @ (members[1].positions - x[stack.offsets[1]:stack.offsets[2]])
+             / members[1].node_mass.sum())
+    assert moved[2] == pytest.approx(0.01 * 1.0, rel=1e-6)
+
+
+def test_bdf2_continues_from_the_last_committed_step_after_an_uncommitted_one():
+    a, sa = _cube("tet4", rev=1.0), None
+    sa = sb.Simulation(a, 0.01, gravity=(0, 0, -9.81), scheme="bdf2")
+    b = _cube("tet4", rev=1.0)
+    sref = sb.Simulation(b, 0.01, gravity=(0, 0, -9.81), scheme="bdf2")
+    for _ in range(5):
+        sa.step()
+        sref.step()
+    sa.solve_step()  # solved, never committed: the state stays where the fifth step left it
+    for _ in range(3):
+        sa.step()
+        sref.step()
+    assert np.array_equal(a.positions, b.positions) and np.array_equal(a.velocities, b.velocities)
+
+
+@pytest.mark.parametrize("kind", ["tet4", "tet10", "hex8"])
+def test_the_newton_damping_gradient_is_the_derivative_of_its_potential(kind):
+    """The Newton schemes' damping potential beta/(2h) sum |u_e(x) - u_e,start|^2_K (softbody.newton) and the gradient
+    they step with agree by central differences, on a turned and strained body (the rotations' derivatives in)."""
+    from softbody.newton import NewtonStepper
+
+    rng = np.random.default_rng(3)
+    body = _cube(kind, E=1e6, damping=(0.0, 0.01))
+    angle = 0.4
+    Q = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    body.positions = body.positions @ Q.T + 1e-3 * rng.standard_normal(body.positions.shape)
+    body.velocities = 0.5 * rng.standard_normal(body.positions.shape)
+    h = 0.01
+    step = NewtonStepper._start(body, h, np.zeros((body.n_nodes, 3)))
+    v = body.velocities + 0.3 * rng.standard_normal(body.positions.shape)
+    d = rng.standard_normal(v.shape)
+    eps = 1e-6
+    slope = (step.potential(v + eps * d, h) - step.potential(v - eps * d, h)) / (2 * eps)
+    g, _ = step.gradient(v, h)
+    assert float(np.sum(g * d)) == pytest.approx(slope, rel=1e-6)
+    # and a rigid turn over the step is not damped: the damped body's gradient is the undamped twin's
+    twin = _cube(kind, E=1e6, damping=(0.0, 0.0))
+    twin.positions, twin.velocities = body.positions.copy(), body.velocities.copy()
+    spin = (body.positions @ (Q.T - np.eye(3))) / h  # x + h v = Q x: the strained body turned by 0.4 rad
+    g_damped = NewtonStepper._start(body, h, np.zeros((body.n_nodes, 3))).gradient(spin, h)[0]
+    g_twin = NewtonStepper._start(twin, h, np.zeros((body.n_nodes, 3))).gradient(spin, h)[0]
+    np.testing.assert_allclose(g_damped, g_twin, atol=1e-9 * np.abs(g_twin).max())
 
 
 @pytest.mark.parametrize("E", [1e5, 1e8])
