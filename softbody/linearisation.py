@@ -12,6 +12,12 @@ velocity gradient of its characteristic tetrahedron, omega = axial(skew(dF/dt R^
 theta = |omega| h. Beyond ``limit`` (ROTATION_LIMIT, 0.2 rad: about 1.7% out of shape) it warns once per body with the
 distortion to expect and what to change (a step of at most h limit / theta, or ``scheme="newton"``, whose rotations
 follow the iterate and which keeps the spinning cube's shape to 0.02%).
+
+A small theta can still matter: the stretch, about 0.42 theta^2 of the body's size, stores up to E V (0.42 theta^2)^2
+/ 2 of elastic energy, which grows as E and falls as h^4. Where that is more than LAG_ENERGY (5%) of the body's kinetic
+energy, the watch warns as well: a stiff bar (E = 1e9 Pa) swinging from a hinge at up to 5 rad/s turns only 0.05 rad a
+step of 0.01 s, yet the warped step gathers several times its swing's energy in its vibration within a second (8.8 times
+its m g d in 1.5 s; 0.66 times at dt 0.005 s; tests/test_linearisation.py); the stress it shows is then the step's.
 """
 from __future__ import annotations
 
@@ -29,6 +35,10 @@ ROTATION_LIMIT = 0.2
 #: the warped step's rigid residual per unit size and per rad^2 of rotation per step (spin at 10 rev/s, measured from
 #: 0.15 to 0.7 rad per step; it overstates beyond: 52%, not 67%, at 1.26 rad)
 SHAPE_PER_RAD2 = 0.42
+#: the stretch energy a step's rotation lag can hold, E V (SHAPE_PER_RAD2 theta^2)^2 / 2, beyond which fraction of the
+#: body's kinetic energy the warped step warns though theta is small: a stiff body (a steel-like bar swinging at
+#: 5 rad/s, dt 0.01 s: 0.05 rad a step) gathers that energy as vibration, several times its swing's (docs/stability.md)
+LAG_ENERGY = 0.05
 
 
 class LinearisationWarning(UserWarning):
@@ -67,17 +77,43 @@ class RotationWatch:
         if not body.warping or body in self.warned:
             return
         theta, e = rotation_per_step(body, v, h, R)
+        shape = SHAPE_PER_RAD2 * theta * theta
         if theta <= self.limit:
+            self._check_stiff(index, body, v, h, theta, e, shape)
             return
         self.warned.add(body)
-        where = f"element {e}"
-        offsets = getattr(body, "element_offsets", None)  # a BodyStack: which member
-        if offsets is not None:
-            k = int(np.searchsorted(offsets, e, side="right") - 1)
-            where = f"member {k}, element {e - int(offsets[k])}"
-        shape = SHAPE_PER_RAD2 * theta * theta
         warnings.warn(
-            f"body {index} ({where}) turns {theta:.2f} rad in one step of {h:g} s ({theta / h:.1f} rad/s): the warped "
+            f"body {index} ({_where(body, e)}) turns {theta:.2f} rad in one step of {h:g} s ({theta / h:.1f} rad/s): the warped "
             f"step's rotations lag it and leave it about {100 * shape:.0f}% out of shape (softbody.linearisation). "
             f"Take dt <= {h * self.limit / theta:.2g} s (about {100 * SHAPE_PER_RAD2 * self.limit ** 2:.1f}%), or "
-            f"scheme='newton'. Said once per body.", LinearisationWarning, stacklevel=4)
+            f"scheme='newton' (or 'bdf2' without contact). Said once per body.", LinearisationWarning, stacklevel=4)
+
+    def _check_stiff(self, index: int, body: FemBody, v: np.ndarray, h: float, theta: float, e: int,
+                     shape: float) -> None:
+        """Warn where theta is small but the body so stiff that the stretch it leaves, E V shape^2 / 2 at most, holds
+        more than LAG_ENERGY of the body's kinetic energy (it returns as vibration and as stress of the step's own)."""
+        EV = float(np.sum(np.asarray(body.material.E, float) * body.volumes))  # [J]: Young's modulus times volume
+        lag = 0.5 * EV * shape * shape
+        if lag == 0.0:
+            return
+        kinetic = 0.5 * float(body.node_mass @ np.einsum("ij,ij->i", v, v))  # lumped: an estimate, O(N)
+        if lag <= LAG_ENERGY * kinetic:
+            return
+        self.warned.add(body)
+        dt = h * (LAG_ENERGY * kinetic / lag) ** 0.25  # the lag energy falls as theta^4, h^4 at a given motion
+        warnings.warn(
+            f"body {index} ({_where(body, e)}) turns {theta:.3f} rad in one step of {h:g} s: little, but the body is "
+            f"stiff (E up to {float(np.max(body.material.E)):.3g} Pa): the stretch the warped step's straight moves "
+            f"leave, about {100 * shape:.2g}% of its size, holds up to {lag:.3g} J a step, {lag / kinetic:.0%} of its "
+            f"kinetic energy; it comes back as vibration and as stress that belongs to the step, not to the body "
+            f"(softbody.linearisation). Take dt <= {dt:.2g} s, or scheme='newton' (or 'bdf2' without contact). Said "
+            "once per body.", LinearisationWarning, stacklevel=5)
+
+
+def _where(body: FemBody, e: int) -> str:
+    """Element e of ``body`` as a user knows it: in a BodyStack, its member and its element there."""
+    offsets = getattr(body, "element_offsets", None)
+    if offsets is None:
+        return f"element {e}"
+    k = int(np.searchsorted(offsets, e, side="right") - 1)
+    return f"member {k}, element {e - int(offsets[k])}"
