@@ -173,10 +173,18 @@ class SpdSolver:
         self._analysed = True
 
     def factorize(self, data: np.ndarray) -> None:
-        """Numeric factorisation of the matrix with upper-triangle values ``data``."""
+        """Numeric factorisation of the matrix with upper-triangle values ``data``; the values of the current factor
+        again keep it (a body without warping, whose step matrix is constant, is factorised once: ``refactorizations``
+        counts the factorisations done, ``kept`` those skipped)."""
         data = np.ascontiguousarray(data, dtype=float)
+        kept = self.__dict__.get("_values")
+        if kept is not None and kept.shape == data.shape and np.array_equal(kept, data) \
+                and (self.backend != "blocks" or self._factor is not None):
+            self.kept = self.__dict__.get("kept", 0) + 1
+            return
         if not np.all(np.isfinite(data)):
             raise SolverError("system matrix has non-finite entries")
+        self.refactorizations = self.__dict__.get("refactorizations", 0) + 1
         if not self._analysed:
             self.analyse(data)
         self._values = None  # set again once this factorisation succeeds

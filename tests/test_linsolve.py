@@ -144,3 +144,27 @@ def test_auto_picks_the_block_backend_for_small_systems_only():
     assert SpdSolver(mid.up_indptr, mid.up_indices, n_mid).backend in ("pardiso", "superlu")
     with pytest.raises(softbody.errors.InvalidInputError, match="multiple of 3"):
         SpdSolver(np.array([0, 1, 2, 3, 4]), np.arange(4), 4, "blocks")
+
+
+@pytest.mark.parametrize("backend", ["auto", "superlu", "blocks"] + (["pardiso"] if HAVE_PARDISO else []))
+def test_a_body_without_warping_is_factorised_once_and_steps_as_if_factorised_every_step(backend):
+    """Without warping the step matrix M + h C + h^2 K is constant: the solver keeps its factor when given the same
+    values again (softbody.linsolve.SpdSolver.factorize), to the bit the trajectory of a solver made to factorise
+    every step; a warped body's matrix changes with its rotations and is factorised every step."""
+    runs = {}
+    for warping, forget in ((False, False), (False, True), (True, False)):
+        mesh = box_mesh((0.6, 0.1, 0.1), (6, 1, 1), "tet10", center=(0.3, 0.0, 0.0))
+        body = softbody.FemBody(mesh, softbody.LinearElastic(1e6, 0.3, 1000.0), warping=warping)
+        body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
+        sim = softbody.Simulation(body, 0.01, solver=backend, method="direct")
+        solver = sim.solvers.solver(body, backend)
+        for _ in range(20):
+            if forget:
+                solver._values = None  # as if the factor were lost: factorise again
+            sim.step()
+        runs[warping, forget] = (body.positions.copy(), solver.refactorizations, getattr(solver, "kept", 0))
+    assert runs[False, False][1:] == (1, 19)
+    assert runs[False, True][1:] == (20, 0)
+    assert np.array_equal(runs[False, False][0], runs[False, True][0])
+    assert runs[True, False][1:] == (20, 0)
+    assert np.abs(runs[True, False][0] - runs[False, False][0]).max() > 1e-4  # the sag turns the elements: they differ
