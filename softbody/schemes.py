@@ -17,11 +17,11 @@ Simulation picks it once, by name (``SCHEMES``), and its step reads: supports, `
   cannot resolve, and it is as stable as backward Euler at large steps (L-stable). It keeps linear momentum
   exactly, angular momentum to its order, and a spinning body's shape as the Newton scheme does. Its first step,
   and the first after the state was changed from outside (positions or velocities assigned, a step not
-  committed), is a backward Euler step. The schemes that keep energy exactly by construction fail here: the
-  implicit midpoint rule keeps both momenta but not a warped body's energy (a stiff cube spinning at 1 rev/s,
-  dt 0.01 s, swaps 16 % of its energy into a stretch every other step, and at 5 rev/s the swing grows until
-  Newton's iteration fails); the trapezoidal rule (Newmark's average acceleration) blows up on the same spin, and
-  a discrete gradient (Gonzalez) in node coordinates is not smooth where an element turns (docs/energy_schemes.md).
+  committed), is a backward Euler step. The schemes that keep a linear body's energy exactly fail on a warped one:
+  the implicit midpoint rule and the trapezoidal rule (Newmark's average acceleration) swap energy in and out of a
+  spurious stretch every other step on a stiff cube spinning at 5 rev/s until their Newton iterations fail, within
+  0.4 s at every step tried (docs/energy_schemes.md); a discrete gradient (Gonzalez) taken in node coordinates was
+  tried too, and is not smooth where an element turns.
   Core bodies only: the coupled contact solve of integration.World is a backward Euler solve over dt, so World
   refuses it.
 """
