@@ -69,6 +69,8 @@ class RotationWatch:
     def __init__(self, limit: float = ROTATION_LIMIT):
         self.limit = float(limit)
         self.warned: weakref.WeakSet[FemBody] = weakref.WeakSet()  # a body (or stack) let go of is forgotten
+        # per body sum_e E_e V_e [J] (Young's modulus times volume), made at its first check: it does not change
+        self._stiffness: weakref.WeakKeyDictionary[FemBody, float] = weakref.WeakKeyDictionary()
 
     def check(self, index: int, body: FemBody, v: np.ndarray, h: float, R: np.ndarray | None = None) -> None:
         """Warn (LinearisationWarning) if ``body`` (the ``index``-th stepped) turns by more than the limit in this step
@@ -92,7 +94,9 @@ class RotationWatch:
                      shape: float) -> None:
         """Warn where theta is small but the body so stiff that the stretch it leaves, E V shape^2 / 2 at most, holds
         more than LAG_ENERGY of the body's kinetic energy (it returns as vibration and as stress of the step's own)."""
-        EV = float(np.sum(np.asarray(body.material.E, float) * body.volumes))  # [J]: Young's modulus times volume
+        EV = self._stiffness.get(body)
+        if EV is None:
+            EV = self._stiffness[body] = float(np.sum(np.asarray(body.material.E, float) * body.volumes))
         lag = 0.5 * EV * shape * shape
         if lag == 0.0:
             return
