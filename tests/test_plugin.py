@@ -8,6 +8,7 @@ linear momentum, and energy that never grows.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pybullet as p
@@ -570,9 +571,10 @@ def test_grasp_grips_with_the_motors_limit_at_a_small_step_too():
 
 @pytest.mark.slow  # about a minute: the Newton step costs several solves per step
 def test_grasp_example_with_the_newton_step():
-    """The same pick-and-place with scheme="newton": friction between the fingers and the cube makes the
-    iterates alternate between stick/slip states at the start of the lift; the step is accepted on that
-    cycle (NewtonReport.cycled) instead of refusing the run, and the grasp holds as with the warped step."""
+    """The same pick-and-place with scheme="newton": the grasp holds as with the warped step. Friction between the
+    fingers and the cube can make the iterates alternate between stick/slip states at the start of the lift; such a
+    step is accepted on that cycle (NewtonReport.cycled) with one warning instead of refusing the run. (With the
+    damping of the strain over the step, softbody.newton, this grasp's iterations converge: no step cycles.)"""
     import importlib.util
     from pathlib import Path
 
@@ -580,8 +582,10 @@ def test_grasp_example_with_the_newton_step():
     spec = importlib.util.spec_from_file_location("robot_grasp", sys_path)
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
-    with pytest.warns(RuntimeWarning, match="stalled on contacts"):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         rows = {r["phase"]: r for r in example.run(hold=0.2, dt=0.01, scheme="newton")}
+    assert len([w for w in caught if "stalled on contacts" in str(w.message)]) <= 1  # said once, if at all
     assert rows["close"]["cube_z"] < 0.03 < 0.2 < rows["hold"]["cube_z"]
     assert min(rows["hold"]["grip_left"], rows["hold"]["grip_right"]) > 0.5
     assert rows["hold"]["slip_mm"] < 3.0
