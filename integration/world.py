@@ -529,6 +529,7 @@ class World:
         passing through itself (off by default: it costs a search of the body against itself every step)."""
         if not isinstance(body, FemBody):
             raise InvalidInputError(f"add_soft needs a softbody.FemBody, got {type(body).__name__}")
+        self.sim.admit(body)  # a model the world's scheme steps
         friction = finite_number(friction, "friction", 0.0, strict=False)
         if any(b is body for b in self._members):
             raise InvalidInputError("this soft body is already in the world")

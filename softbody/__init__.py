@@ -2,7 +2,7 @@
 
 The FEM core: numpy and scipy only (pybullet and rerun live in the ``integration`` package).
 """
-from .body import FemBody
+from .body import MODELS, FemBody
 from .elements import ELEMENT_TYPES, ElementType, element_type
 from .equilibrium import solve_equilibrium
 from .linearisation import LinearisationWarning
@@ -19,7 +19,7 @@ from .surface import tetrahedralize
 
 __all__ = [
     "BodyStack", "stack_key",
-    "Constraints", "ELEMENT_TYPES", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Regions", "LinearisationWarning", "LockingWarning", "Mesh",
+    "Constraints", "ELEMENT_TYPES", "MODELS", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Regions", "LinearisationWarning", "LockingWarning", "Mesh",
     "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
     "solve_equilibrium", "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]

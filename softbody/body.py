@@ -14,8 +14,10 @@ import scipy.sparse as sp
 
 from . import kernels
 from .assembly import BlockPattern, UpperAssembly
+from .constitutive import LAWS
 from .elements import shape_gradients
 from .errors import InvalidInputError
+from .hyperelastic import QuadratureEnergy
 from .locking import check_locking
 from .material import LinearElastic, Regions, isotropic_elasticity
 from .mesh import Mesh
@@ -24,6 +26,11 @@ from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic
                       rotated_gradient_operator, stress_map, warped_product)
 
 Motion = Callable[[float], np.ndarray]
+
+#: the elastic models a body takes (docs/materials.md): "warped" (the paper's stiffness-warped linear elasticity,
+#: the default), "linear" (small strain, no warping: a constant matrix), and the hyperelastic laws of
+#: softbody.constitutive ("corotated", "neo-hookean"), which need an iterated scheme (newton or bdf2)
+MODELS = ("warped", "linear") + tuple(name for name in LAWS if name != "linear")
 
 
 def strain_displacement(G: np.ndarray) -> np.ndarray:
@@ -126,12 +133,17 @@ class FemBody:
     volumetric: "full" (the volumetric strain at every quadrature point) or "mean" (B-bar, hex8 only: its
     volume-weighted mean over the element; the deviatoric strain stays at every point): hex8 stops locking as nu nears
     0.5 (a cantilever within 2.5% of the converged value at nu 0.499, docs/materials.md).
+    model: the elastic model (MODELS; default "warped", or "linear" when warping=False): "corotated" and
+    "neo-hookean" are hyperelastic laws at the stiffness quadrature points (softbody.constitutive), stepped by
+    Simulation(..., scheme="newton" or "bdf2"); their damping is the warped model's (beta on the strain rate of
+    the rotated frames), so rigid motion stays undamped.
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
     """
 
     def __init__(self, mesh: Mesh, material: LinearElastic, warping: bool = True,
                  damping: tuple[float, float] = (0.1, 0.001), mass: str = "consistent",
-                 hex_rotation: str = "average", damp_rigid: bool = False, volumetric: str = "full"):
+                 hex_rotation: str = "average", damp_rigid: bool = False, volumetric: str = "full",
+                 model: str | None = None):
         if not isinstance(mesh, Mesh):
             raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
         if not isinstance(material, (LinearElastic, Regions)):
@@ -143,6 +155,18 @@ class FemBody:
             raise InvalidInputError(f"hex_rotation must be 'average' or 'single', got {hex_rotation!r}")
         if volumetric not in ("full", "mean"):
             raise InvalidInputError(f"volumetric must be 'full' or 'mean' (B-bar), got {volumetric!r}")
+        if model is None:
+            model = "warped" if warping else "linear"
+        if model not in MODELS:
+            raise InvalidInputError(f"model must be one of {MODELS}, got {model!r}")
+        if not warping and model != "linear":
+            raise InvalidInputError(f"warping=False is the model 'linear'; model={model!r} turns with the body (give "
+                                    "one of the two)")
+        law = LAWS[model] if model not in ("warped", "linear") else None
+        if law is not None and volumetric != "full":
+            raise InvalidInputError(f"volumetric={volumetric!r} (B-bar) is for the linear models; model {model!r} "
+                                    "takes the volumetric strain at every quadrature point (use tet10 elements "
+                                    "near nu = 0.5)")
         if volumetric == "mean" and mesh.element_type.name != "hex8":
             raise InvalidInputError(f"volumetric='mean' (B-bar) is for hex8 elements, got {mesh.element_type.name}: a "
                                     "tet4's one quadrature point is its own mean, and a tet10's mean dilatation relaxes "
@@ -156,7 +180,9 @@ class FemBody:
             raise InvalidInputError(f"Rayleigh damping (alpha, beta) must be finite and >= 0, got {damping!r}")
         self.mesh = mesh
         self.material = material
-        self.warping = bool(warping)
+        self.model = model
+        self.law = law  # the hyperelastic law (softbody.constitutive), None for the linear models' fast paths
+        self.warping = model != "linear"  # the element rotations: the warped model's, and the others' damping frames
         self.damping = (alpha, beta)
         self.damp_rigid = bool(damp_rigid)
         self.mass_kind = mass
@@ -212,6 +238,8 @@ class FemBody:
             Gw = Gw * np.sqrt(mu_e)[:, None, None, None]
             lam, mu = -2.0 / 3.0, 1.0  # the shear part's, on gradients scaled by sqrt(mu_e)
         self._Gw = Gw
+        # a hyperelastic law's energy at the same quadrature points (its own lam and mu: the split above rescales)
+        self._hyper = None if law is None else QuadratureEnergy(law, G, detJ * w, *material.lame)
         # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
         # products of component-major rotated gradients for one-point elements (tet4), else from whole
         # Gram matrices per element (one batched matmul)
@@ -264,6 +292,7 @@ class FemBody:
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
+        self._Gc = Gc[:, 0]  # (E, k, 3)
         self.Bc = strain_displacement(Gc[:, 0])  # (E, 6, 3k)
         # the elasticity matrix (6, 6), or per element (E, 6, 6) for regions, for stress output
         self.D = (np.array([isotropic_elasticity(*m.lame) for m in material.materials])[material.labels] if regions
@@ -570,22 +599,33 @@ class FemBody:
         return Q
 
     def elastic_forces(self, x: np.ndarray | None = None) -> np.ndarray:
-        """Global elastic forces (N, 3) [N] at positions x (default: current), warped if warping is on."""
+        """Global elastic forces (N, 3) [N] at positions x (default: current): warped if warping is on, minus the
+        energy's gradient for a hyperelastic model."""
         x = self.positions if x is None else np.asarray(x, dtype=float)
         if x.shape != self.positions.shape:
             raise InvalidInputError(f"positions must have shape {self.positions.shape}, got {x.shape}")
+        if self._hyper is not None:
+            return -self.scatter_nodal(self._hyper.gradients(x[self.mesh.elements]))
         return self.scatter_nodal(self.element_forces(x, self.rotations(x)))
 
     def energy_gradient(self, x: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
-        """The exact gradient dPsi/dx (N, 3) [N] of the warped strain energy Psi(x) = 1/2 sum_e u_e^T K_e u_e
-        (``elastic_energy``) with R_e the polar rotation of the characteristic tetrahedra at x (R: those
-        rotations, if at hand); see :meth:`element_energy_gradients`."""
+        """The exact gradient dPsi/dx (N, 3) [N] of the strain energy (``elastic_energy``): the warped one
+        Psi(x) = 1/2 sum_e u_e^T K_e u_e with R_e the polar rotation of the characteristic tetrahedra at x (R: those
+        rotations, if at hand), or the hyperelastic model's; see :meth:`element_energy_gradients`."""
         x = np.asarray(x, dtype=float)
         R = self.rotations(x) if R is None else R
         return self.scatter_nodal(self.element_energy_gradients(x[self.mesh.elements], R))
 
-    def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None,
-                                 offset: np.ndarray | None = None) -> np.ndarray:
+    def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:
+        """dPsi_e/dx_e (E, k, 3) [N] of each element's strain energy at its node positions xe (E, k, 3): the
+        model's (a hyperelastic law's, softbody.hyperelastic), or the warped energy's (:meth:`warped_energy_gradients`,
+        R the rotations at xe if at hand)."""
+        if self._hyper is not None:
+            return self._hyper.gradients(xe)
+        return self.warped_energy_gradients(xe, R)
+
+    def warped_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None,
+                                offset: np.ndarray | None = None) -> np.ndarray:
         """dPsi_e/dx_e (E, k, 3) [N] of each element's warped strain energy at its node positions xe (E, k, 3);
         offset (E, 3k) [m]: measure the unrotated displacement from it, u_e = R^T x_e - X_e - offset_e (the Newton
         scheme's damping: the strain since the start of the step).
@@ -626,12 +666,15 @@ class FemBody:
         return grad
 
     def energy_hessian_blocks(self, x: np.ndarray, rel_step: float = 1e-6, project: bool = True) -> np.ndarray:
-        """The exact Hessian of the warped strain energy at x (N, 3), rotations' derivatives included, each
-        element's made positive semi-definite (its negative eigenvalues set to zero; project=False keeps
-        them), assembled as block data (nnzb, 3, 3) [N/m]. Per element by central differences of
-        :meth:`element_energy_gradients` (step ``rel_step`` times the element's size), symmetrised: a tangent
-        for Newton's method that knows how the rotations turn (the warped stiffness K' does not)."""
+        """The exact Hessian of the strain energy at x (N, 3), assembled as block data (nnzb, 3, 3) [N/m], made
+        positive semi-definite (project=False keeps the negative eigenvalues). A hyperelastic model's: analytic,
+        each quadrature point's tangent projected. The warped energy's: rotations' derivatives included, per
+        element by central differences of :meth:`element_energy_gradients` (step ``rel_step`` times the element's
+        size), symmetrised, each element's projected: a tangent for Newton's method that knows how the rotations
+        turn (the warped stiffness K' does not)."""
         xe = np.asarray(x, dtype=float)[self.mesh.elements]
+        if self._hyper is not None:
+            return self.pattern.assemble(self._hyper.hessians(xe, project))
         E, k, _ = xe.shape
         size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
         eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
@@ -803,8 +846,11 @@ class FemBody:
         return self._upper.full(A)
 
     def elastic_energy(self, x: np.ndarray | None = None) -> float:
-        """Warped strain energy 1/2 sum_e u_e^T K_e u_e [J] with u_e the unrotated displacement."""
+        """Strain energy [J] at positions x (default: current): the warped 1/2 sum_e u_e^T K_e u_e with u_e the
+        unrotated displacement, or the hyperelastic model's."""
         x = self.positions if x is None else x
+        if self._hyper is not None:
+            return self._hyper.energy(np.asarray(x, dtype=float)[self.mesh.elements])
         u = self.local_displacements(x, self.rotations(x))
         return 0.5 * float(np.sum(u * (self.Ke @ u[:, :, None])[:, :, 0]))
 
@@ -819,9 +865,20 @@ class FemBody:
         return 0.5 * float(np.sum(v * self.mass_product(v)))
 
     # ------------------------------------------------------------------ output
+    def _centre_gradients(self, x: np.ndarray) -> np.ndarray:
+        """The deformation gradient F (E, 3, 3) at each element centre."""
+        xe = np.asarray(x, dtype=float)[self.mesh.elements]
+        return np.einsum("eka,ekb->eab", xe - xe.mean(axis=1, keepdims=True), self._Gc)
+
     def strain(self, x: np.ndarray | None = None) -> np.ndarray:
-        """Small (unrotated) strain at each element centre, Voigt (E, 6)."""
+        """Strain at each element centre, Voigt (E, 6) (engineering shear): the small strain in the element's
+        rotated frame (linear models), the Green-Lagrange strain (F^T F - I) / 2 (hyperelastic models)."""
         x = self.positions if x is None else x
+        if self._hyper is not None:
+            F = self._centre_gradients(x)
+            Eg = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
+            return np.stack([Eg[:, 0, 0], Eg[:, 1, 1], Eg[:, 2, 2], 2 * Eg[:, 0, 1], 2 * Eg[:, 1, 2], 2 * Eg[:, 2, 0]],
+                            axis=1)
         u = self.local_displacements(x, self.rotations(x))
         eps = (self.Bc @ u[:, :, None])[:, :, 0]
         if self.volumetric == "mean":  # B-bar: the volume change is the element's mean, not the centre's
@@ -829,7 +886,13 @@ class FemBody:
         return eps
 
     def stress(self, x: np.ndarray | None = None) -> np.ndarray:
-        """Cauchy stress (small strain, unrotated frame) at each element centre, Voigt (E, 6) [Pa]."""
+        """Cauchy stress at each element centre, Voigt (E, 6) [Pa]: of the small strain in the element's rotated
+        frame (linear models), or the hyperelastic law's P F^T / det F (in world axes)."""
+        if self._hyper is not None:
+            F = self._centre_gradients(self.positions if x is None else x)
+            lam, mu = self.material.lame
+            s = self._hyper.cauchy_stress(F, lam, mu)
+            return np.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], s[:, 0, 1], s[:, 1, 2], s[:, 2, 0]], axis=1)
         if self.D.ndim == 3:  # by element (Regions)
             return np.einsum("eij,ej->ei", self.D, self.strain(x))
         return self.strain(x) @ self.D.T

@@ -59,17 +59,24 @@ def _solve(body: FemBody, A: np.ndarray, g: np.ndarray, s, held: Constraints) ->
 
 
 def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarray | None = None,
-                      model: str = "warped", load_steps: int = 4, tol: float = 1e-8, max_iter: int = 40,
+                      model: str | None = None, load_steps: int = 4, tol: float = 1e-8, max_iter: int = 40,
                       solver: str = "auto") -> np.ndarray:
     """Displacements u (N, 3) [m] of the static equilibrium under gravity [m/s^2] and ``forces`` (N, 3) [N] with the
     body's supports (fixed nodes u = 0, prescribed ones motion(0) - rest), of the warped model ("warped": where the
-    default step comes to rest) or its energy ("energy": where scheme="newton" does); see the module doc. Each of
+    default step comes to rest) or its energy ("energy": where scheme="newton" does); see the module doc. A body of a
+    hyperelastic model (FemBody(model="neo-hookean") etc.) has only its energy's ("energy"); None: "warped" for the
+    warped model, "energy" for the others. Each of
     ``load_steps`` load steps to a residual (the free components' unbalanced force) of ``tol`` times the load within
     ``max_iter`` Newton iterations, the warped model's last iteration within 5 max_iter; else SolverError with the
     last residuals. A body without warping is linear: solve_static's answer. InvalidInputError without supports
     (or with too few). Prescribed nodes take their place at t = 0 in full from the first load step."""
+    if model is None:
+        model = "energy" if body.law is not None else "warped"
     if model not in MODELS:
         raise InvalidInputError(f"model must be one of {MODELS}, got {model!r}")
+    if model == "warped" and body.law is not None:
+        raise InvalidInputError(f"model='warped' balances the warped force; this body's model is {body.model!r}, "
+                                "whose equilibrium is its energy's minimum (model='energy')")
     if not isinstance(load_steps, (int, np.integer)) or load_steps < 1:
         raise InvalidInputError(f"load_steps must be a positive integer, got {load_steps!r}")
     if not (np.isfinite(tol) and tol > 0):
@@ -88,7 +95,9 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
     free[nodes] = False
     held = Constraints.full(nodes, np.zeros((len(nodes), 3)))
     s = body_solver(body, solver)
-    scale = max(float(np.linalg.norm(f[free])), 1e-300)
+    # the residual's scale: the loads, or the forces of the prescribed displacements (a body only held and moved)
+    g0 = body.energy_gradient(x)
+    scale = max(float(np.linalg.norm(f[free])), float(np.linalg.norm(g0[free])), 1e-300)
     residuals: list[float] = []
 
     def fail(what: str, iterations: int):

@@ -8,7 +8,8 @@ the incremental potential
     Phi(v) = 1/2 (v - v_n)^T M (v - v_n) + h alpha/2 v^T M v - h (alpha M v_r)^T v + Psi(x_n + h v)
              + beta / (2h) sum_e |u_e(x_n + h v) - u_e(x_n)|^2_{K_e} - h f_ext^T v
 
-(Psi the warped strain energy with the rotations of x, FemBody.elastic_energy; alpha M the mass-proportional
+(Psi the body's strain energy, FemBody.elastic_energy: the warped one with the rotations of x, or a hyperelastic
+model's, softbody.constitutive; alpha M the mass-proportional
 Rayleigh damping, less the rigid motion's share alpha M v_r it spares a free body; the beta term the
 stiffness-proportional damping, the strain over the step measured from the elements' unrotated displacements
 u_e = R_e^T x_e - X_e: zero for any rigid motion, however far it turns in a step, where beta K'_n v, the warped
@@ -20,7 +21,7 @@ Iteration k, from the rigid prediction v_0 (the body's rigid motion carried thro
 its velocities as they are): the gradient g_k = dPhi/dv (the exact gradients of Psi and of the damping term,
 rotations' derivatives included: FemBody.element_energy_gradients, rotations re-evaluated at x_k), the warped
 tangent A_k = (1 + h alpha) M + (h beta + h^2) K'(x_k) (symmetric positive definite; the rotations' own
-derivatives left out), and
+derivatives left out; a hyperelastic model's: its analytic Hessian, projected, in place of h^2 K'), and
 one constrained solve of A_k v' = A_k v_k - g_k through the same machinery as a warped step (supports,
 contacts, friction, coupling, the factorisations and the PCG preconditioner); the first solve takes its
 whole step (it makes the iterate satisfy the constraints). Later steps are whole where they lower the residual;
@@ -157,7 +158,7 @@ class _BodyStep:
         if beta:  # dD/dv (D = beta / (2h) sum_e |u_e(x) - u_e,start|^2_K, rotations' derivatives included), apart: the
             # strain over the step is small where the strain is large (a stiff body), and taken on its own it keeps
             # its digits (one pass over beta u_start / (h + beta) stalled a stiff cube's iteration at its round-off)
-            g = g + beta * body.scatter_nodal(body.element_energy_gradients(xe, R, offset=self.start.u))
+            g = g + beta * body.scatter_nodal(body.warped_energy_gradients(xe, R, offset=self.start.u))
         return g, dpsi
 
     def potential(self, v: np.ndarray, h: float) -> float:
@@ -295,11 +296,13 @@ class NewtonStepper:
                 x = st.x0 + h * vi
                 with timed(timings, "assembly"):
                     alpha, beta = body.damping
-                    if tangent == "warped" or beta:  # the warped stiffness at the iterate (the damping's tangent)
+                    # a hyperelastic model's Hessian is analytic and cheap: always its own
+                    exact = tangent == "exact" or body.law is not None
+                    if not exact or beta:  # the warped stiffness at the iterate (the damping's tangent)
                         with timed(timings, "rotations"):
                             R = body.rotations(x)
                         K, _ = body.warped_stiffness_upper(R)
-                    if tangent == "exact":
+                    if exact:
                         A = h * h * body.energy_hessian_blocks(x) + (
                             body.system_blocks(K, 1.0 + h * alpha, h * beta) if beta else (1.0 + h * alpha) * body.M_blocks)
                     else:

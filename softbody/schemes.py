@@ -71,6 +71,10 @@ class Scheme(Protocol):
         """What the scheme carries from step to step, copied (softbody.state)."""
         ...
 
+    def refusal(self, body: FemBody) -> str | None:
+        """Why the scheme cannot step ``body`` (None: it can)."""
+        ...
+
     def load_state(self, saved: dict, bodies: list[FemBody]) -> None:
         """Take back what :meth:`save_state` gave, for ``bodies``."""
         ...
@@ -78,6 +82,9 @@ class Scheme(Protocol):
 
 class _OneStep:
     """A one-step scheme: it carries nothing from step to step."""
+
+    def refusal(self, body: FemBody) -> str | None:
+        return None
 
     def save_state(self) -> dict:
         return {}
@@ -105,6 +112,12 @@ class Warped(_OneStep):
 
     name = "warped"
     iterates = False
+
+    def refusal(self, body: FemBody) -> str | None:
+        if body.law is not None:
+            return (f"the warped step linearises the warped and linear models only; model {body.model!r} is stepped "
+                    "by Simulation(..., scheme='newton') or scheme='bdf2'")
+        return None
 
     def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
         systems = [sim.system(b) for b in sim.bodies]
@@ -155,6 +168,9 @@ class Bdf2:
 
     name = "bdf2"
     iterates = True
+
+    def refusal(self, body: FemBody) -> str | None:
+        return None
 
     def __init__(self):
         self.pasts: list[_Past] = []

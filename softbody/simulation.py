@@ -121,9 +121,6 @@ class Simulation:
                  solver: str = "auto", max_energy: float | None = None, method: str = "auto",
                  tol: float = 1e-5, scheme: str = "warped", newton_tol: float = 1e-5, newton_max_iter: int = 25):
         bodies = [bodies] if isinstance(bodies, FemBody) else list(bodies)
-        for b in bodies:
-            if not isinstance(b, FemBody):
-                raise InvalidInputError(f"bodies must be FemBody instances, got {type(b).__name__}")
         dt = finite_number(dt, "time step dt", 0.0, unit="[s]")
         if solver not in BACKENDS:  # also checked per body, but a world may start without bodies
             raise InvalidInputError(f"unknown solver backend {solver!r}; valid: {BACKENDS}")
@@ -144,6 +141,8 @@ class Simulation:
         if scheme not in SCHEMES:
             raise InvalidInputError(f"scheme must be one of {tuple(SCHEMES)}, got {scheme!r}")
         self.stepper: Scheme = SCHEMES[scheme]()  # softbody.schemes: how a step advances the bodies
+        for b in bodies:
+            self.admit(b)
         self.newton = NewtonStepper(NewtonSettings(newton_tol, newton_max_iter))
         self.max_energy = max_energy
         self.t = 0.0
@@ -155,6 +154,14 @@ class Simulation:
         self.rotation_watch = RotationWatch()  # the warped step: bodies turning too fast for it, warned once each
         for b in bodies:
             self.solvers.solver(b, solver)  # fail early on a bad backend
+
+    def admit(self, body) -> None:
+        """Check that ``body`` is a FemBody the scheme can step (InvalidInputError saying why not)."""
+        if not isinstance(body, FemBody):
+            raise InvalidInputError(f"bodies must be FemBody instances, got {type(body).__name__}")
+        why = self.stepper.refusal(body)
+        if why is not None:
+            raise InvalidInputError(f"scheme {self.stepper.name!r} cannot step this body: {why}")
 
     @property
     def external_forces(self) -> ExternalForces:

@@ -26,13 +26,13 @@ from .mesh import Mesh
 
 
 def stack_key(body: FemBody) -> tuple:
-    """What must agree for bodies to share a stack: element kind, material, warping, damping, mass kind, hex rotation
+    """What must agree for bodies to share a stack: element kind, material, model (warping), damping, mass kind, hex rotation
     and volumetric form (everything a step reads apart from the mesh and the state); a body of Regions stacks with
     none."""
     m = body.material
     if isinstance(m, Regions):  # a body of regions stacks with none (its labels are its own mesh's)
         return ("regions", body)
-    return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.warping, body.damping,
+    return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.model, body.damping,
             body.damp_rigid, body.mass_kind, body.hex_rotation, body.volumetric)
 
 
@@ -62,7 +62,8 @@ class BodyStack(FemBody):
         with warnings.catch_warnings():  # the members have said it
             warnings.simplefilter("ignore", LockingWarning)
             super().__init__(Mesh(nodes, elements, first.mesh.kind), first.material, first.warping, first.damping,
-                             first.mass_kind, first.hex_rotation, first.damp_rigid, first.volumetric)
+                             first.mass_kind, first.hex_rotation, first.damp_rigid, first.volumetric,
+                             first.model)
         self.members = members
         self._views: tuple[list, list] = ([], [])  # the members' positions and velocities as last made views
         self._supports_seen: tuple | None = None  # (members' fixed (N,), their prescriptions) as last read
