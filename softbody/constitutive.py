@@ -7,7 +7,8 @@ parametrised so that its small-strain limit is that material (its tangent at F =
 tensor of lam and mu, tested):
 
 - :class:`SmallStrain` ("linear"): psi = mu |eps|^2 + lam/2 tr(eps)^2, eps = sym(F) - I. Not invariant under
-  rotation: a turned body stores energy.
+  rotation: a turned body stores energy. The law of FemBody(model="linear"), which steps it by its own fast path
+  (a constant matrix); here for reference and the contract tests.
 - :class:`Corotated` ("corotated", the fixed corotated model of Stomakhin et al. 2012): psi = mu |F - R|^2 +
   lam/2 (J - 1)^2, R the polar rotation of F, J = det F. Rotation invariant, defined for inverted F.
 - :class:`StableNeoHookean` ("neo-hookean", Smith, de Goes and Kim 2018): psi = mu'/2 (I_C - 3) + lam'/2 (J - a)^2

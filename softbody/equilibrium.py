@@ -1,7 +1,8 @@
 """Static equilibrium of the warped (corotational) model however large the rotations, where softbody.solve_static is
 small-strain linear (issue 33).
 
-Two equilibria, as the two schemes settle (docs/method.md section 3):
+Two equilibria, as the two schemes settle (docs/method.md section 3); a body of a hyperelastic model
+(FemBody(model="neo-hookean"), "corotated") has one, its energy's minimum ("energy" with that energy):
 
 - ``model="energy"``: the minimiser of Pi(x) = Psi(x) - f^T x under the supports, Psi the warped strain energy
   (FemBody.elastic_energy: each element's displacement in its rotated frame), f gravity and the given forces; where
@@ -69,7 +70,9 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
     ``load_steps`` load steps to a residual (the free components' unbalanced force) of ``tol`` times the load within
     ``max_iter`` Newton iterations, the warped model's last iteration within 5 max_iter; else SolverError with the
     last residuals. A body without warping is linear: solve_static's answer. InvalidInputError without supports
-    (or with too few). Prescribed nodes take their place at t = 0 in full from the first load step."""
+    (or with too few). Prescribed nodes move with the loads, to rest + k / load_steps (motion(0) - rest) in load step
+    k, the free nodes following them by one linearised solve before the step's iterations (moved all at once, the
+    elements next to them could be turned inside out, where a hyperelastic model may find an inverted equilibrium)."""
     if model is None:
         model = "energy" if body.law is not None else "warped"
     if model not in MODELS:
@@ -91,13 +94,17 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
     x = np.array(body.rest, dtype=float)
     for ids, motion in body.prescribed:
         x[ids] = np.asarray(motion(0.0), float).reshape(-1, 3)
+    shift = x - body.rest  # the prescribed displacements (zero elsewhere)
     free = np.ones(len(x), dtype=bool)
     free[nodes] = False
     held = Constraints.full(nodes, np.zeros((len(nodes), 3)))
     s = body_solver(body, solver)
-    # the residual's scale: the loads, or the forces of the prescribed displacements (a body only held and moved)
-    g0 = body.energy_gradient(x)
-    scale = max(float(np.linalg.norm(f[free])), float(np.linalg.norm(g0[free])), 1e-300)
+    # the residual's scale: the loads or, with none, the forces of the prescribed displacements (a body held and moved)
+    scale = float(np.linalg.norm(f[free]))
+    if scale == 0.0:
+        scale = max(float(np.linalg.norm(body.energy_gradient(x)[free])), 1e-300)
+    x = x - shift
+    moved = bool(np.any(shift))
     residuals: list[float] = []
 
     def fail(what: str, iterations: int):
@@ -106,6 +113,12 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
 
     for k in range(1, load_steps + 1):
         fk = f * (k / load_steps)
+        if moved:  # the prescribed nodes' increment, with the interior following it (one linearised solve, whole)
+            g = body.energy_gradient(x) - fk
+            g[~free] = 0.0
+            dx, _ = _solve(body, body.energy_hessian_blocks(x), g, s,
+                           Constraints.full(nodes, shift[nodes] / load_steps))
+            x = x + dx
         for _ in range(max_iter + 1):
             g = body.energy_gradient(x) - fk
             g[~free] = 0.0

@@ -61,6 +61,8 @@ class QuadratureEnergy:
         return H.reshape(E, 3 * k, 3 * k)
 
     def cauchy_stress(self, F: np.ndarray, lam, mu) -> np.ndarray:
-        """Cauchy stress sigma = P F^T / det F (..., 3, 3) [Pa] of the law at deformation gradients F (...)."""
+        """Cauchy stress sigma = P F^T / det F (..., 3, 3) [Pa] of the law at deformation gradients F (...); det F
+        taken as at least 1e-3 (an element flattened or turned inside out has no Cauchy stress: a finite value, not
+        an infinity that would spoil a colour scale)."""
         P = self.law.stress(F, lam, mu)
-        return P @ np.swapaxes(F, -1, -2) / np.linalg.det(F)[..., None, None]
+        return P @ np.swapaxes(F, -1, -2) / np.maximum(np.linalg.det(F), 1e-3)[..., None, None]

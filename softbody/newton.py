@@ -75,7 +75,8 @@ class NewtonSettings:
     slowly where elements are strained and turn), "exact" (the energy's Hessian, rotations' derivatives
     included, per element by central differences of the exact gradient and made positive semi-definite:
     FemBody.energy_hessian_blocks; several times the cost of an assembly) or "auto" (warped until an
-    iteration reduces the residual by less than SLOW, then exact for the rest of the step)."""
+    iteration reduces the residual by less than SLOW, then exact for the rest of the step). A body of a
+    hyperelastic model (FemBody(model=...)) always takes its analytic Hessian."""
 
     tol: float = 1e-5
     max_iter: int = 25
@@ -265,6 +266,8 @@ class NewtonStepper:
         impulses = None  # A v' - b of the last solve, per body: the constraints' impulses
         alpha = 1.0
         tangent = report.tangent = "warped" if s.tangent == "auto" else s.tangent
+        if any(b.law is not None for b in bodies):
+            report.tangent = "exact"  # a hyperelastic model's Hessian, whatever the setting
         grads = None
         for it in range(s.max_iter + 1):
             if grads is None:

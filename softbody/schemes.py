@@ -120,6 +120,8 @@ class Warped(_OneStep):
         return None
 
     def advance(self, sim, solve, supports, t_next, timings, contacts) -> Advance:
+        for b in sim.bodies:  # (Simulation.bodies is a list a caller may append to)
+            sim.admit(b)
         systems = [sim.system(b) for b in sim.bodies]
         vs = solve(systems)
         return Advance([(b.positions + sim.dt * v, v) for b, v in zip(sim.bodies, vs)],

@@ -370,7 +370,8 @@ def solve_static(body: FemBody, gravity=(0.0, 0.0, -9.81), solver: str = "auto",
                  forces: np.ndarray | None = None) -> np.ndarray:
     """Small-strain static equilibrium K u = f_gravity (+ forces) with the body's supports.
 
-    Fixed nodes get u = 0, prescribed nodes u = motion(0) - rest. Returns u (N, 3) [m].
+    Fixed nodes get u = 0, prescribed nodes u = motion(0) - rest. Returns u (N, 3) [m]. Every model's small-strain
+    limit (the same K): a hyperelastic body's large-deformation equilibrium is softbody.solve_equilibrium's.
     Raises InvalidInputError when the supports do not remove the rigid-body modes.
     """
     f = static_load(body, _gravity(gravity), forces)
