@@ -7,6 +7,7 @@ from .elements import ELEMENT_TYPES, ElementType, element_type
 from .equilibrium import solve_equilibrium
 from .linearisation import LinearisationWarning
 from .locking import LockingWarning
+from .fibres import Fibres
 from .errors import InvalidInputError, MeshError, SimulationDiverged, SolverError
 from .integrator import Constraints
 from .material import LinearElastic, Regions
@@ -19,7 +20,7 @@ from .surface import tetrahedralize
 
 __all__ = [
     "BodyStack", "stack_key",
-    "Constraints", "ELEMENT_TYPES", "MODELS", "ElementType", "FemBody", "InvalidInputError", "LinearElastic", "Regions", "LinearisationWarning", "LockingWarning", "Mesh",
+    "Constraints", "ELEMENT_TYPES", "MODELS", "ElementType", "FemBody", "Fibres", "InvalidInputError", "LinearElastic", "Regions", "LinearisationWarning", "LockingWarning", "Mesh",
     "MeshError", "Simulation", "SimulationDiverged", "SimulationState", "SolverError", "ball_mesh", "box_mesh", "element_type", "read_mesh",
     "solve_equilibrium", "solve_static", "tetrahedralize", "to_tet10", "tube_mesh",
 ]

@@ -17,6 +17,7 @@ from .assembly import BlockPattern, UpperAssembly
 from .constitutive import LAWS
 from .elements import shape_gradients
 from .errors import InvalidInputError
+from .fibres import Fibres, fibre_element_matrices, fibre_matrices
 from .hyperelastic import QuadratureEnergy
 from .locking import check_locking
 from .material import LinearElastic, Regions, isotropic_elasticity
@@ -137,13 +138,15 @@ class FemBody:
     "neo-hookean" are hyperelastic laws at the stiffness quadrature points (softbody.constitutive), stepped by
     Simulation(..., scheme="newton" or "bdf2"); their damping is the warped model's (beta on the strain rate of
     the rotated frames), so rigid motion stays undamped.
+    fibres: a :class:`Fibres` reinforcement of the isotropic material along a direction per element (transversely
+    isotropic; softbody.fibres), with every model.
     State: ``positions`` (N, 3) [m] and ``velocities`` (N, 3) [m/s].
     """
 
     def __init__(self, mesh: Mesh, material: LinearElastic, warping: bool = True,
                  damping: tuple[float, float] = (0.1, 0.001), mass: str = "consistent",
                  hex_rotation: str = "average", damp_rigid: bool = False, volumetric: str = "full",
-                 model: str | None = None):
+                 model: str | None = None, fibres: Fibres | None = None):
         if not isinstance(mesh, Mesh):
             raise InvalidInputError(f"mesh must be a softbody.Mesh, got {type(mesh).__name__}")
         if not isinstance(material, (LinearElastic, Regions)):
@@ -167,6 +170,8 @@ class FemBody:
             raise InvalidInputError(f"volumetric={volumetric!r} (B-bar) is for the linear models; model {model!r} "
                                     "takes the volumetric strain at every quadrature point (use tet10 elements "
                                     "near nu = 0.5)")
+        if fibres is not None and not isinstance(fibres, Fibres):
+            raise InvalidInputError(f"fibres must be a softbody.Fibres or None, got {type(fibres).__name__}")
         if volumetric == "mean" and mesh.element_type.name != "hex8":
             raise InvalidInputError(f"volumetric='mean' (B-bar) is for hex8 elements, got {mesh.element_type.name}: a "
                                     "tet4's one quadrature point is its own mean, and a tet10's mean dilatation relaxes "
@@ -197,8 +202,8 @@ class FemBody:
             D = np.asarray(m.elasticity_matrix(), dtype=float)
             if D.shape != (6, 6) or not np.allclose(D, isotropic_elasticity(*m.lame), rtol=1e-12, atol=0.0):
                 raise InvalidInputError(f"material {type(m).__name__}: its elasticity matrix is not the isotropic "
-                                        "(6, 6) one of its Lame parameters, which the warped step uses; anisotropic "
-                                        "materials are not modelled (give a LinearElastic)")
+                                        "(6, 6) one of its Lame parameters, which the warped step uses (give a LinearElastic; "
+                                        "fibres: FemBody(..., fibres=softbody.Fibres(directions, modulus)))")
         if regions:
             if len(material.labels) != E:
                 raise InvalidInputError(f"Regions labels: one per element, {E}, got {len(material.labels)}")
@@ -239,7 +244,15 @@ class FemBody:
             lam, mu = -2.0 / 3.0, 1.0  # the shear part's, on gradients scaled by sqrt(mu_e)
         self._Gw = Gw
         # a hyperelastic law's energy at the same quadrature points (its own lam and mu: the split above rescales)
-        self._hyper = None if law is None else QuadratureEnergy(law, G, detJ * w, *material.lame)
+        # fibres: (directions (E, 3), the scalar factors M_e (E, k, k), M_e (X_e . a) (E, k)): softbody.fibres
+        self.fibres = fibres
+        self._fibre = None
+        if fibres is not None:
+            a, Ef = fibres.per_element(E)
+            Mf = fibre_matrices(G, detJ * w, a, Ef)
+            self._fibre = (a, Mf, np.einsum("ekl,el->ek", Mf, np.einsum("elc,ec->el", X, a)))
+        self._hyper = None if law is None else QuadratureEnergy(
+            law, G, detJ * w, *material.lame, fibres=None if fibres is None else fibres.per_element(E))
         # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
         # products of component-major rotated gradients for one-point elements (tet4), else from whole
         # Gram matrices per element (one batched matmul)
@@ -377,7 +390,11 @@ class FemBody:
     @property
     def rest_element_loads(self) -> np.ndarray:
         """K_e X_e per element (E, k, 3) [N] (the rest loads before assembly, of every part of the stiffness)."""
-        return self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part.rest
+        loads = self._rest_P if self._bulk_part is None else self._rest_P + self._bulk_part.rest
+        if self._fibre is not None:
+            a, _, p = self._fibre
+            loads = loads + p[:, :, None] * a[:, None, :]
+        return loads
 
     @cached_property
     def Ke(self) -> np.ndarray:
@@ -393,6 +410,9 @@ class FemBody:
             B = strain_displacement(Gw)  # weighted: sqrt(w detJ) B (E, q, 6, 3k)
             part = np.einsum("eqia,ij,eqjb->eab", B, isotropic_elasticity(*lame), B, optimize=True)
             Ke = part if Ke is None else Ke + part
+        if self._fibre is not None:
+            a, Mf, _ = self._fibre
+            Ke = Ke + fibre_element_matrices(Mf, a)
         Ke = 0.5 * (Ke + Ke.transpose(0, 2, 1))
         Ke.flags.writeable = False
         return Ke
@@ -738,6 +758,12 @@ class FemBody:
             K1, load1 = _warped_upper(R9, *self._bulk_part, self._elements_c)
             K = K + K1
             load = None if load is None or load1 is None else load + load1
+        if self._fibre is not None:  # the fibres' stiffness M_e (x) n n^T and rest loads, n = R a (softbody.fibres)
+            a, Mf, p = self._fibre
+            n = a if R is None else np.einsum("eij,ej->ei", R, a)
+            K = K + self.pattern.assemble(fibre_element_matrices(Mf, n))[self._upper.upper].reshape(-1, 9)
+            if load is not None:  # (the compiled paths' loads are the isotropic parts')
+                load = load + self.scatter_nodal(p[:, :, None] * n[:, None, :])
         result = K, self.rest_loads(R) if load is None else load
         if R is None:  # warping off: the same every step
             for a in result:
@@ -816,7 +842,7 @@ class FemBody:
         against 40), where assembly dominates. One-point elements (tet4) have their own cheap assembly,
         and hex8 (36 pairs, 64 gradients) is faster assembled."""
         E, q, k, _ = self._Gw.shape
-        return self.warping and q > 1 and k * (k + 1) // 2 > q * k
+        return self.warping and self._fibre is None and q > 1 and k * (k + 1) // 2 > q * k
 
     @property
     def diagonal_upper(self) -> np.ndarray:
@@ -893,9 +919,15 @@ class FemBody:
             lam, mu = self.material.lame
             s = self._hyper.cauchy_stress(F, lam, mu)
             return np.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], s[:, 0, 1], s[:, 1, 2], s[:, 2, 0]], axis=1)
-        if self.D.ndim == 3:  # by element (Regions)
-            return np.einsum("eij,ej->ei", self.D, self.strain(x))
-        return self.strain(x) @ self.D.T
+        eps = self.strain(x)
+        sigma = np.einsum("eij,ej->ei", self.D, eps) if self.D.ndim == 3 else eps @ self.D.T  # (D by element: Regions)
+        if self._fibre is not None:  # E_f eps_aa a a^T
+            a = self._fibre[0]
+            aa = np.stack([a[:, 0] ** 2, a[:, 1] ** 2, a[:, 2] ** 2, a[:, 0] * a[:, 1], a[:, 1] * a[:, 2],
+                           a[:, 2] * a[:, 0]], axis=1)
+            eps_aa = np.einsum("ei,ei->e", eps, aa)  # (the engineering shears count once: a . eps a)
+            sigma = sigma + (self.fibres.per_element(len(a))[1] * eps_aa)[:, None] * aa
+        return sigma
 
     def von_mises(self, x: np.ndarray | None = None) -> np.ndarray:
         """Von Mises stress at each element centre (E,) [Pa]."""

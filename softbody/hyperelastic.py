@@ -10,13 +10,17 @@ from __future__ import annotations
 import numpy as np
 
 from .constitutive import Law, project_spd
+from .fibres import fibre_energy
 
 
 class QuadratureEnergy:
     """The energy of ``law`` over elements: G (E, q, k, 3) the shape functions' gradients dN/dX at the quadrature
-    points [1/m], weights (E, q) w_q detJ_q [m^3], lam and mu (E,) the Lame parameters per element [Pa]."""
+    points [1/m], weights (E, q) w_q detJ_q [m^3], lam and mu (E,) the Lame parameters per element [Pa]; fibres:
+    (directions (E, 3), modulus (E,) [Pa]) of a fibre term E_f / 8 (|F a|^2 - 1)^2 (softbody.fibres), or None."""
 
-    def __init__(self, law: Law, G: np.ndarray, weights: np.ndarray, lam, mu):
+    def __init__(self, law: Law, G: np.ndarray, weights: np.ndarray, lam, mu,
+                 fibres: tuple[np.ndarray, np.ndarray] | None = None):
+        self.fibres = fibres
         E, q = weights.shape
         self.law = law
         self.G = np.ascontiguousarray(G, dtype=float)
@@ -35,12 +39,18 @@ class QuadratureEnergy:
     def energy(self, xe: np.ndarray) -> float:
         """Psi [J] at element node positions xe (E, k, 3)."""
         F = self.deformation_gradients(xe)
-        return float(np.sum(self.weights * self.law.energy(F, self.lam, self.mu)))
+        psi = self.law.energy(F, self.lam, self.mu)
+        if self.fibres is not None:
+            psi = psi + fibre_energy(F, *self.fibres)[0]
+        return float(np.sum(self.weights * psi))
 
     def gradients(self, xe: np.ndarray) -> np.ndarray:
         """dPsi_e/dx_e (E, k, 3) [N]."""
         F = self.deformation_gradients(xe)
-        P = self.law.stress(F, self.lam, self.mu) * self.weights[:, :, None, None]
+        P = self.law.stress(F, self.lam, self.mu)
+        if self.fibres is not None:
+            P = P + fibre_energy(F, *self.fibres)[1]
+        P = P * self.weights[:, :, None, None]
         return np.einsum("eqab,eqkb->eka", P, self.G, optimize=True)
 
     def hessians(self, xe: np.ndarray, project: bool = True) -> np.ndarray:
@@ -48,6 +58,8 @@ class QuadratureEnergy:
         semi-definite (then every element's Hessian is)."""
         F = self.deformation_gradients(xe)
         A = self.law.tangent(F, self.lam, self.mu)
+        if self.fibres is not None:
+            A = A + fibre_energy(F, *self.fibres)[2]
         if project:
             A = project_spd(A)
         A = A * self.weights[:, :, None, None, None, None]
@@ -61,8 +73,10 @@ class QuadratureEnergy:
         return H.reshape(E, 3 * k, 3 * k)
 
     def cauchy_stress(self, F: np.ndarray, lam, mu) -> np.ndarray:
-        """Cauchy stress sigma = P F^T / det F (..., 3, 3) [Pa] of the law at deformation gradients F (...); det F
-        taken as at least 1e-3 (an element flattened or turned inside out has no Cauchy stress: a finite value, not
-        an infinity that would spoil a colour scale)."""
+        """Cauchy stress sigma = P F^T / det F (E, 3, 3) [Pa] of the law (and fibres) at one deformation gradient per
+        element F (E, 3, 3); det F taken as at least 1e-3 (an element flattened or turned inside out has no Cauchy
+        stress: a finite value, not an infinity that would spoil a colour scale)."""
         P = self.law.stress(F, lam, mu)
+        if self.fibres is not None:
+            P = P + fibre_energy(F[:, None], *self.fibres)[1][:, 0]
         return P @ np.swapaxes(F, -1, -2) / np.maximum(np.linalg.det(F), 1e-3)[..., None, None]

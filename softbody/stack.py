@@ -30,8 +30,9 @@ def stack_key(body: FemBody) -> tuple:
     and volumetric form (everything a step reads apart from the mesh and the state); a body of Regions stacks with
     none."""
     m = body.material
-    if isinstance(m, Regions):  # a body of regions stacks with none (its labels are its own mesh's)
-        return ("regions", body)
+    if isinstance(m, Regions) or body.fibres is not None:  # a body of regions or fibres stacks with none (its
+        # labels and directions are its own mesh's)
+        return ("own", body)
     return (body.mesh.kind, float(m.E), float(m.nu), float(m.density), body.model, body.damping,
             body.damp_rigid, body.mass_kind, body.hex_rotation, body.volumetric)
 
