@@ -70,6 +70,7 @@ def add_scene_arguments(parser: argparse.ArgumentParser, scene: str | None = Non
     parser.add_argument("--scheme", choices=("warped", "newton"), default=None,
                         help="the step: warped (the paper's single solve, default) or newton (the nonlinear "
                              "backward Euler step: exact where elements turn far within a step, several solves)")
+    add_material_arguments(parser)
     parser.add_argument("--record", nargs="?", const="", default=None, metavar="PATH",
                         help="write a rerun recording to PATH, or into the directory PATH (an existing one, or "
                              "ending in /) as <scene>_<element>_<cells>_<time>.rrd (default: into logs/)")
@@ -99,7 +100,10 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
         element, cells, dt, layout = grid
         duration = args.duration if args.duration is not None else layout.duration
         check_run_size(scene_name, element, cells, max(1, round(duration / dt)), layout.periodic_first)
-    scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt, scheme=args.scheme)
+    material = material_of(args)
+    material.check_scheme(args.scheme or "warped")
+    scene = build_scene(scene_name, element=args.element, cells=args.cells, dt=args.dt, scheme=args.scheme,
+                        **material.options())
     from softbody import compilation
 
     started_pending = compilation.pending  # an empty numba cache (softbody.compilation)
@@ -107,7 +111,8 @@ def run_scene(args: argparse.Namespace, scene_name: str) -> Scene:
     axis = "xyz"[scene.axis]
     body = scene.body
     print(f"# {scene.name}: {body.mesh.kind} cells {scene.meta['cells']}, {body.mesh.n_elements} elements, "
-          f"{body.mesh.n_nodes} nodes, dt {scene.world.dt} s, {duration} s")
+          f"{body.mesh.n_nodes} nodes, dt {scene.world.dt} s, {duration} s; {body.model} model, "
+          f"E {float(np.min(body.material.E)):g} Pa, nu {float(np.max(body.material.nu)):g}")
     print(f"# monitored node {scene.monitor} (rest {np.round(body.rest[scene.monitor], 4).tolist()}), coordinate {axis}")
     recorder = None
     if args.record is not None:
@@ -206,8 +211,34 @@ def _nonnegative_int(text: str) -> int:
     return v
 
 
+def add_material_arguments(parser: argparse.ArgumentParser) -> None:
+    """--E, --nu, --model: the soft body's material and elastic model (default: the scene's own)."""
+    from .study import MODELS
+
+    parser.add_argument("--E", type=_positive_float, default=None, metavar="PA",
+                        help="Young's modulus [Pa] (default: the scene's)")
+    parser.add_argument("--nu", type=float, default=None, help="Poisson ratio, -1 < nu < 0.5 (default: the scene's)")
+    parser.add_argument("--model", choices=MODELS, default=None,
+                        help="elastic model (default warped; corotated and neo-hookean need --scheme newton; "
+                             "docs/materials.md)")
+
+
+def material_of(args: argparse.Namespace):
+    """The study.Material of the parsed --E, --nu, --model (InvalidInputError for values out of range)."""
+    from .study import Material
+
+    return Material(E=getattr(args, "E", None), nu=getattr(args, "nu", None), model=getattr(args, "model", None))
+
+
+def study_dir(scene: str, args: argparse.Namespace) -> str:
+    """studies/SCENE, or studies/SCENE-<material> for another material than the scene's."""
+    tag = material_of(args).tag
+    return f"studies/{scene}" + (f"-{tag}" if tag else "")
+
+
 def add_study_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of ``softbody study`` (``recommend`` uses them when it has to make the study)."""
+    add_material_arguments(parser)
     parser.add_argument("--elements", nargs="+", choices=sorted(ELEMENT_TYPES), default=None,
                         help="element types to study (default: all three); the reference always runs")
     parser.add_argument("--ladder", default="full", help="resolution ladder: full (default) or small")
@@ -237,11 +268,11 @@ def _study(args: argparse.Namespace, out):
     ladder = "small" if args.quick else args.ladder
     return run_study(args.scene, out, elements=args.elements, ladder=ladder, duration=args.duration, dt=args.dt,
                      method=args.method, workers=args.workers, cluster=args.cluster, force=args.force,
-                     progress=not args.no_progress, scheme=args.scheme)
+                     progress=not args.no_progress, scheme=args.scheme, material=material_of(args))
 
 
 def study_command(args: argparse.Namespace) -> None:
-    out = args.out or f"studies/{args.scene}"
+    out = args.out or study_dir(args.scene, args)
     study = _study(args, out)
     cached = len(study.runs) + 1 - len(study.executed)
     print((study.out / "table.md").read_text())
@@ -268,22 +299,27 @@ def recommend_command(args: argparse.Namespace) -> None:
     if compare_steps and args.study is not None:
         raise InvalidInputError("--study DIR is one study (one scheme and dt) and --schemes/--dts compare one study per "
                                 "scheme and dt under studies/SCENE/: give one or the other")
-    shipped = studies.shipped_results(scene)
+    material = material_of(args)
+    shipped = studies.shipped_results(scene) if material.default else None  # shipped: the scene's own material
     if compare_steps or args.recompute or shipped is None:  # a study to run: a scene without a ladder said at once
         studies.get_ladder(scene, "small" if args.quick else args.ladder)
     if compare_steps:  # a study per scheme and step, against one Newton reference: the time step weighed too
         schemes = args.schemes or list(studies.SCHEMES)
         dts = args.dts or [0.01, 0.02]
         before_timed_runs()
-        rec = studies.recommend_steps(scene, Path(f"studies/{scene}"), args.tolerance, schemes=schemes, dts=dts,
+        rec = studies.recommend_steps(scene, Path(study_dir(scene, args)), args.tolerance, schemes=schemes, dts=dts,
+                                      material=material,
                                       elements=args.elements, ladder="small" if args.quick else args.ladder,
                                       duration=args.duration, method=args.method, workers=args.workers,
                                       cluster=args.cluster, force=args.force, progress=not args.no_progress)
     elif args.study is not None or args.recompute or shipped is None:  # one study, run (or cached) here
-        out = Path(args.study or f"studies/{scene}")
+        out = Path(args.study or study_dir(scene, args))
         if args.recompute or args.study is None or not (out / "results.csv").exists():
             if args.study is not None and not args.recompute:
                 print(f"# no study at {out}: running it first (softbody study {scene} --out {out})", file=sys.stderr)
+            elif not material.default and not args.recompute:
+                print(f"# the shipped study results are of the scene's own material: running the study of "
+                      f"{material.tag} here into {out} (runs cached there)", file=sys.stderr)
             elif shipped is None and not args.recompute:
                 print(f"# no shipped study results for {scene} (shipped: {', '.join(studies.shipped_scenes())}): "
                       f"running its study here into {out} (runs cached there)", file=sys.stderr)

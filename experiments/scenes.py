@@ -1,5 +1,6 @@
 """The canonical scenes of docs/method.md section 5, built on a World (every builder takes the time step dt
-[s] and the step's scheme, "warped" or "newton", see softbody.newton).
+[s], the step's scheme, "warped" or "newton", see softbody.newton, and the material: E [Pa], nu, density and the
+elastic model, softbody.MODELS, None: "warped", or "linear" with warping=False).
 
 Each builder returns a :class:`Scene`: the world, its soft body, the monitored node and axis,
 the default duration, and metadata (scene name, element kind, cells) for logs and studies.
@@ -71,7 +72,8 @@ def _nearest(nodes: np.ndarray, point) -> int:
 
 def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt: float = 0.01,
                     E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                    friction: float = 1.0, warping: bool = True, solver: str = "auto", scheme: str = "warped",
+                    friction: float = 1.0, warping: bool = True, model: str | None = None, solver: str = "auto",
+                    scheme: str = "warped",
                     height: float = 0.05, offset: float = 0.0) -> Scene:
     """A 1.0 x 1.0 x 0.25 m sheet, bottom at z = 0.35 m, falling onto a fixed sphere of radius 0.3 m at the origin.
     Monitored: z of the bottom corner node at rest position (-0.5, -0.5, 0.35).
@@ -92,7 +94,7 @@ def sheet_on_sphere(element: str = "tet10", cells: Sequence[int] = (6, 6, 2), dt
         raise InvalidInputError(f"offset must be a finite length [m], got {offset!r}")
     bottom = 0.3 + float(height)
     mesh = box_mesh((1.0, 1.0, 0.25), cells, element, center=(float(offset), 0.0, bottom + 0.125))
-    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING, model=model)
     world = World(dt=dt, solver=solver, scheme=scheme)
     world.add_sphere(0.3, position=(0, 0, 0), name="sphere")
     world.add_soft(body, friction=friction)
@@ -110,13 +112,14 @@ def platform_x(t: float) -> float:
 
 def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: float = 0.01,
                  E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                 warping: bool = True, solver: str = "auto", scheme: str = "warped", friction: float = 0.0) -> Scene:
+                 warping: bool = True, model: str | None = None, solver: str = "auto", scheme: str = "warped",
+                 friction: float = 0.0) -> Scene:
     """A hollow tube (r 0.1 / 0.06 m, 1.0 m long, z in [-1, 0]) hanging from a kinematic platform that
     moves along x with the half-sawtooth of docs/method.md. Monitored: x of the outer bottom node at +x.
     friction: the tube's against the platform (its top is attached, so contact with the platform is off:
     it matters only if a user adds obstacles)."""
     mesh = tube_mesh(0.1, 0.06, 1.0, cells, element)
-    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING, model=model)
     world = World(dt=dt, solver=solver, scheme=scheme)
     platform = world.add_box((0.15, 0.15, 0.01), position=(0, 0, 0.01), name="platform",
                              motion=lambda t: (platform_x(t), 0.0, 0.01))
@@ -129,12 +132,13 @@ def hanging_tube(element: str = "tet10", cells: Sequence[int] = (8, 1, 6), dt: f
 
 def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: float = 0.01,
                E: float = 5.0e7, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-               warping: bool = True, solver: str = "auto", scheme: str = "warped", friction: float = 0.0) -> Scene:
+               warping: bool = True, model: str | None = None, solver: str = "auto", scheme: str = "warped",
+               friction: float = 0.0) -> Scene:
     """A 1.0 x 0.1 x 0.1 m beam along x, nodes at x = 0 fixed, sagging under gravity (no rigid bodies,
     so no pybullet work). Monitored: z of the node at the tip centre (1, 0, 0), or the nearest.
     friction: the beam's against rigid bodies a user adds (it touches none here)."""
     mesh = box_mesh((1.0, 0.1, 0.1), cells, element, center=(0.5, 0.0, 0.0))
-    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+    body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING, model=model)
     body.fix(np.flatnonzero(np.isclose(mesh.nodes[:, 0], 0.0)))
     world = World(dt=dt, solver=solver, scheme=scheme)
     world.add_soft(body, friction=friction)
@@ -144,7 +148,8 @@ def cantilever(element: str = "tet10", cells: Sequence[int] = (10, 1, 1), dt: fl
 
 def cubes_on_plane(element: str = "tet10", cells: Sequence[int] = (2, 2, 2), dt: float = 0.01, count: int = 1,
                    E: float = E_DEFAULT, nu: float = NU_DEFAULT, density: float = RHO_DEFAULT,
-                   friction: float = 0.5, warping: bool = True, solver: str = "auto", scheme: str = "warped",
+                   friction: float = 0.5, warping: bool = True, model: str | None = None, solver: str = "auto",
+                   scheme: str = "warped",
                    size: float = 0.1, gap: float = 0.001) -> Scene:
     """``count`` soft cubes of side ``size`` [m] in a row along x (0.5 * size apart), their bottoms ``gap``
     [m] above a fixed plane z = 0, settling onto it: the small-body, many-body scene of a robot's table (issue
@@ -157,7 +162,7 @@ def cubes_on_plane(element: str = "tet10", cells: Sequence[int] = (2, 2, 2), dt:
     bodies = []
     for k in range(count):
         mesh = box_mesh((size, size, size), cells, element, center=(1.5 * size * k, 0.0, gap + 0.5 * size))
-        body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING)
+        body = FemBody(mesh, LinearElastic(E, nu, density), warping=warping, damping=DAMPING, model=model)
         world.add_soft(body, friction=friction)
         bodies.append(body)
     return Scene("cubes-on-plane", world, bodies[0], _nearest(bodies[0].mesh.nodes, (-0.5 * size, -0.5 * size, gap)),

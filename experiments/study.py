@@ -61,7 +61,50 @@ def solve_methods() -> tuple[str, ...]:
 
 CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
                "dt_s", "scheme", "method", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status",
-               "external_load")
+               "external_load", "material")
+# the elastic models (softbody.MODELS, named here: a worker need not import softbody to check them) and those that
+# only an iterated scheme steps
+MODELS = ("warped", "linear", "corotated", "neo-hookean")
+ITERATED_MODELS = ("corotated", "neo-hookean")
+
+
+@dataclass(frozen=True)
+class Material:
+    """The material of a study's runs: Young's modulus E [Pa], Poisson ratio nu and the elastic model
+    (softbody.MODELS); None keeps the scene's own (docs/method.md's canonical values, the warped model)."""
+
+    E: float | None = None
+    nu: float | None = None
+    model: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.E is not None and not (isinstance(self.E, (int, float)) and math.isfinite(self.E) and self.E > 0):
+            raise InvalidInputError(f"E must be a finite number > 0 [Pa], got {self.E!r}")
+        if self.nu is not None and not (isinstance(self.nu, (int, float)) and -1.0 < self.nu < 0.5):
+            raise InvalidInputError(f"nu must satisfy -1 < nu < 0.5, got {self.nu!r}")
+        if self.model is not None and self.model not in MODELS:
+            raise InvalidInputError(f"model must be one of {MODELS}, got {self.model!r}")
+
+    @property
+    def default(self) -> bool:
+        return self.E is None and self.nu is None and self.model in (None, "warped")
+
+    def options(self) -> dict:
+        """The scene builder's keyword arguments (E, nu, model) that differ from its own."""
+        return {k: v for k, v in (("E", self.E), ("nu", self.nu), ("model", self.model)) if v is not None}
+
+    @property
+    def tag(self) -> str:
+        """'' for the scenes' own material, else e.g. 'E1e+05_nu0.45_neo-hookean' (the study directory's suffix and
+        the results' material column)."""
+        return "_".join(f"{k}{v:g}" if isinstance(v, float) else f"{v}" for k, v in self.options().items()
+                        if not (k == "model" and v == "warped"))
+
+    def check_scheme(self, scheme: str) -> None:
+        """A hyperelastic model needs the Newton scheme (the warped step refuses it): said before any run."""
+        if self.model in ITERATED_MODELS and scheme != "newton":
+            raise InvalidInputError(f"model {self.model!r} is stepped by the Newton scheme only (--scheme newton), "
+                                    f"got scheme {scheme!r}")
 
 WAITED = 1.3  # wall / CPU time per step above this: the run waited for a core
 BUSY_CORES = 0.25  # cores kept busy by processes outside the study above which that wait is the machine's load
@@ -202,6 +245,7 @@ class RunResult:
     scheme: str = "warped"
     warnings: list[str] = field(default_factory=list)
     cycled_steps: int = 0
+    material: str = ""  # Material.tag: '' for the scene's own
 
     @property
     def key(self) -> str:
@@ -406,7 +450,8 @@ _STEP_SINK: StepReport | None = None  # in a local worker: puts the reports on t
 
 def run_configuration(scene: str, element: str, cells: Sequence[int], duration: float | None = None,
                       dt: float = 0.01, method: str | None = None, threads: int | None = 1,
-                      scheme: str = "warped", on_step: StepReport | None = None) -> RunResult:
+                      scheme: str = "warped", on_step: StepReport | None = None,
+                      material: Material | None = None) -> RunResult:
     """Build ``scene`` with ``element`` and ``cells``, run it for ``duration`` [s] (default: the scene's)
     with step ``dt`` [s] and the step's ``scheme`` ("warped" or "newton"), and return its monitored
     trajectory, sizes, cost and peak memory.
@@ -419,9 +464,12 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
     ``threads`` pins BLAS / MKL / OpenMP for the process (None leaves them as they are).
     ``on_step(key, done, total)`` hears of the steps made, at most every STEP_REPORT_S seconds (outside the
     timed part of a step); in a local worker of :func:`open_executor` with a step queue they go to the queue.
-    Warnings raised by the run are recorded in the result (``warnings``), not shown."""
+    Warnings raised by the run are recorded in the result (``warnings``), not shown. ``material``: the body's E, nu
+    and elastic model (:class:`Material`; None: the scene's own)."""
     from .scenes import build_scene
 
+    material = material or Material()
+    material.check_scheme(scheme)
     method = default_method() if method is None else method
     if method not in solve_methods():
         raise InvalidInputError(f"method must be one of {solve_methods()}, got {method!r}")
@@ -437,7 +485,7 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
         cpu_ms: list[float] = []
         status = "ok"
         with _PeakRss() as mem:
-            sc = build_scene(scene, element=element, cells=cells, dt=dt, scheme=scheme)
+            sc = build_scene(scene, element=element, cells=cells, dt=dt, scheme=scheme, **material.options())
             try:
                 sim = sc.world.sim
                 if hasattr(sim, "method"):
@@ -477,7 +525,8 @@ def run_configuration(scene: str, element: str, cells: Sequence[int], duration: 
                     peak_mem_mb=0.0, wall_s=0.0, status=status, external_load=load.cores, scheme=scheme,
                     meta={"monitor": int(sc.monitor), "axis": "xyz"[sc.axis],
                           "monitor_rest": [float(v) for v in body.rest[sc.monitor]]},
-                    cycled_steps=int(getattr(getattr(sim, "newton", None), "cycled_steps", 0) or 0))
+                    cycled_steps=int(getattr(getattr(sim, "newton", None), "cycled_steps", 0) or 0),
+                    material=material.tag)
             finally:
                 sc.world.close()
     result.warnings = list(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught))[:20]
@@ -622,7 +671,7 @@ class Study:
                 "median_cpu_ms_per_step": round(r.median_cpu_ms_per_step, 4),
                 "peak_mem_mb": round(r.peak_mem_mb, 2), "wall_s": round(r.wall_s, 3),
                 "error_m": "" if role == "reference" else f"{self.errors[r.key]:.6e}", "status": r.status,
-                "external_load": round(r.external_load, 3)})
+                "external_load": round(r.external_load, 3), "material": r.material})
         return rows
 
     def run(self, element: str, cells: Sequence[int]) -> RunResult:
@@ -678,7 +727,7 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
               duration: float | None = None, dt: float = 0.01, method: str | None = None,
               workers: int | None = None, cluster=None,
               force: bool = False, progress: bool = True, plots: bool = True, scheme: str = "warped",
-              label: str | None = None) -> Study:
+              label: str | None = None, material: Material | None = None) -> Study:
     """Run (or load from ``out``'s cache) the ladder of ``scene`` for ``elements`` and its reference, then
     write results.csv, table.md and the plots to ``out``. ``duration`` overrides the ladder's; ``method``
     is the linear solve, ``scheme`` the step (see :func:`run_configuration`); ``force``
@@ -687,9 +736,11 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
     progress: a tqdm bar on stderr named ``label`` (default "study SCENE (SCHEME, dt DT s)") counting the runs,
     with the steps of the runs in flight (local workers and workers=0; a Dask cluster's runs only tick the
     clock); the warnings the runs raised are summarised after it (:func:`warning_summary`), and emitted as
-    one warning without a bar."""
+    one warning without a bar. ``material``: the runs' E, nu and elastic model (:class:`Material`; None: the scene's
+    own), recorded with each run (a cached run of another material is run again)."""
     from .scenes import SCENES
 
+    material = material or Material()
     if scene not in SCENES:
         raise InvalidInputError(f"unknown scene {scene!r}; available: {sorted(SCENES)}")
     lad = ladder if isinstance(ladder, Ladder) else get_ladder(scene, ladder)
@@ -704,6 +755,7 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
         raise InvalidInputError(f"dt must be a finite number > 0 [s], got {dt!r}")
     if scheme not in SCHEMES:
         raise InvalidInputError(f"scheme must be one of {SCHEMES}, got {scheme!r}")
+    material.check_scheme(scheme)
     if duration is None:
         duration = lad.duration if lad.duration is not None else _default_duration(scene, lad)
     duration = float(duration)
@@ -723,7 +775,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
             with contextlib.suppress(Exception):
                 cached = RunResult.load(path)
             if cached is not None and (cached.scene != scene or cached.duration != duration or cached.dt != dt
-                                       or cached.method != method or cached.scheme != scheme):
+                                       or cached.method != method or cached.scheme != scheme
+                                       or cached.material != material.tag):
                 cached = None  # a run that stopped early (status) is a deterministic result: kept
         if cached is None:
             pending.append(spec)
@@ -738,7 +791,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(pending), desc=label or f"study {scene} ({scheme}, dt {dt:g} s)", unit="run",
+            bar = tqdm(total=len(pending), desc=label or f"study {scene} ({scheme}, dt {dt:g} s"
+                       + (f", {material.tag})" if material.tag else ")"), unit="run",
                        file=sys.stderr)
 
         def show(*first: str, refresh: bool = True) -> None:
@@ -767,8 +821,8 @@ def run_study(scene: str, out: str | Path, elements: Iterable[str] | None = None
                 if isinstance(ex, _InProcessExecutor):  # one run at a time, here: finished as it returns
                     for e, c in pending:
                         finish(ex.submit(run_configuration, scene, e, c, *args,
-                                         on_step=on_step if bar is not None else None), (e, c))
-                futures = {ex.submit(run_configuration, scene, e, c, *args): (e, c)
+                                         on_step=on_step if bar is not None else None, material=material), (e, c))
+                futures = {ex.submit(run_configuration, scene, e, c, *args, material=material): (e, c)
                            for e, c in pending if (e, c) not in results}
                 waiting, steps = set(futures), ex.step_queue
                 while waiting:
@@ -1015,6 +1069,7 @@ def read_results(study_dir: str | Path) -> list[dict]:
             row["error_m"] = float(row["error_m"]) if row["error_m"] else math.nan
             row["external_load"] = float(row.get("external_load") or "nan")  # absent in older studies
             row["scheme"] = row.get("scheme") or "warped"
+            row["material"] = row.get("material") or ""  # absent in older studies: the scene's own
             row["cost_ms_per_step"] = step_cost_ms(row["median_ms_per_step"], row["median_cpu_ms_per_step"])
             rows.append(row)
     return rows
@@ -1196,10 +1251,11 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
     if path.exists() and not study.get("force"):
         with contextlib.suppress(Exception):
             reference = RunResult.load(path)
-        if reference is not None and (reference.duration != lad_ref.duration or reference.scheme != "newton"):
+        if reference is not None and (reference.duration != lad_ref.duration or reference.scheme != "newton"
+                                      or reference.material != (study.get("material") or Material()).tag):
             reference = None
     if reference is None:
-        reference = _run_reference(scene, lad_ref, ref_dt, ref_label, progress)
+        reference = _run_reference(scene, lad_ref, ref_dt, ref_label, progress, study.get("material"))
         reference.save(path)
     elif progress:
         print(f"{ref_label}: from the cache {path}", file=sys.stderr)
@@ -1232,7 +1288,8 @@ def recommend_steps(scene: str, out: str | Path, tolerance: float, schemes: Sequ
                             f"{', '.join(f'{d:g}' for d in sorted(set(dts)))} s), run on this machine")
 
 
-def _run_reference(scene: str, lad_ref: RunResult, dt: float, label: str, progress: bool) -> RunResult:
+def _run_reference(scene: str, lad_ref: RunResult, dt: float, label: str, progress: bool,
+                   material: Material | None = None) -> RunResult:
     """The Newton reference of :func:`recommend_steps` (``lad_ref``'s configuration at step ``dt`` [s]), run in
     this process, with a bar in steps named ``label`` and its warnings summarised after it."""
     bar = None
@@ -1246,7 +1303,7 @@ def _run_reference(scene: str, lad_ref: RunResult, dt: float, label: str, progre
 
     try:
         reference = run_configuration(scene, lad_ref.element, lad_ref.cells, lad_ref.duration, dt, lad_ref.method,
-                                      scheme="newton", on_step=on_step if bar is not None else None)
+                                      scheme="newton", on_step=on_step if bar is not None else None, material=material)
     finally:
         if bar is not None:
             bar.close()

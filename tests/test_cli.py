@@ -234,3 +234,14 @@ def test_the_memory_estimate_matches_a_measured_run(monkeypatch):
     e = sizing.estimate("hex8", (24, 24, 6))
     assert (e.nodes, e.elements) == (r["nodes"], r["elements"])
     assert 0.75 < e.memory_mb / r["peak_mb"] < 1.25, (e.memory_mb, r["peak_mb"])
+
+
+def test_a_run_takes_the_material_and_says_what_a_model_needs(capsys):
+    """--E, --nu, --model reach the body; a hyperelastic model without --scheme newton is one line, before the run."""
+    argv = ["run", "cantilever", "--element", "hex8", "--cells", "4", "1", "1", "--duration", "0.05"]
+    err = _refused([*argv, "--model", "neo-hookean"], capsys)
+    assert "--scheme newton" in err and "Traceback" not in err
+    assert cli.main([*argv, "--model", "neo-hookean", "--scheme", "newton", "--E", "2e7", "--nu", "0.4"]) == 0
+    assert "neo-hookean model, E 2e+07 Pa, nu 0.4" in capsys.readouterr().out
+    err = _refused([*argv, "--nu", "0.5"], capsys)
+    assert "nu" in err and "Traceback" not in err

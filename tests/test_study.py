@@ -444,3 +444,39 @@ def test_recommend_across_steps_names_every_stage_and_explains_the_time_error(tm
            "warped dt 0.02 s" in msg and "needs a smaller dt (--dts 0.01" in msg
     rec = info.value.recommendation
     assert "newton, dt 0.01 s" in rec.basis and "time discretisation error" in rec.basis
+
+
+def test_a_material_is_checked_tagged_and_refused_where_its_model_cannot_run():
+    from experiments.study import Material
+
+    assert Material().default and Material().tag == "" and Material(model="warped").default
+    assert Material(E=1e5, nu=0.45, model="neo-hookean").tag == "E100000_nu0.45_neo-hookean"
+    for bad in ({"E": -1.0}, {"nu": 0.5}, {"model": "mooney"}):
+        with pytest.raises(softbody.InvalidInputError):
+            Material(**bad)
+    with pytest.raises(softbody.InvalidInputError, match="--scheme newton"):
+        Material(model="corotated").check_scheme("warped")
+    with pytest.raises(softbody.InvalidInputError, match="--scheme newton"):
+        run_study(SCENE, "/nonexistent", ladder="small", material=Material(model="neo-hookean"), progress=False)
+
+
+def test_a_study_of_another_material_runs_it_and_keeps_it_apart(tmp_path):
+    """The same small study with the cantilever's E halved: every run is made again (the cache knows the material),
+    the results say which, and the beam sags about twice as far (the small-deflection regime: sag ~ 1 / E)."""
+    from experiments.study import Material
+
+    kw = dict(elements=["hex8"], ladder="small", duration=0.3, workers=0, plots=False, progress=False)
+    base = run_study(SCENE, tmp_path, **kw)
+    soft = run_study(SCENE, tmp_path, material=Material(E=2.5e7), **kw)
+    assert sorted(soft.executed) == sorted(r.key for r in soft.runs + [soft.reference])  # none from the cache
+    rows = csv_rows(tmp_path)
+    assert {r["material"] for r in rows} == {"E2.5e+07"}
+    ref0, ref1 = base.reference, soft.reference
+    sag0 = ref0.values.min() - ref0.values[0]
+    sag1 = ref1.values.min() - ref1.values[0]
+    assert 1.8 < sag1 / sag0 < 2.2
+    newton = run_study(SCENE, tmp_path / "nh", material=Material(model="neo-hookean"), scheme="newton", **kw)
+    assert newton.reference.material == "neo-hookean" and newton.reference.status == "ok"
+    # the neo-Hookean beam at the cantilever's small strain moves as the warped one under the same scheme
+    warped = run_study(SCENE, tmp_path / "w", scheme="newton", **kw)
+    assert np.abs(newton.reference.values - warped.reference.values).max() < 0.02 * abs(sag0)
