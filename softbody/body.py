@@ -213,7 +213,7 @@ class FemBody:
             lam, mu = material.lame
             nu_most = material.nu
         if volumetric == "full":
-            check_locking(et.name, nu_most)
+            check_locking(et.name, nu_most, bbar=law is None)
 
         self.pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
 
@@ -633,7 +633,8 @@ class FemBody:
         Psi(x) = 1/2 sum_e u_e^T K_e u_e with R_e the polar rotation of the characteristic tetrahedra at x (R: those
         rotations, if at hand), or the hyperelastic model's; see :meth:`element_energy_gradients`."""
         x = np.asarray(x, dtype=float)
-        R = self.rotations(x) if R is None else R
+        if R is None and self._hyper is None:  # (a hyperelastic energy needs no rotations)
+            R = self.rotations(x)
         return self.scatter_nodal(self.element_energy_gradients(x[self.mesh.elements], R))
 
     def element_energy_gradients(self, xe: np.ndarray, R: np.ndarray | None = None) -> np.ndarray:

@@ -15,14 +15,15 @@ class LockingWarning(UserWarning):
     """A body's elements lock at its material's Poisson ratio: it bends and compresses too little."""
 
 
-def check_locking(kind: str, nu: float, stacklevel: int = 3) -> None:
-    """Warn (LockingWarning) when elements of ``kind`` lock at Poisson ratio ``nu``."""
+def check_locking(kind: str, nu: float, stacklevel: int = 3, bbar: bool = True) -> None:
+    """Warn (LockingWarning) when elements of ``kind`` lock at Poisson ratio ``nu``; ``bbar``: whether the body could
+    take B-bar instead (the linear models; a hyperelastic one cannot: then only tet10 is named)."""
     if kind in LOCKING_ELEMENTS and nu >= LOCKING_NU:
         warnings.warn(LockingWarning(
             f"{kind} elements with Poisson ratio nu = {nu:g} lock: the body bends and compresses too little (a "
             f"cantilever deflects {'0.92, 0.80 and 0.57' if kind == 'hex8' else '0.81, 0.64 and 0.30 (tetrahedralized)'}"
             " of the converged value at nu 0.45, 0.49 and 0.499, docs/materials.md). "
             + ("FemBody(..., volumetric='mean') (B-bar) does not lock (0.998 at 0.499), nor do tet10 elements"
-               if kind == "hex8" else "tet10 elements do not lock at this nu (0.97 at 0.499)")
+               if kind == "hex8" and bbar else "tet10 elements do not lock at this nu (0.97 at 0.499)")
             + ": box_mesh(..., 'tet10'), tetrahedralize(..., kind='tet10') or to_tet10(mesh)"),
             stacklevel=stacklevel)

@@ -152,7 +152,7 @@ class _BodyStep:
         body = self.body
         alpha, beta = body.damping
         x = self.x0 + h * v
-        R = body.rotations(x)
+        R = body.rotations(x) if body.law is None or beta else None  # (a hyperelastic energy needs none)
         xe = x[body.mesh.elements]
         dpsi = body.scatter_nodal(body.element_energy_gradients(xe, R))
         g = body.mass_product(v - self.v0) + h * (alpha * body.mass_product(v) - self.spared) + h * (dpsi - self.f_ext)

@@ -317,3 +317,13 @@ def test_appended_bodies_are_refused_by_the_warped_step_too():
     sim.bodies.append(_body("tet4", "corotated"))
     with pytest.raises(InvalidInputError, match="scheme='newton'"):
         sim.step()
+
+
+def test_locking_warning_names_what_a_hyperelastic_body_can_take():
+    mesh = sb.box_mesh((0.1, 0.1, 0.1), (1, 1, 1), "hex8")
+    with pytest.warns(sb.LockingWarning) as caught:
+        sb.FemBody(mesh, sb.LinearElastic(1e5, 0.45, 1000.0), model="neo-hookean")
+    text = str(caught[0].message)
+    assert "tet10" in text and "volumetric" not in text  # B-bar is the linear models' only
+    with pytest.warns(sb.LockingWarning, match="volumetric='mean'"):
+        sb.FemBody(mesh, sb.LinearElastic(1e5, 0.45, 1000.0))
