@@ -1,16 +1,20 @@
 """Sparse symmetric positive definite solves with the symbolic analysis done once per pattern.
 
-Backends: "pardiso" (Intel MKL PARDISO through pypardiso, real SPD, mtype 2, upper triangle,
-analysis / numeric factorisation / solve as separate phases), "blocks" (softbody.cholesky: a compiled
-Cholesky in 3x3 node blocks, for small systems, where PARDISO's cost is mostly per call) and "superlu"
-(scipy, the fallback when MKL is not installed). Pick with ``backend="auto"`` (default: "blocks" for a
-system whose factor is small, see :func:`prefers_blocks`, else PARDISO, else SuperLU) or by name.
+Backends, each a :class:`Factorization` (analyse, factorize, solve with one or many right-hand sides): "pardiso"
+(Intel MKL PARDISO through pypardiso, real SPD, mtype 2, upper triangle, analysis / numeric factorisation / solve as
+separate phases, double or single precision), "blocks" (softbody.cholesky: a compiled Cholesky in 3x3 node blocks,
+for small systems, where PARDISO's cost is mostly per call) and "superlu" (scipy, the fallback when MKL is not
+installed). :func:`choose_backend` is the one place that picks: ``backend="auto"`` (default: "blocks" for a system
+whose factor is small, see :func:`prefers_blocks`, else PARDISO, else SuperLU) or by name. :class:`SpdSolver` wraps
+the chosen one with what every backend shares (the first factorisation's analysis, a factor kept for the same
+values, its values saved and restored).
 """
 from __future__ import annotations
 
 import glob
 import os
 import sys
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -72,54 +76,60 @@ def set_threads(n: int) -> None:
         PyPardisoSolver().libmkl.MKL_Set_Num_Threads(int(n))
 
 
-class SpdSolver:
-    """Factorise and solve A x = b for SPD matrices sharing one sparsity pattern.
+class Factorization(Protocol):
+    """One backend's factor of SPD matrices of one sparsity pattern (the upper triangle in CSR, size n): a new
+    backend is one class of this protocol, registered in FACTORIZATIONS and chosen by :func:`choose_backend`."""
 
-    indptr, indices: the upper triangle (including the diagonal) of A in CSR with sorted indices,
-    size n. ``factorize(data)`` takes the matching values; the symbolic analysis (ordering) runs on
-    the first call only. ``solve(b)`` takes b of shape (n,) or (n, m). precision "single" factorises and
-    solves in single precision (PARDISO) or in double (the other backends).
-    """
+    name: str
 
-    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto",
-                 precision: str = "double"):
-        if backend not in BACKENDS:
-            raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
-        if backend == "pardiso" and not HAVE_PARDISO:
-            raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
-        if backend == "blocks" and n % 3:
-            raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks: n a multiple of 3, got {n}")
-        if backend == "blocks" and not kernels.AVAILABLE:  # named by the user: compiled at first use, warm-up or not
-            raise InvalidInputError("backend 'blocks' is compiled: it needs numba, and SOFTBODY_NO_NUMBA unset")
-        self._blocks = prefers_blocks(indptr, indices, n) if backend == "auto" else None
-        if backend == "blocks":
-            self._blocks = cholesky.BlockSymbolic.of(indptr, indices, n)
-        if self._blocks is not None:
-            self.backend = "blocks"
-        else:
-            self.backend = "pardiso" if backend == "auto" and HAVE_PARDISO else ("superlu" if backend == "auto" else backend)
-        if precision not in ("double", "single"):
-            raise InvalidInputError(f"precision must be 'double' or 'single', got {precision!r}")
-        self.precision = precision
-        self.dtype = np.float64 if precision == "double" else np.float32
-        self.n = int(n)
-        self.indptr = np.asarray(indptr, dtype=np.int32)
-        self.indices = np.asarray(indices, dtype=np.int32)
+    def analyse(self, data: np.ndarray) -> None:
+        """Symbolic analysis (fill-reducing ordering) of the pattern, values ``data`` at hand."""
+        ...
+
+    def factorize(self, data: np.ndarray) -> None:
+        """Numeric factorisation of the upper-triangle values ``data`` (SolverError if not positive definite)."""
+        ...
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """x (n,) or (n, m) of A x = b for b (n,) or (n, m): several right-hand sides in one call."""
+        ...
+
+    @property
+    def has_factor(self) -> bool:
+        """Whether a successful factorisation is held."""
+        ...
+
+    def drop(self) -> None:
+        """Forget the numeric factor (solves need a factorisation again)."""
+        ...
+
+    def release(self) -> None:
+        """Free memory held outside Python (called when the solver goes)."""
+        ...
+
+
+class PardisoFactorization:
+    """Intel MKL PARDISO (pypardiso), real SPD (mtype 2), upper triangle, analysis / numeric factorisation / solve as
+    separate phases, in double or single precision (iparm 28)."""
+
+    name = "pardiso"
+    ORDERINGS = {2: "METIS nested dissection", 0: "minimum degree"}
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
+        self.n, self.dtype = n, dtype
+        self._ps = PyPardisoSolver(mtype=2)
+        # non-default iparm: no iterative refinement (MKL's default does two refinement steps per solve, which
+        # makes it about 4x slower and buys nothing for a Cholesky factor of an SPD matrix), and the factor and
+        # solve in the requested precision
+        self._ps.iparm[0], self._ps.iparm[1], self._ps.iparm[7] = 1, 2, 0
+        self._ps.iparm[27] = 1 if dtype == np.float32 else 0
+        os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)  # else every solver re-globs sys.prefix (~0.5 s)
+        self._ia = indptr + 1  # Fortran indexing, built once
+        self._ja = indices + 1
+        self._data = None
         self._analysed = False
-        self._factor = None
-        if self.backend == "pardiso":
-            self._ps = PyPardisoSolver(mtype=2)
-            # non-default iparm: no iterative refinement (MKL's default does two refinement
-            # steps per solve, which makes it about 4x slower and buys nothing for a Cholesky factor of an SPD
-            # matrix), and the factor and solve in the requested precision
-            self._ps.iparm[0], self._ps.iparm[1], self._ps.iparm[7] = 1, 2, 0
-            self._ps.iparm[27] = 1 if precision == "single" else 0
-            os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)  # else every solver re-globs sys.prefix (~0.5 s)
-            self._ia = self.indptr + 1  # Fortran indexing, built once
-            self._ja = self.indices + 1
-            self._matrix = sp.csr_matrix((np.ones(len(self.indices)), self.indices, self.indptr), shape=(n, n))
 
-    def _pardiso(self, phase: int, data: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def _call(self, phase: int, data: np.ndarray, b: np.ndarray) -> np.ndarray:
         import ctypes
 
         ps = self._ps
@@ -145,31 +155,212 @@ class SpdSolver:
                               + (" (matrix not positive definite)" if err.value == -4 else ""))
         return x.astype(np.float64, copy=False)
 
-    ORDERINGS = {2: "METIS nested dissection", 0: "minimum degree"}
+    def analyse(self, data: np.ndarray) -> None:
+        """Both orderings are analysed and the one whose factorisation needs fewer floating-point operations (as
+        PARDISO counts them) is kept: nested dissection wins on large meshes, minimum degree on small ones. The
+        choice is made from the sparsity pattern, not from timings; MKL's METIS carries a random state within a
+        process, so the same sequence of analyses gives the same orderings run after run, but two solvers in one
+        process may order slightly differently."""
+        data = np.ascontiguousarray(data, dtype=float)
+        ps = self._ps
+        flops = {}
+        for order in self.ORDERINGS:
+            ps.iparm[1], ps.iparm[18] = order, -1  # iparm[18] < 0: report the factorisation's Mflop
+            self._call(11, data, np.zeros(self.n))
+            flops[order] = int(ps.iparm[18])
+        best = min(flops, key=lambda o: (flops[o], o != 2))
+        if best != order:
+            ps.iparm[1], ps.iparm[18] = best, -1
+            self._call(11, data, np.zeros(self.n))
+        self.ordering = self.ORDERINGS[best]
+        self.factor_mflop = int(ps.iparm[18])
+        self._analysed = True
+
+    def factorize(self, data: np.ndarray) -> None:
+        self._data = None
+        data = np.ascontiguousarray(data, dtype=self.dtype)  # kept for the solve phase
+        self._call(22, data, np.zeros(self.n))
+        self._data = data
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._data is None:
+            raise SolverError("solve before a successful factorisation")
+        return self._call(33, self._data, np.asfortranarray(b))
+
+    @property
+    def has_factor(self) -> bool:
+        return self._data is not None
+
+    def drop(self) -> None:
+        self._data = None
+
+    def release(self) -> None:
+        if self._analysed:
+            try:
+                self._call(-1, np.zeros(1), np.zeros(self.n))
+            except Exception:
+                pass
+
+
+class BlockCholeskyFactorization:
+    """softbody.cholesky: a compiled Cholesky in 3x3 node blocks, for small systems, where PARDISO's cost is mostly
+    per call (double precision)."""
+
+    name = "blocks"
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
+        self.n = n
+        self._symbolic = symbolic if symbolic is not None else cholesky.BlockSymbolic.of(indptr, indices, n)
+        self._factor = None
+        self._where = None
 
     def analyse(self, data: np.ndarray) -> None:
-        """Symbolic analysis (fill-reducing ordering); called automatically on first factorisation.
+        pass  # (the symbolic analysis is made with the solver: the "auto" choice reads it)
 
-        PARDISO: both orderings are analysed and the one whose factorisation needs fewer floating-point
-        operations (as PARDISO counts them) is kept: nested dissection wins on large meshes, minimum
-        degree on small ones. The choice is made from the sparsity pattern, not from timings; MKL's
-        METIS carries a random state within a process, so the same sequence of analyses gives the same
-        orderings run after run, but two solvers in one process may order slightly differently.
-        """
-        if self.backend == "pardiso":
-            data = np.ascontiguousarray(data, dtype=float)
-            ps = self._ps
-            flops = {}
-            for order in self.ORDERINGS:
-                ps.iparm[1], ps.iparm[18] = order, -1  # iparm[18] < 0: report the factorisation's Mflop
-                self._pardiso(11, data, np.zeros(self.n))
-                flops[order] = int(ps.iparm[18])
-            best = min(flops, key=lambda o: (flops[o], o != 2))
-            if best != order:
-                ps.iparm[1], ps.iparm[18] = best, -1
-                self._pardiso(11, data, np.zeros(self.n))
-            self.ordering = self.ORDERINGS[best]
-            self.factor_mflop = int(ps.iparm[18])
+    def factorize(self, data: np.ndarray) -> None:
+        S = self._symbolic
+        factor = self._factor if self._factor is not None else np.empty((len(S.row), 3, 3))
+        if self._where is None:
+            self._where = np.empty(len(S.perm), dtype=np.int64)
+        self._factor = None
+        failed = cholesky.factorize_blocks(data, S.dest, S.mirror, S.col_ptr, S.row, S.row_ptr, S.row_col,
+                                           S.row_pos, factor, self._where)
+        if failed >= 0:
+            raise SolverError(f"block Cholesky failed at node {int(S.perm[failed])} (matrix not positive definite)")
+        self._factor = factor
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._factor is None:
+            raise SolverError("solve before a successful factorisation")
+        S, N = self._symbolic, self.n // 3
+        if b.ndim == 1 or b.shape[1] == 1:
+            x = np.empty((N, 3))
+            cholesky.solve_block(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3)), x)
+        else:
+            x = np.empty((N, 3, b.shape[1]))
+            cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3, -1)), x)
+        return x.reshape(b.shape)
+
+    @property
+    def has_factor(self) -> bool:
+        return self._factor is not None
+
+    def drop(self) -> None:
+        self._factor = None
+
+    def release(self) -> None:
+        pass
+
+
+class SuperLUFactorization:
+    """scipy's SuperLU (the fallback without MKL), symmetric mode on the whole matrix, in the solver's precision."""
+
+    name = "superlu"
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
+        self.n, self.dtype, self.indptr, self.indices = n, dtype, indptr, indices
+        self._factor = None
+
+    def analyse(self, data: np.ndarray) -> None:
+        pass  # (SuperLU orders at each factorisation)
+
+    def factorize(self, data: np.ndarray) -> None:
+        self._factor = None
+        U = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        A = (U + sp.triu(U, 1).T).tocsc()
+        try:
+            self._factor = spla.splu(A.astype(self.dtype), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                     options=dict(SymmetricMode=True))
+        except RuntimeError as exc:
+            raise SolverError(f"SuperLU factorisation failed: {exc}") from exc
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._factor is None:
+            raise SolverError("solve before a successful factorisation")
+        return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
+
+    @property
+    def has_factor(self) -> bool:
+        return self._factor is not None
+
+    def drop(self) -> None:
+        self._factor = None
+
+    def release(self) -> None:
+        pass
+
+
+#: the backends by name (BACKENDS less "auto"): a new one is a Factorization class added here
+FACTORIZATIONS: dict[str, type] = {"pardiso": PardisoFactorization, "blocks": BlockCholeskyFactorization,
+                                   "superlu": SuperLUFactorization}
+
+
+def choose_backend(indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto"
+                   ) -> tuple[str, cholesky.BlockSymbolic | None]:
+    """The one place a backend is chosen: ``backend`` checked (InvalidInputError naming what is missing), and
+    "auto" resolved: "blocks" for a system whose factor is small (:func:`prefers_blocks`), else PARDISO, else
+    SuperLU. Returns the name and, for "blocks", its symbolic analysis."""
+    if backend not in BACKENDS:
+        raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
+    if backend == "pardiso" and not HAVE_PARDISO:
+        raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
+    if backend == "blocks" and n % 3:
+        raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks: n a multiple of 3, got {n}")
+    if backend == "blocks" and not kernels.AVAILABLE:  # named by the user: compiled at first use, warm-up or not
+        raise InvalidInputError("backend 'blocks' is compiled: it needs numba, and SOFTBODY_NO_NUMBA unset")
+    if backend == "blocks":
+        return "blocks", cholesky.BlockSymbolic.of(indptr, indices, n)
+    if backend == "auto":
+        symbolic = prefers_blocks(indptr, indices, n)
+        if symbolic is not None:
+            return "blocks", symbolic
+        return ("pardiso" if HAVE_PARDISO else "superlu"), None
+    return backend, None
+
+
+class SpdSolver:
+    """Factorise and solve A x = b for SPD matrices sharing one sparsity pattern.
+
+    indptr, indices: the upper triangle (including the diagonal) of A in CSR with sorted indices,
+    size n. ``factorize(data)`` takes the matching values; the symbolic analysis (ordering) runs on
+    the first call only. ``solve(b)`` takes b of shape (n,) or (n, m). precision "single" factorises and
+    solves in single precision (PARDISO) or in double (the other backends). The backend's own work is a
+    :class:`Factorization` (``factorization``), chosen once by :func:`choose_backend`.
+    """
+
+    ORDERINGS = PardisoFactorization.ORDERINGS
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto",
+                 precision: str = "double"):
+        if precision not in ("double", "single"):
+            raise InvalidInputError(f"precision must be 'double' or 'single', got {precision!r}")
+        self.n = int(n)
+        self.indptr = np.asarray(indptr, dtype=np.int32)
+        self.indices = np.asarray(indices, dtype=np.int32)
+        self.backend, symbolic = choose_backend(self.indptr, self.indices, self.n, backend)
+        self.precision = precision
+        self.dtype = np.float64 if precision == "double" or self.backend != "pardiso" else np.float32
+        self.factorization: Factorization = FACTORIZATIONS[self.backend](self.indptr, self.indices, self.n,
+                                                                        self.dtype, symbolic)
+        self._analysed = False
+
+    @property
+    def ordering(self) -> str | None:
+        """The fill-reducing ordering the analysis chose (PARDISO's), else None."""
+        return getattr(self.factorization, "ordering", None)
+
+    @property
+    def factor_mflop(self) -> int | None:
+        """The factorisation's cost in Mflop as PARDISO counts it, else None."""
+        return getattr(self.factorization, "factor_mflop", None)
+
+    def analyse(self, data: np.ndarray) -> None:
+        """Symbolic analysis (fill-reducing ordering); called automatically on first factorisation (PARDISO: the
+        ordering of fewer factorisation flops, PardisoFactorization.analyse; ``ORDERINGS`` those tried)."""
+        f = self.factorization
+        if isinstance(f, PardisoFactorization) and self.ORDERINGS is not f.ORDERINGS:
+            f.ORDERINGS = self.ORDERINGS  # (a caller may narrow the orderings tried: the tests do)
+        f.analyse(data)
         self._analysed = True
 
     def factorize(self, data: np.ndarray) -> None:
@@ -179,7 +370,7 @@ class SpdSolver:
         data = np.ascontiguousarray(data, dtype=float)
         kept = self.__dict__.get("_values")
         if kept is not None and kept.shape == data.shape and np.array_equal(kept, data) \
-                and (self.backend != "blocks" or self._factor is not None):
+                and self.factorization.has_factor:
             self.kept = self.__dict__.get("kept", 0) + 1
             return
         if not np.all(np.isfinite(data)):
@@ -188,34 +379,14 @@ class SpdSolver:
         if not self._analysed:
             self.analyse(data)
         self._values = None  # set again once this factorisation succeeds
-        if self.backend == "pardiso":
-            self._data = np.ascontiguousarray(data, dtype=self.dtype)  # kept for the solve phase
-            self._pardiso(22, self._data, np.zeros(self.n))
-        elif self.backend == "blocks":
-            S = self._blocks
-            if self._factor is None:
-                self._factor = np.empty((len(S.row), 3, 3))
-                self._where = np.empty(len(S.perm), dtype=np.int64)
-            failed = cholesky.factorize_blocks(data, S.dest, S.mirror, S.col_ptr, S.row, S.row_ptr, S.row_col,
-                                               S.row_pos, self._factor, self._where)
-            if failed >= 0:
-                self._factor = None
-                raise SolverError(f"block Cholesky failed at node {int(S.perm[failed])} (matrix not positive definite)")
-        else:
-            U = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
-            A = (U + sp.triu(U, 1).T).tocsc()
-            try:
-                self._factor = spla.splu(A.astype(self.dtype), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                         options=dict(SymmetricMode=True))
-            except RuntimeError as exc:
-                raise SolverError(f"SuperLU factorisation failed: {exc}") from exc
+        self.factorization.factorize(data)
         self._values = data  # kept, not copied: callers pass an array of their own (see factor_values)
 
     def factor_values(self) -> np.ndarray | None:
         """A copy of the upper-triangle values (float64) of the current factorisation, None without one: what
         :meth:`refactorize` needs to rebuild the same factor (a saved state, softbody.state)."""
         values = self.__dict__.get("_values")
-        if values is None or (self.backend == "blocks" and self._factor is None):
+        if values is None or not self.factorization.has_factor:
             return None
         return values.copy()
 
@@ -224,8 +395,7 @@ class SpdSolver:
         the bit; None drops the factor (solves then need a factorisation first)."""
         if values is None:
             self._values = None
-            if self.backend != "pardiso":
-                self._factor = None
+            self.factorization.drop()
             return
         values = np.asarray(values, dtype=float)
         if values.shape != self.indices.shape:
@@ -234,26 +404,10 @@ class SpdSolver:
         self.factorize(values.copy())
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        b = np.asarray(b, dtype=float)
-        if self.backend == "pardiso":
-            return self._pardiso(33, self._data, np.asfortranarray(b))
-        if self.backend == "blocks":
-            if self._factor is None:
-                raise SolverError("solve before a successful factorisation")
-            S, N = self._blocks, self.n // 3
-            if b.ndim == 1 or b.shape[1] == 1:
-                x = np.empty((N, 3))
-                cholesky.solve_block(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3)), x)
-            else:
-                x = np.empty((N, 3, b.shape[1]))
-                cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3, -1)),
-                                      x)
-            return x.reshape(b.shape)
-        return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
+        """x of A x = b, b (n,) or (n, m) [several right-hand sides in one call]."""
+        return self.factorization.solve(np.asarray(b, dtype=float))
 
-    def __del__(self):  # release MKL's memory for this factorisation
-        if getattr(self, "backend", None) == "pardiso" and self._analysed:
-            try:
-                self._pardiso(-1, np.zeros(1), np.zeros(self.n))
-            except Exception:
-                pass
+    def __del__(self):  # release the backend's memory for this factorisation (MKL's)
+        f = self.__dict__.get("factorization")
+        if f is not None:
+            f.release()

@@ -118,7 +118,7 @@ def test_the_block_factor_is_a_permuted_cholesky_factor_and_rejects_an_indefinit
     for j in range(N):
         for q in range(S.col_ptr[j], S.col_ptr[j + 1]):
             i = S.row[q]
-            L[3 * i:3 * i + 3, 3 * j:3 * j + 3] = s._factor[q]
+            L[3 * i:3 * i + 3, 3 * j:3 * j + 3] = s.factorization._factor[q]
     dofs = (3 * S.perm[:, None] + np.arange(3)).ravel()
     PAP = A.toarray()[np.ix_(dofs, dofs)]
     np.testing.assert_allclose(L @ L.T, PAP, rtol=0, atol=1e-12 * np.abs(PAP).max())
@@ -168,3 +168,28 @@ def test_a_body_without_warping_is_factorised_once_and_steps_as_if_factorised_ev
     assert np.array_equal(runs[False, False][0], runs[False, True][0])
     assert runs[True, False][1:] == (20, 0)
     assert np.abs(runs[True, False][0] - runs[False, False][0]).max() > 1e-4  # the sag turns the elements: they differ
+
+
+def test_every_backend_is_a_factorization_chosen_in_one_place():
+    """Each backend answers the same protocol (analyse, factorize, solve with one and many right-hand sides, drop)
+    with the same solution; choose_backend names what a missing one needs."""
+    from softbody import linsolve
+
+    p, data, A, n = _system("tet4", (3, 2, 2))
+    b = np.arange(2 * n, dtype=float).reshape(n, 2)
+    ref = np.linalg.solve(A.toarray(), b)
+    names = [name for name in linsolve.FACTORIZATIONS
+             if (name != "pardiso" or linsolve.HAVE_PARDISO) and (name != "blocks" or softbody.kernels.AVAILABLE)]
+    assert "superlu" in names
+    for name in names:
+        s = SpdSolver(p.up_indptr, p.up_indices, n, name)
+        assert s.backend == name and s.factorization.name == name
+        s.factorize(data)
+        np.testing.assert_allclose(s.solve(b), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
+        np.testing.assert_allclose(s.solve(b[:, 0]), ref[:, 0], rtol=0, atol=1e-10 * np.abs(ref).max())
+        s.refactorize(None)
+        assert not s.factorization.has_factor
+        with pytest.raises(softbody.errors.SolverError, match="before a successful"):
+            s.solve(b)
+    with pytest.raises(softbody.InvalidInputError, match="valid"):
+        linsolve.choose_backend(p.up_indptr, p.up_indices, n, "cholmod")
