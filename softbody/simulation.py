@@ -214,7 +214,7 @@ class Simulation:
             self.t, self.steps, copy_pairs([(b.positions, b.velocities) for b in self.bodies]),
             self.solvers.save_state(self.bodies),
             {"cycled_steps": self.newton.cycled_steps, "report": copy.deepcopy(self.newton.report)},
-            bool(kernels.ENABLED), scheme=self.stepper.save_state())
+            bool(kernels.ENABLED), scheme=self.stepper.save_state(), models=[b.model for b in self.bodies])
 
     def restore_state(self, state: SimulationState | str | Path) -> None:
         """Go back to a state of :meth:`save_state` (or one written to disk, read from its path): the bodies' positions

@@ -32,7 +32,8 @@ class SimulationState:
     bodies: per stepped body (Simulation.bodies, a BodyStack as one) its (positions (N, 3) [m], velocities (N, 3)
     [m/s]); preconditioners: softbody.solvers.BodySolvers.save_state; newton: the Newton stepper's counters and last
     report; kernels: whether the compiled kernels stepped when it was saved; scheme: what the time-stepping scheme
-    carries across steps (softbody.schemes: a multistep scheme's past states; empty for the others).
+    carries across steps (softbody.schemes: a multistep scheme's past states; empty for the others); models: each
+    stepped body's elastic model (FemBody.model).
     """
 
     t: float
@@ -43,6 +44,7 @@ class SimulationState:
     kernels: bool
     format: int = FORMAT
     scheme: dict | None = None
+    models: list[str] | None = None  # each stepped body's elastic model (None: saved before models were recorded)
 
     def write(self, path: str | Path) -> Path:
         """Write this state to ``path`` (pickle); ``Simulation.restore_state(path)`` reads it back."""
@@ -57,6 +59,10 @@ class SimulationState:
             raise InvalidInputError(f"the saved state is of {len(want)} stepped bodies of {want} nodes, this one "
                                     f"steps {len(have)} of {have}: build the same scene (the same bodies, added in the "
                                     "same order) before restoring")
+        models = [getattr(b, "model", None) for b in bodies]
+        if self.models is not None and models != list(self.models):
+            raise InvalidInputError(f"the saved state is of bodies of the models {list(self.models)}, these are "
+                                    f"{models}: build the same scene (the same FemBody(model=...)) before restoring")
 
 
 def write_state(state: Any, path: str | Path) -> Path:

@@ -238,3 +238,25 @@ if __name__ == "__main__":  # the new process of test_a_saved_world_restores_in_
     w, cs, bx, kk = _scene()
     w.restore_state(sys.argv[1])
     np.save(sys.argv[2], _run(w, cs, bx, kk, 30))
+
+
+def test_a_hyperelastic_body_continues_to_the_bit_and_its_state_fits_no_other_model():
+    def sim(model):
+        body = sb.FemBody(sb.box_mesh((0.3, 0.1, 0.1), (3, 1, 1), "tet4"), sb.LinearElastic(2e5, 0.3, 1000.0),
+                          model=model)
+        body.fix(np.flatnonzero(body.rest[:, 0] < body.rest[:, 0].min() + 1e-9))
+        return sb.Simulation(body, 0.01, scheme="newton")
+
+    a = sim("neo-hookean")
+    for _ in range(3):
+        a.step()
+    saved = a.save_state()
+    for _ in range(3):
+        a.step()
+    b = sim("neo-hookean")
+    b.restore_state(saved)
+    for _ in range(3):
+        b.step()
+    assert np.array_equal(a.bodies[0].positions, b.bodies[0].positions)
+    with pytest.raises(sb.InvalidInputError, match="models"):
+        sim("warped").restore_state(saved)
