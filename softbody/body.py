@@ -243,7 +243,6 @@ class FemBody:
             Gw = Gw * np.sqrt(mu_e)[:, None, None, None]
             lam, mu = -2.0 / 3.0, 1.0  # the shear part's, on gradients scaled by sqrt(mu_e)
         self._Gw = Gw
-        # a hyperelastic law's energy at the same quadrature points (its own lam and mu: the split above rescales)
         # fibres: (directions (E, 3), the scalar factors M_e (E, k, k), M_e (X_e . a) (E, k)): softbody.fibres
         self.fibres = fibres
         self._fibre = None
@@ -251,6 +250,7 @@ class FemBody:
             a, Ef = fibres.per_element(E)
             Mf = fibre_matrices(G, detJ * w, a, Ef)
             self._fibre = (a, Mf, np.einsum("ekl,el->ek", Mf, np.einsum("elc,ec->el", X, a)))
+        # a hyperelastic law's energy at the same quadrature points (its own lam and mu: the split above rescales)
         self._hyper = None if law is None else QuadratureEnergy(
             law, G, detJ * w, *material.lame, fibres=None if fibres is None else fibres.per_element(E))
         # warped stiffness: assembled over the node pairs a <= b only (UpperAssembly), from the outer
