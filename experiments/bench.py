@@ -144,6 +144,15 @@ def parse_config(item) -> Config:
 
 # ----------------------------------------------------------------------------------------------- child processes
 
+def kb_per_node(result: dict) -> float | None:
+    """A configuration's peak memory above the imports per node [kB/node] (peak_rss_mb - baseline_rss_mb, in KiB,
+    over its nodes): what the body, its solver and the step hold at their peak; None without the figures."""
+    peak, base, nodes = result.get("peak_rss_mb"), result.get("baseline_rss_mb"), result.get("nodes")
+    if peak is None or base is None or not nodes:
+        return None
+    return 1024.0 * (peak - base) / nodes
+
+
 def _rss_mb() -> float:
     """Peak resident set size of this process [MB]: since the last ``_reset_peak_rss`` where Linux's
     VmHWM allows it, else since the start (``ru_maxrss``; Linux reports KiB, macOS bytes)."""
@@ -793,11 +802,11 @@ def markdown(doc: dict) -> str:
              f"Per configuration: {s['warmup']} warm-up steps, then {s['repeats']} blocks of {s['steps']} steps "
              f"(h = 0.01 s); ms/step is the median over blocks of the mean per block [min-max over blocks].", "",
              "| config | elements | nodes | DOFs | method | ms/step [min-max] | floor ms | step/floor | "
-             "pybullet ms per 0.01 s (k) | ours/pybullet | overhead % | peak MB |",
-             "|---|---:|---:|---:|---|---|---:|---:|---|---:|---:|---:|"]
+             "pybullet ms per 0.01 s (k) | ours/pybullet | overhead % | peak MB | kB/node |",
+             "|---|---:|---:|---:|---|---|---:|---:|---|---:|---:|---:|---:|"]
     for r in res:
         if "error" in r:
-            lines.append(f"| {r['label']} | | | | | failed: {r['error'].splitlines()[0][:80]} | | | | | | |")
+            lines.append(f"| {r['label']} | | | | | failed: {r['error'].splitlines()[0][:80]} | | | | | | | |")
             continue
         pb = r.get("pybullet") or {}
         if pb.get("error"):
@@ -816,7 +825,8 @@ def markdown(doc: dict) -> str:
             f"| {r['label']} | {r['elements']} | {r['nodes']} | {r['dofs']} | {r['method']} | "
             f"{_fmt(r['ms_per_step'])} [{_fmt(r['ms_per_step_min'])}-{_fmt(r['ms_per_step_max'])}] | "
             f"{_fmt(r.get('floor_ms'))} | {_fmt(r.get('step_over_floor'))} | {pbt} | "
-            f"{ratio} | {_fmt(r.get('overhead_pct'), 1)} | {_fmt(r.get('peak_rss_mb'), 0)} |")
+            f"{ratio} | {_fmt(r.get('overhead_pct'), 1)} | {_fmt(r.get('peak_rss_mb'), 0)} | "
+            f"{_fmt(kb_per_node(r), 1)} |")
     ok = [r for r in res if "error" not in r]
     if ok:
         names = [n for n in PHASES if any(n in r["phases_ms"] for r in ok)]

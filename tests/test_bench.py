@@ -16,7 +16,7 @@ from softbody import box_mesh
 from softbody.errors import InvalidInputError
 
 TABLE_COLUMNS = ["config", "elements", "nodes", "DOFs", "ms/step [min-max]", "floor ms", "step/floor",
-                 "pybullet ms per 0.01 s (k)", "ours/pybullet", "overhead %", "peak MB"]
+                 "pybullet ms per 0.01 s (k)", "ours/pybullet", "overhead %", "peak MB", "kB/node"]
 
 
 def _number(v) -> bool:
@@ -153,3 +153,8 @@ def test_the_plot_of_one_tiny_result_is_named_for_its_run_with_plain_number_tick
             for t, text in shown:
                 assert float(text) == pytest.approx(t), (text, t)  # "4", "0.5", "200": no 4x10^0
             assert not any(lab.get_text() for lab in axis.get_minorticklabels())
+
+
+def test_memory_per_node_is_the_peak_above_the_imports_over_the_nodes():
+    assert bench.kb_per_node({"peak_rss_mb": 300.0, "baseline_rss_mb": 200.0, "nodes": 1024}) == pytest.approx(100.0)
+    assert bench.kb_per_node({"peak_rss_mb": 300.0, "nodes": 1024}) is None
