@@ -43,6 +43,7 @@ from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from softbody.body import MODELS
 from softbody.errors import InvalidInputError, SimulationDiverged, SolverError
 from softbody.linsolve import THREAD_VARS as THREAD_ENV
 
@@ -62,10 +63,8 @@ def solve_methods() -> tuple[str, ...]:
 CSV_COLUMNS = ("scene", "role", "element", "cells", "elements", "nodes", "dofs", "steps", "duration_s",
                "dt_s", "scheme", "method", "median_ms_per_step", "median_cpu_ms_per_step", "peak_mem_mb", "wall_s", "error_m", "status",
                "external_load", "material")
-# the elastic models (softbody.MODELS, named here: a worker need not import softbody to check them) and those that
-# only an iterated scheme steps
-MODELS = ("warped", "linear", "corotated", "neo-hookean")
-ITERATED_MODELS = ("corotated", "neo-hookean")
+# the elastic models a body takes, and those that only an iterated scheme steps (the hyperelastic laws)
+ITERATED_MODELS = tuple(m for m in MODELS if m not in ("warped", "linear"))
 
 
 @dataclass(frozen=True)
