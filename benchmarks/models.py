@@ -17,7 +17,7 @@ tet10 cantilever bent this far), "corotated" and "neo-hookean" (their energies' 
 step of the cantilever swinging from rest under its weight (E 1e6 Pa, tet10 (20, 2, 2), dt 0.01, 30 steps after 5)
 for each model and each scheme that steps it, single thread.
 
-    python benchmarks/models.py [--out docs/bench/models.md]      (about 10 minutes)
+    python benchmarks/models.py [--out docs/bench/models.md]      (about 15 minutes)
 """
 from __future__ import annotations
 
