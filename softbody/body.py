@@ -711,6 +711,31 @@ class FemBody:
             H = (V * np.maximum(lam, 0.0)[:, None, :]) @ np.swapaxes(V, 1, 2)
         return self.pattern.assemble(H)
 
+    def warped_force_jacobian_blocks(self, x: np.ndarray, rel_step: float = 1e-6) -> np.ndarray:
+        """-d f_w / dx of the warped elastic forces f_w = -sum_e R_e K_e (R_e^T x_e - X_e) at x (N, 3), the
+        rotations' change included, as block data (nnzb, 3, 3) [N/m] (not symmetric: the warped force is not quite a
+        gradient). Per element by central differences (step ``rel_step`` times the element's size) of its forces with
+        its rotation re-evaluated; for Newton's method on the warped step's force balance (solve_equilibrium)."""
+        xe = np.asarray(x, dtype=float)[self.mesh.elements]
+        E, k, _ = xe.shape
+        ct = self.char_tets.reshape(-1)
+        X = self.rest[self.mesh.elements].reshape(E, -1)
+
+        def forces(y: np.ndarray) -> np.ndarray:  # -R K (R^T y - X) per element, R of the element at y
+            F = np.einsum("eci,ecj->eij", y[:, ct], self._char_grads)
+            R = polar_rotation_components(_components(F)).T.reshape(E, 3, 3)
+            u = (y @ R).reshape(E, -1) - X
+            return -((self.Ke @ u[:, :, None]).reshape(E, k, 3) @ np.swapaxes(R, 1, 2))
+
+        size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+        eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
+        J = np.empty((E, 3 * k, 3 * k))
+        for j in range(3 * k):
+            d = np.zeros((E, k, 3))
+            d[:, j // 3, j % 3] = 1.0
+            J[:, :, j] = -((forces(xe + eps * d) - forces(xe - eps * d)) / (2 * eps)).reshape(E, -1)
+        return self.pattern.assemble(J)
+
     def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
         """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""
         return self._scatter @ fe.reshape(-1, 3)

@@ -12,13 +12,17 @@ Two equilibria, as the two schemes settle (docs/method.md section 3); a body of 
   in the same constrained solve as a step's (integrator.DirectSystem), a backtracking line search on Pi.
 - ``model="warped"`` (default): where the warped force -R K (R^T x - X) balances the loads; where the default warped
   step comes to rest. The warped force is not quite the gradient of Psi (R's own change is left out), so from the
-  energy's equilibrium the iteration K'(x) dx = f_warped(x) + f, the warped step's own tangent, takes it the rest of
-  the way (linear convergence; measured on a soft cantilever 5 x 1 x 1 cells bending 0.26-0.53 m: the two
-  equilibria 3e-10 m apart for tet4, 3e-5 m for hex8, 5 mm for tet10).
+  energy's equilibrium Newton's method on the force balance takes it the rest of the way: the warped force's
+  Jacobian, rotations' change included, per element by central differences (FemBody.warped_force_jacobian_blocks;
+  not symmetric: a sparse LU solve), the step halved until the unbalanced force falls. (The iteration with the warped
+  step's own tangent K'(x), used before, converged linearly and diverged for a hex8 cantilever sagging 65 % of its
+  length and a tet10 one sagging 15 %.) Measured on a soft cantilever 5 x 1 x 1 cells bending 0.26-0.53 m: the two
+  equilibria 3e-10 m apart for tet4, 3e-5 m for hex8, 5 mm for tet10.
 """
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse.linalg as spla
 
 from .body import FemBody
 from .errors import InvalidInputError, SolverError
@@ -134,16 +138,34 @@ def solve_equilibrium(body: FemBody, gravity=(0.0, 0.0, -9.81), forces: np.ndarr
             x = x + _step_length(body, x, dx, fk, g, slope) * dx
         else:
             fail(f"load step {k} of {load_steps}", max_iter)
-    if model == "warped":
-        for _ in range(5 * max_iter + 1):
-            R = body.rotations(x)
-            g = -(body.scatter_nodal(body.element_forces(x, R)) + f)  # minus the warped force and the load
-            g[~free] = 0.0
+    if model == "warped":  # Newton's method on the warped force balance, from the energy's equilibrium
+        dofs = np.repeat(free, 3)
+
+        def unbalance(y: np.ndarray) -> np.ndarray:  # minus the warped force and the load, on the free nodes
+            r = -(body.scatter_nodal(body.element_forces(y, body.rotations(y))) + f)
+            r[~free] = 0.0
+            return r
+
+        g = unbalance(x)
+        for _ in range(max_iter + 1):
             residuals.append(float(np.linalg.norm(g)) / scale)
             if residuals[-1] <= tol:
                 break
-            dx, _ = _solve(body, body.stiffness_blocks(body.warped_stiffness_upper(R)[0]), g, s, held)
-            x = x + dx
+            J = body.pattern.to_csr(body.warped_force_jacobian_blocks(x))[dofs][:, dofs]
+            dx = np.zeros(x.size)
+            try:
+                dx[dofs] = spla.spsolve(J.tocsc(), -g.reshape(-1)[dofs])
+            except RuntimeError as exc:  # a singular Jacobian
+                raise SolverError(f"solve_equilibrium: the warped force balance's Jacobian is singular ({exc})") \
+                    from exc
+            dx = dx.reshape(-1, 3)
+            alpha = 1.0  # the residual's norm must fall (the warped force is not a gradient: no potential to watch)
+            while alpha > 1e-4:
+                trial = unbalance(x + alpha * dx)
+                if np.linalg.norm(trial) < np.linalg.norm(g):
+                    break
+                alpha *= 0.5
+            x, g = x + alpha * dx, trial
         else:
-            fail("the warped force balance", 5 * max_iter)
+            fail("the warped force balance", max_iter)
     return x - body.rest
