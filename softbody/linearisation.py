@@ -100,7 +100,7 @@ class RotationWatch:
         lag = 0.5 * EV * shape * shape
         if lag == 0.0:
             return
-        kinetic = 0.5 * float(body.node_mass @ np.einsum("ij,ij->i", v, v))  # lumped: an estimate, O(N)
+        kinetic = body.kinetic_energy(v)  # 1/2 v^T M v (the consistent mass's row sums, a tet10's, can be negative)
         if lag <= LAG_ENERGY * kinetic:
             return
         self.warned.add(body)
