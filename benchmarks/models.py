@@ -3,8 +3,8 @@ and bending, and what a step of each costs (issue 32, item 5; docs/materials.md,
 
 Scenes (1000 kg/m^3):
 
-- stretch / compression: a 0.2 x 0.1 x 0.1 m block (E 1e5 Pa, nu 0.3), both end faces clamped, the far one moved along the
-  block to a stretch of 1.1, 1.25, 1.5 (stretch) or 0.9, 0.75, 0.6 (compression; the block is too short to buckle);
+- stretch / compression: a 0.2 x 0.1 x 0.1 m block (E 1e5 Pa, nu 0.3), both end faces clamped, the far one moved
+  along the block to a stretch of 1.1, 1.25, 1.5 (stretch) or 0.9, 0.75, 0.6 (compression; the block is too short to buckle);
   the end force [N] (the reaction on the moved face); tet10 (4, 2, 2), reference tet10 (12, 6, 6);
 - bending: a 1 x 0.1 x 0.1 m cantilever (E 1e7 Pa, nu 0.3) clamped at one end, under its weight times 1, 3 and 6
   (tip sags of about 5, 15 and 30 % of its length); the tip's vertical displacement [m]; tet10 (10, 1, 1),
@@ -13,9 +13,9 @@ Scenes (1000 kg/m^3):
 Each model on the same mesh: "linear" (small strain, no rotation: solve_static), "warped" (the
 minimum of the paper's warped energy, solve_equilibrium(model="energy"): where scheme="newton" comes to rest; the
 warped step's own balance, solve_equilibrium's default, is within 0.6 mm of it on the bent cantilever), "corotated"
-and "neo-hookean" (their energies' minima). Reference: neo-Hookean on the fine mesh, the same quantity. The cost: median ms per
-step of the cantilever swinging from rest under its weight (E 1e6 Pa, tet10 (20, 2, 2), dt 0.01, 30 steps after 5)
-for each model and each scheme that steps it, single thread.
+and "neo-hookean" (their energies' minima). Reference: neo-Hookean on the fine mesh, the same quantity. The cost:
+median ms per step of the cantilever swinging from rest under its weight (E 1e6 Pa, tet10 (20, 2, 2), dt 0.01, 30 steps
+after 5) for each model and each scheme that steps it, single thread.
 
     python benchmarks/models.py [--out docs/bench/models.md]      (about 15 minutes)
 """

@@ -202,8 +202,9 @@ class FemBody:
             D = np.asarray(m.elasticity_matrix(), dtype=float)
             if D.shape != (6, 6) or not np.allclose(D, isotropic_elasticity(*m.lame), rtol=1e-12, atol=0.0):
                 raise InvalidInputError(f"material {type(m).__name__}: its elasticity matrix is not the isotropic "
-                                        "(6, 6) one of its Lame parameters, which the warped step uses (give a LinearElastic; "
-                                        "fibres: FemBody(..., fibres=softbody.Fibres(directions, modulus)))")
+                                        "(6, 6) one of its Lame parameters, which the warped step uses (give a "
+                                        "LinearElastic; fibres: FemBody(..., fibres=softbody.Fibres(directions, "
+                                        "modulus)))")
         if regions:
             if len(material.labels) != E:
                 raise InvalidInputError(f"Regions labels: one per element, {E}, got {len(material.labels)}")

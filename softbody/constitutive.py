@@ -1,5 +1,5 @@
 """Hyperelastic constitutive laws: energy density, first Piola-Kirchhoff stress and its tangent at a deformation
-gradient (docs/materials.md, "Models").
+gradient (docs/materials.md: the models, which a scene needs, and their tests).
 
 A law is a small object (:class:`Law`) evaluated at quadrature points: F (..., 3, 3) the deformation gradients
 (F_ij = dx_i / dX_j), lam and mu (...) the Lame parameters [Pa] of the isotropic LinearElastic material, each law
@@ -54,8 +54,8 @@ def det_hessian(F: np.ndarray) -> np.ndarray:
 def rotation_derivative(R: np.ndarray, F: np.ndarray) -> np.ndarray:
     """dR_ij / dF_kl (..., 3, 3, 3, 3) of the polar rotation R of F. With S = R^T F and dF = e_k e_l^T:
     R^T dR = [w]x, w = (tr(S) I - S)^-1 axial(R^T dF - dF^T R), and axial(R^T e_k e_l^T - e_l e_k^T R)_p =
-    -eps_pil R_ki ([b]x_ij = -eps_ijn b_n). Where tr(S) I - S is singular (two singular values summing to zero, an element flattened and turned
-    inside out) the rotation's change is left out there."""
+    -eps_pil R_ki ([b]x_ij = -eps_ijn b_n). Where tr(S) I - S is singular (two singular values summing to zero, an
+    element flattened and turned inside out) the rotation's change is left out there."""
     lead = F.shape[:-2]
     S = np.swapaxes(R, -1, -2) @ F
     S = 0.5 * (S + np.swapaxes(S, -1, -2))

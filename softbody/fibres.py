@@ -51,7 +51,8 @@ class Fibres:
 
     def per_element(self, n_elements: int) -> tuple[np.ndarray, np.ndarray]:
         """(directions (E, 3), modulus (E,)) for a body of ``n_elements`` elements."""
-        for name, a, shape in (("directions", self.directions, (n_elements, 3)), ("modulus", self.modulus, (n_elements,))):
+        for name, a, shape in (("directions", self.directions, (n_elements, 3)),
+                               ("modulus", self.modulus, (n_elements,))):
             if a.ndim == len(shape) and a.shape != shape:
                 raise InvalidInputError(f"Fibres {name}: one per element, {n_elements}, got {a.shape[0]}")
         return (np.broadcast_to(self.directions, (n_elements, 3)).copy(),

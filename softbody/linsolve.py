@@ -123,7 +123,8 @@ class PardisoFactorization:
         # solve in the requested precision
         self._ps.iparm[0], self._ps.iparm[1], self._ps.iparm[7] = 1, 2, 0
         self._ps.iparm[27] = 1 if dtype == np.float32 else 0
-        os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)  # else every solver re-globs sys.prefix (~0.5 s)
+        # else every solver re-globs sys.prefix (~0.5 s)
+        os.environ.setdefault("PYPARDISO_MKL_RT", self._ps.libmkl._name)
         self._ia = indptr + 1  # Fortran indexing, built once
         self._ja = indices + 1
         self._data = None
