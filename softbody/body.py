@@ -69,6 +69,27 @@ def _motion_positions(ids: np.ndarray, motion: Motion, t: float) -> np.ndarray:
     return p
 
 
+def _element_differences(fun: Callable[[np.ndarray], np.ndarray], xe: np.ndarray, rel_step: float) -> np.ndarray:
+    """d fun_e / d x_e (E, 3k, 3k), node-major, of a per-element map fun (E, k, 3) -> (E, k, 3) at xe (E, k, 3), by
+    central differences of step ``rel_step`` times each element's size (one column at a time over all elements)."""
+    E, k, _ = xe.shape
+    size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
+    eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
+    J = np.empty((E, 3 * k, 3 * k))
+    for j in range(3 * k):
+        d = np.zeros((E, k, 3))
+        d[:, j // 3, j % 3] = 1.0
+        J[:, :, j] = ((fun(xe + eps * d) - fun(xe - eps * d)) / (2 * eps)).reshape(E, -1)
+    return J
+
+
+def _voigt(S: np.ndarray, shear: float = 1.0) -> np.ndarray:
+    """Symmetric tensors S (E, 3, 3) as Voigt rows (E, 6): xx yy zz xy yz zx, the shears times ``shear`` (2:
+    engineering strain)."""
+    return np.stack([S[:, 0, 0], S[:, 1, 1], S[:, 2, 2], shear * S[:, 0, 1], shear * S[:, 1, 2], shear * S[:, 2, 0]],
+                    axis=1)
+
+
 def _components(R: np.ndarray) -> np.ndarray:
     """Component-major (9, n) copy or view of matrices R (n, 3, 3) (a view for the arrays rotations() returns)."""
     return np.ascontiguousarray(R.reshape(len(R), 9).T)
@@ -697,15 +718,7 @@ class FemBody:
         xe = np.asarray(x, dtype=float)[self.mesh.elements]
         if self._hyper is not None:
             return self.pattern.assemble(self._hyper.hessians(xe, project))
-        E, k, _ = xe.shape
-        size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
-        eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
-        H = np.empty((E, 3 * k, 3 * k))
-        for j in range(3 * k):
-            d = np.zeros((E, k, 3))
-            d[:, j // 3, j % 3] = 1.0
-            H[:, :, j] = ((self.element_energy_gradients(xe + eps * d) - self.element_energy_gradients(xe - eps * d))
-                          / (2 * eps)).reshape(E, -1)
+        H = _element_differences(self.element_energy_gradients, xe, rel_step)
         H = 0.5 * (H + np.swapaxes(H, 1, 2))
         if project:
             lam, V = np.linalg.eigh(H)
@@ -728,14 +741,7 @@ class FemBody:
             u = (y @ R).reshape(E, -1) - X
             return -((self.Ke @ u[:, :, None]).reshape(E, k, 3) @ np.swapaxes(R, 1, 2))
 
-        size = np.linalg.norm(xe - xe.mean(axis=1, keepdims=True), axis=2).max(axis=1)
-        eps = (rel_step * np.maximum(size, 1e-12))[:, None, None]
-        J = np.empty((E, 3 * k, 3 * k))
-        for j in range(3 * k):
-            d = np.zeros((E, k, 3))
-            d[:, j // 3, j % 3] = 1.0
-            J[:, :, j] = -((forces(xe + eps * d) - forces(xe - eps * d)) / (2 * eps)).reshape(E, -1)
-        return self.pattern.assemble(J)
+        return self.pattern.assemble(-_element_differences(forces, xe, rel_step))
 
     def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
         """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""
@@ -929,9 +935,7 @@ class FemBody:
         x = self.positions if x is None else x
         if self._hyper is not None:
             F = self._centre_gradients(x)
-            Eg = 0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3))
-            return np.stack([Eg[:, 0, 0], Eg[:, 1, 1], Eg[:, 2, 2], 2 * Eg[:, 0, 1], 2 * Eg[:, 1, 2], 2 * Eg[:, 2, 0]],
-                            axis=1)
+            return _voigt(0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3)), shear=2.0)
         u = self.local_displacements(x, self.rotations(x))
         eps = (self.Bc @ u[:, :, None])[:, :, 0]
         if self.volumetric == "mean":  # B-bar: the volume change is the element's mean, not the centre's
@@ -944,8 +948,7 @@ class FemBody:
         if self._hyper is not None:
             F = self._centre_gradients(self.positions if x is None else x)
             lam, mu = self.material.lame
-            s = self._hyper.cauchy_stress(F, lam, mu)
-            return np.stack([s[:, 0, 0], s[:, 1, 1], s[:, 2, 2], s[:, 0, 1], s[:, 1, 2], s[:, 2, 0]], axis=1)
+            return _voigt(self._hyper.cauchy_stress(F, lam, mu))
         eps = self.strain(x)
         sigma = np.einsum("eij,ej->ei", self.D, eps) if self.D.ndim == 3 else eps @ self.D.T  # (D by element: Regions)
         if self._fibre is not None:  # E_f eps_aa a a^T

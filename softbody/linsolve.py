@@ -203,7 +203,23 @@ class PardisoFactorization:
                 pass
 
 
-class BlockCholeskyFactorization:
+class _HeldFactor:
+    """What a backend whose factor is a Python object (``_factor``, None without one) shares."""
+
+    _factor = None
+
+    @property
+    def has_factor(self) -> bool:
+        return self._factor is not None
+
+    def drop(self) -> None:
+        self._factor = None
+
+    def release(self) -> None:
+        pass
+
+
+class BlockCholeskyFactorization(_HeldFactor):
     """softbody.cholesky: a compiled Cholesky in 3x3 node blocks, for small systems, where PARDISO's cost is mostly
     per call (double precision)."""
 
@@ -242,18 +258,8 @@ class BlockCholeskyFactorization:
             cholesky.solve_blocks(self._factor, S.col_ptr, S.row, S.perm, np.ascontiguousarray(b.reshape(N, 3, -1)), x)
         return x.reshape(b.shape)
 
-    @property
-    def has_factor(self) -> bool:
-        return self._factor is not None
 
-    def drop(self) -> None:
-        self._factor = None
-
-    def release(self) -> None:
-        pass
-
-
-class SuperLUFactorization:
+class SuperLUFactorization(_HeldFactor):
     """scipy's SuperLU (the fallback without MKL), symmetric mode on the whole matrix, in the solver's precision."""
 
     name = "superlu"
@@ -279,16 +285,6 @@ class SuperLUFactorization:
         if self._factor is None:
             raise SolverError("solve before a successful factorisation")
         return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
-
-    @property
-    def has_factor(self) -> bool:
-        return self._factor is not None
-
-    def drop(self) -> None:
-        self._factor = None
-
-    def release(self) -> None:
-        pass
 
 
 #: the backends by name (BACKENDS less "auto"): a new one is a Factorization class added here
