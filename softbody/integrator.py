@@ -262,6 +262,8 @@ def _factorize_compiled(body: FemBody, A: np.ndarray, frame_of: np.ndarray, R: n
 class DirectSystem:
     """Assembled A (block data) and b (N, 3); every solve factorises (unless reuse) and solves exactly."""
 
+    iterative = False  # solves are exact (``loose`` is ignored)
+
     body: FemBody
     A: np.ndarray
     b: np.ndarray
@@ -271,12 +273,13 @@ class DirectSystem:
     rotations: np.ndarray | None = None  # (E, 3, 3): the warped step's element rotations it was built with
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
-              reuse: bool = False, homogeneous: bool = False) -> tuple[np.ndarray, np.ndarray]:
+              reuse: bool = False, homogeneous: bool = False, loose: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Solve A y = b (+ extra_rhs, (N, 3)) with the constrained components of y fixed to their values.
 
         Returns y (N, 3) in global coordinates and the constraint reactions r = A y - b (N, 3)
         in each constrained node's local frame (zero elsewhere); for a step system r / h is the
-        constraint force [N]. reuse=True keeps the last factorisation: valid when only extra_rhs
+        constraint force [N] (``loose`` asks an iterative system for a trial solve; this one is exact anyway).
+        reuse=True keeps the last factorisation: valid when only extra_rhs
         or the constrained values changed since the previous call, not the constrained set.
         homogeneous=True drops the step's own load b (extra_rhs alone is the load): the response to the
         constrained values and extra_rhs alone, for a coupling that makes them unknowns.
@@ -417,6 +420,7 @@ class IterativeSettings:
     operator: Literal["auto", "assembled", "matrix-free"] = "auto"
     matrix_free_max_products: int = 10
     pcg_responses: int = 4
+    loose_tol: float = 1e-3
 
     def __post_init__(self):
         if self.operator not in ("auto", "assembled", "matrix-free"):
@@ -424,6 +428,8 @@ class IterativeSettings:
                                     f"got {self.operator!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
+        if not (isinstance(self.loose_tol, (int, float)) and self.tol <= self.loose_tol < 1):
+            raise InvalidInputError(f"IterativeSettings.loose_tol must be a number in [tol, 1), got {self.loose_tol!r}")
         for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0),
                             ("matrix_free_max_products", 0), ("pcg_responses", 0)):
             value = getattr(self, name)
@@ -439,6 +445,8 @@ def _product_of(matrix: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray]:
 class IterativeSystem:
     """A = c_m M + c_k K' (an assembled BSR matrix or a matrix-free product) and b (N, 3), solved by
     projected conjugate gradients preconditioned by the body's last factorised system matrix."""
+
+    iterative = True  # solves stop at a tolerance (``loose``: IterativeSettings.loose_tol)
 
     def __init__(self, body: FemBody, A: np.ndarray | Callable[[], np.ndarray], b: np.ndarray, x0: np.ndarray,
                  pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
@@ -493,14 +501,27 @@ class IterativeSystem:
 
     def _prepared(self, T: NodeFrames | None, mask: np.ndarray) -> tuple[Frames, ConstraintCorrection | None]:
         """The preconditioner for constraint set (T, mask): its per-node frames C and the correction for
-        the constrained nodes that the factorisation does not eliminate (refactorising if needed)."""
+        the constrained nodes that the factorisation does not eliminate (refactorising if due).
+
+        With a backend that counts its costs (Preconditioner.refactor_cost), contacts never force a
+        refactorisation: up to ``max_corrected_nodes`` of the nodes not eliminated are corrected (those with
+        cached columns first, at most 4 x that many cached), the rest only projected out by the PCG; the
+        extra iterations this costs add to the work that buys the next refactorisation. Without counts, more
+        nodes than that refactorise at once, eliminating them all. An inexact preconditioner (multigrid)
+        corrects none."""
         pre, limit = self.pre, self.settings.max_corrected_nodes
         constrained = _any_component(mask)
+        counted = pre.refactor_cost() is not None
+        outside = lambda: constrained & ~pre.eliminated  # noqa: E731
         # the columns of every node corrected since the factorisation are kept; past 4x the limit
-        # (memory n_dof x 3 per node) a refactorisation starts them afresh
-        if pre.stale or np.count_nonzero(constrained & ~pre.eliminated) > limit or pre.cached_nodes > 4 * limit:
+        # (memory n_dof x 3 per node) a refactorisation starts them afresh, or (counted) no more are added
+        if pre.stale or (not counted and (np.count_nonzero(outside()) > limit or pre.cached_nodes > 4 * limit)):
             self._refactor(T, mask, everything=np.count_nonzero(constrained & ~self.body.supported()) > limit)
-        nodes = np.flatnonzero(constrained & ~pre.eliminated)
+        nodes = np.flatnonzero(outside())
+        if not pre.solver.exact:  # multigrid: a column is a V-cycle, as dear as an iteration; projection alone
+            nodes = nodes[:0]
+        elif counted and len(nodes) > limit:
+            nodes = pre.correctable(nodes, limit, 4 * limit)
         with timed(self.timings, "solve"):
             C = self._preconditioner_frames(T)
         if not len(nodes):
@@ -544,9 +565,11 @@ class IterativeSystem:
         return C
 
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
-              reuse: bool = False, homogeneous: bool = False) -> tuple[np.ndarray, np.ndarray]:
+              reuse: bool = False, homogeneous: bool = False, loose: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Same contract as DirectSystem.solve (``reuse`` is implied: the preconditioner is kept). A
-        homogeneous solve starts from zero and leaves the warm start of the step's next solve alone."""
+        homogeneous solve starts from zero and leaves the warm start of the step's next solve alone. A
+        ``loose`` one stops at IterativeSettings.loose_tol (an active set's trial solve, confirmed by a full
+        one once the set stands)."""
         T, mask, value = cons.dense(self.body.n_nodes)
         load = np.zeros_like(self.b) if homogeneous else self.b
         b = to_local(T, load if extra_rhs is None else load + extra_rhs)
@@ -561,7 +584,8 @@ class IterativeSystem:
             # (prescribed motion alone is a load), to the initial residual (see IterativeSettings)
             terms = (() if homogeneous else self.terms) + (() if extra_rhs is None else (extra_rhs,))
             scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
-            atol = self.settings.tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
+            tol = self.settings.loose_tol if loose else self.settings.tol
+            atol = tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
         self.pre.products += 1 + its  # the initial residual and one per iteration
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
@@ -573,8 +597,8 @@ class IterativeSystem:
             if not ok:
                 raise SolverError(f"conjugate gradients did not converge in {self.settings.max_iter} "
                                   "iterations with a fresh factorisation (is the system positive definite?)")
-        if not homogeneous:  # a homogeneous solve starts cold: its count says nothing of the preconditioner's age
-            self.pre.stale = its > self.settings.refactor_after
+        if not homogeneous and not loose:  # a homogeneous solve starts cold, a loose one stops early: their counts
+            self._charge(its)  # say nothing of the preconditioner's age
         self.pre.iterations += its
         self.stats["iterations"] += its
         y = to_global(T, y)
@@ -582,6 +606,20 @@ class IterativeSystem:
             self.x0 = y  # warm start for the next solve of this step (active-set loops)
         reaction = np.where(mask, -r_full, 0.0)  # A y - b on the constrained components
         return y, reaction
+
+    def _charge(self, its: int) -> None:
+        """After a solve of ``its`` iterations: the iterations beyond what a fresh preconditioner needs add to its
+        spent work, and a refactorisation is due once that reaches its cost (Preconditioner.refactor_cost; a
+        backend without counts: at once). A fresh factor needs ``refactor_after``; multigrid, inexact, the fewest
+        of an earlier solve since its set-up (at least that)."""
+        pre = self.pre
+        fresh = self.settings.refactor_after
+        if not pre.solver.exact and pre.fewest is not None:
+            fresh = max(fresh, pre.fewest)
+        pre.spent += max(0, its - fresh)
+        pre.fewest = its if pre.fewest is None else min(pre.fewest, its)
+        cost = pre.refactor_cost()
+        pre.stale = pre.spent >= cost if cost is not None else its > self.settings.refactor_after
 
     def responses(self, cons: Constraints, values: np.ndarray | None = None,
                   loads: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -12,6 +12,7 @@ values, its values saved and restored).
 from __future__ import annotations
 
 import glob
+import importlib.util
 import os
 import sys
 from typing import Protocol
@@ -45,7 +46,9 @@ try:  # pragma: no cover - availability depends on the machine
 except Exception:  # ImportError, or mkl_rt missing
     HAVE_PARDISO = False
 
-BACKENDS = ("auto", "pardiso", "blocks", "superlu")
+BACKENDS = ("auto", "pardiso", "blocks", "superlu", "amg")
+
+HAVE_PYAMG = importlib.util.find_spec("pyamg") is not None  # "amg": algebraic multigrid, the iterative path's
 
 # systems of at most this many unknowns are considered for the "blocks" backend (its symbolic analysis, a
 # minimum-degree ordering in Python, takes about 50 ms at this size; far below it the factor decides)
@@ -94,6 +97,14 @@ class Factorization(Protocol):
         """x (n,) or (n, m) of A x = b for b (n,) or (n, m): several right-hand sides in one call."""
         ...
 
+    #: False for a preconditioner that only approximates A^-1 (the iterative path alone takes it)
+    exact: bool
+
+    def costs(self) -> tuple[float, float] | None:
+        """(cost of a numeric factorisation, cost of one solve with one right-hand side) in units comparable in
+        time, from counts made by the analysis (not timed), or None if the backend does not know them."""
+        ...
+
     @property
     def has_factor(self) -> bool:
         """Whether a successful factorisation is held."""
@@ -113,7 +124,14 @@ class PardisoFactorization:
     separate phases, in double or single precision (iparm 28)."""
 
     name = "pardiso"
+    exact = True
     ORDERINGS = {2: "METIS nested dissection", 0: "minimum degree"}
+    #: a factorisation's flop runs this much faster than a solve's (dense supernodal kernels against memory-bound
+    #: triangular passes), measured in single precision on the sheet-on-sphere systems: factorisation time over
+    #: one PCG iteration's time = (factor flops / solve flops) / 7-11 from 31k to 72k tet4 nodes and 24k tet10
+    #: nodes, / 3-6 on systems of a few thousand nodes, where each call's overhead counts (there the model
+    #: refactorises somewhat sooner than the times would)
+    FACTOR_SPEEDUP = 10.0
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
         self.n, self.dtype = n, dtype
@@ -166,16 +184,25 @@ class PardisoFactorization:
         ps = self._ps
         flops = {}
         for order in self.ORDERINGS:
-            ps.iparm[1], ps.iparm[18] = order, -1  # iparm[18] < 0: report the factorisation's Mflop
+            # iparm[18] < 0: report the factorisation's Mflop; iparm[17] < 0: the factor's nonzeros
+            ps.iparm[1], ps.iparm[17], ps.iparm[18] = order, -1, -1
             self._call(11, data, np.zeros(self.n))
             flops[order] = int(ps.iparm[18])
         best = min(flops, key=lambda o: (flops[o], o != 2))
         if best != order:
-            ps.iparm[1], ps.iparm[18] = best, -1
+            ps.iparm[1], ps.iparm[17], ps.iparm[18] = best, -1, -1
             self._call(11, data, np.zeros(self.n))
         self.ordering = self.ORDERINGS[best]
         self.factor_mflop = int(ps.iparm[18])
+        self.factor_nonzeros = int(ps.iparm[17])
         self._analysed = True
+
+    def costs(self) -> tuple[float, float] | None:
+        """PARDISO's own counts: the factorisation's Mflop (/ FACTOR_SPEEDUP), and a solve as a forward and a
+        backward pass over the factor's nonzeros (2 flops each)."""
+        if not self._analysed or self.factor_nonzeros <= 0:
+            return None
+        return 1e6 * self.factor_mflop / self.FACTOR_SPEEDUP, 4.0 * self.factor_nonzeros
 
     def factorize(self, data: np.ndarray) -> None:
         self._data = None
@@ -207,6 +234,7 @@ class _HeldFactor:
     """What a backend whose factor is a Python object (``_factor``, None without one) shares."""
 
     _factor = None
+    exact = True
 
     @property
     def has_factor(self) -> bool:
@@ -233,6 +261,12 @@ class BlockCholeskyFactorization(_HeldFactor):
 
     def analyse(self, data: np.ndarray) -> None:
         pass  # (the symbolic analysis is made with the solver: the "auto" choice reads it)
+
+    def costs(self) -> tuple[float, float] | None:
+        """From the symbolic analysis: 27 multiply-adds per block product; a solve passes twice over L's blocks
+        (flops of the factorisation taken as PARDISO's, PardisoFactorization.FACTOR_SPEEDUP)."""
+        S = self._symbolic
+        return 54.0 * S.multiply_adds / PardisoFactorization.FACTOR_SPEEDUP, 36.0 * len(S.row)
 
     def factorize(self, data: np.ndarray) -> None:
         S = self._symbolic
@@ -271,6 +305,9 @@ class SuperLUFactorization(_HeldFactor):
     def analyse(self, data: np.ndarray) -> None:
         pass  # (SuperLU orders at each factorisation)
 
+    def costs(self) -> None:
+        return None  # SuperLU orders and counts only while it factorises
+
     def factorize(self, data: np.ndarray) -> None:
         self._factor = None
         U = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
@@ -287,9 +324,52 @@ class SuperLUFactorization(_HeldFactor):
         return self._factor.solve(b.astype(self.dtype)).astype(np.float64, copy=False)
 
 
+class AMGFactorization(_HeldFactor):
+    """Algebraic multigrid (pyamg's smoothed aggregation) as the iterative path's preconditioner: no factor, so its
+    memory stays a few times A's (a factor of a large 3-D body grows as N^4/3 and beyond); ``solve`` applies one
+    V-cycle, a fixed symmetric positive definite approximation of A^-1 (symmetric Gauss-Seidel smoothing), as PCG
+    needs. The near null space is the three translations per node (pattern only; the rotations as well cut the
+    iterations from 8 to 6 on the 31k-node sheet but double the hierarchy's size and set-up)."""
+
+    name = "amg"
+    exact = False
+    #: a set-up costs about this many V-cycles (measured: 1.6 s against 0.09 s on the 31k-node tet4 sheet)
+    SETUP_CYCLES = 20.0
+
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
+        self.n, self.indptr, self.indices = n, indptr, indices
+        self._factor = None
+
+    def analyse(self, data: np.ndarray) -> None:
+        pass  # (the aggregation follows the values, at each set-up)
+
+    def costs(self) -> tuple[float, float]:
+        return self.SETUP_CYCLES, 1.0
+
+    def factorize(self, data: np.ndarray) -> None:
+        import pyamg
+
+        self._factor = None
+        U = sp.csr_matrix((np.asarray(data, dtype=float), self.indices, self.indptr), shape=(self.n, self.n))
+        A = (U + sp.triu(U, 1).T).tocsr()
+        B = np.tile(np.eye(3), (self.n // 3, 1))  # the translations, node by node
+        smoother = ("gauss_seidel", {"sweep": "symmetric"})
+        hierarchy = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric",
+                                                      strength=("symmetric", {"theta": 0.0}),
+                                                      presmoother=smoother, postsmoother=smoother, max_coarse=1000)
+        self._factor = hierarchy.aspreconditioner(cycle="V")
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        if self._factor is None:
+            raise SolverError("solve before a successful multigrid set-up")
+        if b.ndim == 1:
+            return self._factor @ b
+        return np.column_stack([self._factor @ b[:, j] for j in range(b.shape[1])])
+
+
 #: the backends by name (BACKENDS less "auto"): a new one is a Factorization class added here
 FACTORIZATIONS: dict[str, type] = {"pardiso": PardisoFactorization, "blocks": BlockCholeskyFactorization,
-                                   "superlu": SuperLUFactorization}
+                                   "superlu": SuperLUFactorization, "amg": AMGFactorization}
 
 
 def choose_backend(indptr: np.ndarray, indices: np.ndarray, n: int, backend: str = "auto"
@@ -301,6 +381,11 @@ def choose_backend(indptr: np.ndarray, indices: np.ndarray, n: int, backend: str
         raise InvalidInputError(f"unknown solver backend {backend!r}; valid: {BACKENDS}")
     if backend == "pardiso" and not HAVE_PARDISO:
         raise InvalidInputError("backend 'pardiso' needs pypardiso (pip install pypardiso)")
+    if backend == "amg":
+        if not HAVE_PYAMG:
+            raise InvalidInputError("backend 'amg' needs pyamg (pip install pyamg)")
+        if n % 3:
+            raise InvalidInputError(f"backend 'amg' needs 3x3 node blocks: n a multiple of 3, got {n}")
     if backend == "blocks" and n % 3:
         raise InvalidInputError(f"backend 'blocks' needs 3x3 node blocks: n a multiple of 3, got {n}")
     if backend == "blocks" and not kernels.AVAILABLE:  # named by the user: compiled at first use, warm-up or not
@@ -350,6 +435,16 @@ class SpdSolver:
     def factor_mflop(self) -> int | None:
         """The factorisation's cost in Mflop as PARDISO counts it, else None."""
         return getattr(self.factorization, "factor_mflop", None)
+
+    def costs(self) -> tuple[float, float] | None:
+        """(cost of a factorisation, cost of a one-column solve) as the backend counts them (Factorization.costs),
+        None before the analysis or where the backend has no count."""
+        return self.factorization.costs() if self._analysed else None
+
+    @property
+    def exact(self) -> bool:
+        """False if the backend only approximates A^-1 (a preconditioner: the iterative path alone takes it)."""
+        return self.factorization.exact
 
     def analyse(self, data: np.ndarray) -> None:
         """Symbolic analysis (fill-reducing ordering); called automatically on first factorisation (PARDISO: the

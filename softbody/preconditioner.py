@@ -53,7 +53,10 @@ class Preconditioner:
     it was factorised with, the nodes it eliminates, cached P^-1 columns, and counters.
 
     stale: refactorise before the next solve. ``eliminated`` (N,) bool: nodes with components
-    eliminated in P (None before the first factorisation).
+    eliminated in P (None before the first factorisation). ``spent``: the work since the factorisation
+    that a fresh one would have saved, in PCG iterations (iterations beyond a fresh factor's count, the
+    correction's columns); a refactorisation is due once it reaches :meth:`refactor_cost` (the rent-or-buy
+    rule: never more than twice the work of the best choice made in hindsight).
     """
 
     solver: SpdSolver
@@ -66,6 +69,8 @@ class Preconditioner:
     column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
     previous_velocities: np.ndarray | None = None  # at the start of the last step, for the PCG's warm start
     products: int = 0  # products with A in the current (after it: the last) step, for IterativeSettings.operator
+    spent: float = 0.0  # PCG iterations' worth spent since the factorisation that a fresh one saves (see above)
+    fewest: int | None = None  # the fewest iterations of a full solve since the factorisation
     _slot: np.ndarray | None = None  # (N,) first column of each node's P^-1 columns in _Y, -1: none yet
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
     _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call
@@ -77,7 +82,7 @@ class Preconditioner:
 
     # the fields that a saved state holds (the rest, _last, is a gather made again from these)
     _STATE = ("T", "Q", "stale", "factorizations", "iterations", "eliminated", "column_nodes", "previous_velocities",
-              "products", "_slot", "_Y")
+              "products", "spent", "fewest", "_slot", "_Y")
 
     def save_state(self) -> dict:
         """Everything the next steps read of this preconditioner, copied: its frames, counters, warm start, cached
@@ -93,14 +98,25 @@ class Preconditioner:
         if state["backend"] != self.solver.backend:
             raise InvalidInputError(f"a preconditioner state of backend {state['backend']!r} for one of {self.solver.backend!r}")
         for name in self._STATE:
-            setattr(self, name, copy.deepcopy(state[name]))
+            if name in state:  # (a state saved before a field existed keeps its default)
+                setattr(self, name, copy.deepcopy(state[name]))
         self._last = (None, None)
         self.solver.refactorize(state["factor"])
+
+    def refactor_cost(self) -> float | None:
+        """A numeric factorisation's cost in PCG iterations (each one solve with P), from the backend's own counts
+        (SpdSolver.costs; at least 1), or None if the backend does not count them (then the iteration count alone
+        decides, IterativeSettings)."""
+        costs = self.solver.costs()
+        if costs is None or costs[1] <= 0:
+            return None
+        return max(1.0, costs[0] / costs[1])
 
     def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
         """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""
         self.T, self.Q, self.eliminated = T, Q, eliminated
         self.stale = False
+        self.spent, self.fewest = 0.0, None
         self.factorizations += 1
         self._slot, self._Y, self._last = np.full(len(eliminated), -1), None, (None, None)
 
@@ -120,6 +136,13 @@ class Preconditioner:
         if self._last[0] is None or not np.array_equal(self._last[0], slots):  # else the same gather as last time
             self._last = (slots, self._Y[:, (slots[:, None] + np.arange(3)).ravel()])
         return self._last[1]
+
+    def correctable(self, nodes: np.ndarray, limit: int, cap: int) -> np.ndarray:
+        """Of ``nodes`` (ascending), the at most ``limit`` to correct: those whose columns are cached first, then
+        new ones while the cache holds at most ``cap`` nodes."""
+        cached = self._slot[nodes] >= 0
+        room = max(0, min(limit - int(cached.sum()), cap - self.cached_nodes))
+        return np.sort(np.r_[nodes[cached][:limit], nodes[~cached][:room]])
 
     def correction(self, nodes: np.ndarray, mask: np.ndarray, frames: np.ndarray) -> ConstraintCorrection:
         """The correction for constrained components ``mask`` (M, 3) of ``nodes`` (M,), whose local axes

@@ -101,7 +101,8 @@ def newton_velocities(sim: "Simulation", h: float, solve: Solve, t_next: float, 
     bodies = sim.bodies
     solvers = [sim.solvers.solver(b, sim.solver_backend) for b in bodies]
     methods = [sim.linear_method(b) for b in bodies]
-    pres = [None if m == "direct" else sim.solvers.preconditioner(b, s) for b, s, m in zip(bodies, solvers, methods)]
+    pres = [None if m == "direct" else sim.solvers.preconditioner(b, s, sim.solver_backend)
+            for b, s, m in zip(bodies, solvers, methods)]
     return sim.newton.solve(bodies, h, [sim.load(b) for b in bodies], solvers, methods, sim.settings, timings, solve,
                             t_next, sim.steps + 1, contacts=contacts, preconditioners=pres, prediction=prediction,
                             starts=starts)

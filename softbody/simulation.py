@@ -16,7 +16,7 @@ from .errors import InvalidInputError, SimulationDiverged, finite_number
 from .integrator import (Constraints, DirectSystem, IterativeSettings, LinearSystem, Timings, step_system,
                          support_constraints)
 from .linearisation import RotationWatch
-from .linsolve import BACKENDS, SpdSolver
+from .linsolve import BACKENDS, SpdSolver, choose_backend
 from .newton import NewtonReport, NewtonSettings, NewtonStepper
 from .schemes import SCHEMES, Scheme
 from .solvers import BodySolvers
@@ -105,8 +105,10 @@ class Simulation:
     """Steps one or more soft bodies with backward Euler or BDF2 (softbody.schemes).
 
     bodies: a FemBody or a list of them; dt: step [s] > 0; gravity [m/s^2]; solver: linear solver
-    backend ("auto", "pardiso", "superlu"); max_energy: optional bound [J] on each body's kinetic plus
-    elastic energy, above which a step raises SimulationDiverged; method: the linear solve ("auto",
+    backend ("auto", "pardiso", "blocks", "superlu", or "amg": algebraic multigrid preconditioning the iterative
+    path, the direct solves' backend then chosen as for "auto"; "auto" itself takes multigrid for bodies whose
+    factor would be large, softbody.solvers.MULTIGRID_FACTOR_BYTES); max_energy: optional bound [J] on each
+    body's kinetic plus elastic energy, above which a step raises SimulationDiverged; method: the linear solve ("auto",
     "direct", "iterative"), tol its relative tolerance on the iterative path; scheme: "warped" (the
     paper's step: rotations at the start of the step, one solve), "newton" (the nonlinear backward Euler
     step, softbody.newton: rotations re-evaluated, Newton iterations to the residual newton_tol, at most
@@ -134,6 +136,9 @@ class Simulation:
         self.solver_backend = solver
         if method not in METHODS:
             raise InvalidInputError(f"method must be one of {METHODS}, got {method!r}")
+        if solver == "amg" and method == "direct":
+            raise InvalidInputError("solver 'amg' (algebraic multigrid) preconditions the iterative path: it needs "
+                                    "method 'iterative' or 'auto', not 'direct'")
         if not (isinstance(tol, (int, float)) and 0 < tol < 1):
             raise InvalidInputError(f"tol must be a number in (0, 1), got {tol!r}")
         self.method = method
@@ -154,6 +159,8 @@ class Simulation:
         self.rotation_watch = RotationWatch()  # the warped step: bodies turning too fast for it, warned once each
         for b in bodies:
             self.solvers.solver(b, solver)  # fail early on a bad backend
+        if solver == "amg":
+            choose_backend(np.zeros(1, dtype=np.int32), np.zeros(0, dtype=np.int32), 0, "amg")  # pyamg installed?
 
     def admit(self, body) -> None:
         """Check that ``body`` is a FemBody the scheme can step (InvalidInputError saying why not)."""
@@ -194,7 +201,10 @@ class Simulation:
         return f_ext if extra is None else f_ext + extra
 
     def linear_method(self, body: FemBody) -> str:
-        """"direct" or "iterative" for ``body`` (method "auto": iterative from ITERATIVE_MIN_DOFS on)."""
+        """"direct" or "iterative" for ``body`` (method "auto": iterative from ITERATIVE_MIN_DOFS on, and always
+        with the "amg" backend, a preconditioner only)."""
+        if self.method == "auto" and self.solver_backend == "amg":
+            return "iterative"
         if self.method == "auto":
             return "iterative" if body.n_dofs >= ITERATIVE_MIN_DOFS else "direct"
         return self.method
@@ -204,7 +214,8 @@ class Simulation:
         solver = self.solvers.solver(body, self.solver_backend)
         method = self.linear_method(body)
         return step_system(body, self.dt, self.load(body), solver, method, self.settings, self.timings,
-                           None if method == "direct" else self.solvers.preconditioner(body, solver))
+                           None if method == "direct" else self.solvers.preconditioner(body, solver,
+                                                                                       self.solver_backend))
 
     # ------------------------------------------------------------------ saved states
     def save_state(self) -> SimulationState:

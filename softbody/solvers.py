@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from . import compilation
 from .body import FemBody
-from .linsolve import SpdSolver
+from .linsolve import HAVE_PYAMG, SpdSolver
 from .preconditioner import Preconditioner
 
 
@@ -19,20 +19,22 @@ class BodySolvers:
 
     def solver(self, body: FemBody, backend: str = "auto") -> SpdSolver:
         """The body's SPD solver for ``backend`` (made on first use: one symbolic analysis per body; "auto" chooses
-        again once the compiled kernels become ready, see softbody.compilation: the block Cholesky needs them)."""
+        again once the compiled kernels become ready, see softbody.compilation: the block Cholesky needs them). The
+        direct solves need an exact backend: for "amg" (the iterative path's alone), "auto" chooses one."""
+        backend = "auto" if backend == "amg" else backend
         key = (id(body), backend)
         held = self._solvers.get(key)
         if held is None or held[0] is not body or (backend == "auto" and held[2] != compilation.switches):
             held = self._solvers[key] = (body, new_solver(body, backend), compilation.switches)
         return held[1]
 
-    def preconditioner(self, body: FemBody, solver: SpdSolver) -> Preconditioner:
-        """The body's preconditioner for the iterative path with ``solver``'s backend: its own single-precision
-        factorisation, apart from the direct solves', kept from step to step."""
+    def preconditioner(self, body: FemBody, solver: SpdSolver, backend: str | None = None) -> Preconditioner:
+        """The body's preconditioner for the iterative path beside ``solver`` (kept under its backend): made by
+        :func:`new_preconditioner` for ``backend`` (None: ``solver``'s), kept from step to step."""
         key = (id(body), solver.backend)
         held = self._preconditioners.get(key)
         if held is None or held[0] is not body:
-            held = self._preconditioners[key] = (body, new_preconditioner(body, solver.backend))
+            held = self._preconditioners[key] = (body, new_preconditioner(body, backend or solver.backend))
         return held[1]
 
     def retain(self, bodies) -> None:
@@ -63,8 +65,8 @@ class BodySolvers:
         for (i, backend), state in states.items():
             body = bodies[i]
             held = self._preconditioners.get((id(body), backend))
-            if held is None or held[0] is not body:
-                held = self._preconditioners[(id(body), backend)] = (body, new_preconditioner(body, backend))
+            if held is None or held[0] is not body or held[1].solver.backend != state["backend"]:
+                held = self._preconditioners[(id(body), backend)] = (body, new_preconditioner(body, state["backend"]))
             held[1].load_state(state)
 
     def held_preconditioner(self, body: FemBody, backend: str) -> Preconditioner | None:
@@ -79,6 +81,27 @@ def new_solver(body: FemBody, backend: str = "auto", precision: str = "double") 
     return SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend, precision=precision)
 
 
+#: "auto" sets up algebraic multigrid instead of a factor when the single-precision factor would hold more than this
+#: many bytes per node (PARDISO's count of its nonzeros, from the analysis): the factor of a 3-D body grows as
+#: N^4/3 and beyond, multigrid's hierarchy stays a few times A. Measured on the tet4 sheet-on-sphere (the factor
+#: 4.6 kB per node at 31k nodes, 7.3 kB at 72k): multigrid's V-cycle costs 1.5-2 of the factor's solves and needs
+#: more iterations, so through the impact a step takes 1.5-2x as long, for 0.5 GB less peak memory at 72k nodes
+#: (2.1 against 2.7 GB): the factor is kept while it is moderate
+MULTIGRID_FACTOR_BYTES = 12_000
+
+#: bodies below this many unknowns keep a factor without asking (their factor is small; no analysis up front)
+MULTIGRID_MIN_DOFS = 60_000
+
+
 def new_preconditioner(body: FemBody, backend: str = "auto") -> Preconditioner:
-    """A fresh preconditioner (not yet factorised) for the body's iterative path."""
-    return Preconditioner(new_solver(body, backend, precision="single"), None, None)
+    """A fresh preconditioner (not yet set up) for the body's iterative path: a single-precision factor of
+    ``backend``, or algebraic multigrid for "amg", and for "auto" where the factor would be large
+    (MULTIGRID_FACTOR_BYTES per node; the analysis made to count it is kept)."""
+    if backend == "amg":
+        return Preconditioner(new_solver(body, "amg"), None, None)
+    solver = new_solver(body, backend, precision="single")
+    if backend == "auto" and solver.backend == "pardiso" and body.n_dofs >= MULTIGRID_MIN_DOFS and HAVE_PYAMG:
+        solver.analyse(body.pattern.upper_data(body.M_blocks))
+        if 4.0 * solver.factorization.factor_nonzeros > MULTIGRID_FACTOR_BYTES * body.n_nodes:
+            return Preconditioner(new_solver(body, "amg"), None, None)
+    return Preconditioner(solver, None, None)

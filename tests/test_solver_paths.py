@@ -316,3 +316,104 @@ def test_matrix_free_and_assembled_step_systems_agree(warping, mass):
     v_asm, r_asm = asm.solve(fixed)
     np.testing.assert_allclose(v_mf, v_asm, rtol=0, atol=1e-9 * np.abs(v_asm).max())
     np.testing.assert_allclose(r_mf, r_asm, rtol=0, atol=1e-9 * np.abs(r_asm).max())
+
+
+def test_a_refactorisation_is_bought_once_the_iterations_it_saves_have_cost_as_much():
+    """The rent-or-buy rule (IterativeSystem._charge): each solve's iterations beyond what a fresh factor needs
+    (``refactor_after``) add to the work spent; a refactorisation is due once that reaches its cost
+    (Preconditioner.refactor_cost, here set to 40 iterations), not after the first slow solve."""
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system(11)
+    n = body.n_nodes
+    cons = Constraints(np.array([2, 6]), np.ones((2, 3), bool), np.zeros((2, 3)))
+    settings = IterativeSettings(tol=1e-8, refactor_after=2)
+    IterativeSystem(body, 30.0 * body.M_blocks + 1e-3 * K, rng.standard_normal((n, 3)), np.zeros((n, 3)), pre,
+                    settings).solve(cons)  # factorised for a stiffer matrix: inexact for A below
+    pre.refactor_cost = lambda: 40.0
+    A = body.M_blocks + 1e-3 * K
+    spent, counts = 0.0, []
+    while True:
+        system = IterativeSystem(body, A, rng.standard_normal((n, 3)), np.zeros((n, 3)), pre, settings)
+        system.solve(cons)
+        its = system.stats["iterations"]
+        assert its > 2  # the old rule (its > refactor_after) would refactorise after each of these
+        spent += its - 2
+        counts.append(its)
+        assert pre.spent == spent and pre.stale == (spent >= 40.0)
+        if pre.stale:
+            break
+        assert len(counts) < 50
+    assert len(counts) > 1 and pre.factorizations == 1
+    system = IterativeSystem(body, A, rng.standard_normal((n, 3)), np.zeros((n, 3)), pre, settings)
+    system.solve(cons)
+    assert pre.factorizations == 2 and system.stats["iterations"] <= 2 and pre.spent == 0.0  # fresh: exact for A
+
+
+def test_backends_count_their_costs_from_the_analysis():
+    """PARDISO's costs are its own counts (the factor's nonzeros, at least those of A's upper triangle; the Mflop),
+    the block Cholesky's its symbolic analysis's; SuperLU has none (the iteration count then decides alone)."""
+    from softbody.linsolve import HAVE_PARDISO, PardisoFactorization, SpdSolver
+
+    body, K, _, _ = _small_system()
+    p = body.pattern
+    data = p.upper_data(body.M_blocks + 1e-3 * K)
+    backends = ["blocks", "superlu"] + (["pardiso"] if HAVE_PARDISO else [])
+    for backend in backends:
+        solver = SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend)
+        assert solver.costs() is None  # nothing counted before the analysis
+        solver.factorize(data)
+        costs = solver.costs()
+        if backend == "superlu":
+            assert costs is None
+            continue
+        factor, solve = costs
+        assert solve >= 4 * len(p.up_indices) - 4 * body.n_dofs  # L holds at least A's lower part
+        if backend == "blocks":
+            assert factor > 0
+        if backend == "pardiso":  # (its Mflop is a whole number: 0 for this small a system)
+            f = solver.factorization
+            assert solve == 4.0 * f.factor_nonzeros and factor == 1e6 * f.factor_mflop / PardisoFactorization.FACTOR_SPEEDUP
+
+
+def test_multigrid_preconditioner_gives_the_direct_trajectory():
+    """Backend "amg" (pyamg's smoothed aggregation, a V-cycle per PCG iteration, contacts projected, no factor):
+    the sheet-on-sphere run through contact agrees with the direct solves to the iterative path's tolerance
+    (module docstring); it refuses the direct method, and "auto" takes it where the factor would be large."""
+    pytest.importorskip("pyamg")
+    from softbody import Simulation
+    from softbody.errors import InvalidInputError
+
+    direct, contacts, _ = _trajectory("tet4", (4, 4, 2), "direct")
+    assert contacts > 0
+    scene = sheet_on_sphere("tet4", (4, 4, 2), solver="amg")
+    sim = scene.world.sim
+    xs = []
+    try:
+        for _ in range(len(direct)):
+            scene.world.step()
+            xs.append(scene.body.positions.copy())
+        pre = sim.solvers.held_preconditioner(scene.body, sim.solvers.solver(scene.body, "amg").backend)
+        assert pre.solver.backend == "amg" and not pre.solver.exact and pre.iterations > 0
+    finally:
+        scene.world.close()
+    diff = np.abs(direct - np.array(xs)).max()
+    assert diff < TOL, f"multigrid and direct trajectories differ by {diff:.3g} m"
+    with pytest.raises(InvalidInputError, match="amg"):
+        Simulation(scene.body, 0.01, solver="amg", method="direct")
+
+
+def test_auto_preconditioner_is_multigrid_where_the_factor_would_be_large(monkeypatch):
+    pytest.importorskip("pyamg")
+    import softbody
+    from softbody import solvers
+    from softbody.linsolve import HAVE_PARDISO
+
+    if not HAVE_PARDISO:
+        pytest.skip("the factor's size is PARDISO's count")
+    body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (10, 10, 5), "tet4"), softbody.LinearElastic(1e6, 0.3, 1e3))
+    monkeypatch.setattr(solvers, "MULTIGRID_MIN_DOFS", 0)
+    assert solvers.new_preconditioner(body, "auto").solver.backend == "pardiso"  # a factor of a few kB per node
+    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 100)
+    assert solvers.new_preconditioner(body, "auto").solver.backend == "amg"
+    assert solvers.new_preconditioner(body, "pardiso").solver.backend == "pardiso"  # named: kept
