@@ -327,21 +327,20 @@ class FemBody:
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
-        self._Gc = Gc[:, 0]  # (E, k, 3)
-        self.Bc = strain_displacement(Gc[:, 0])  # (E, 6, 3k)
+        self._Gc = Gc[:, 0]  # (E, k, 3); the strain from them directly (no (E, 6, 3k) B matrices kept)
         # the elasticity matrix (6, 6), or per element (E, 6, 6) for regions, for stress output
         self.D = (np.array([isotropic_elasticity(*m.lame) for m in material.materials])[material.labels] if regions
                   else material.elasticity_matrix())
 
         self.M_data = self.pattern.assemble_scalar(Me)  # (nnzb,)
         self._mass_upper = self.M_data[self._upper.upper]  # (n_upper,) on the upper blocks
-        self.M_blocks = self.M_data[:, None, None] * np.eye(3)  # (nnzb, 3, 3)
         n = mesh.n_nodes
         self._mass_csr = sp.csr_matrix((self.M_data, self.pattern.indices, self.pattern.indptr), shape=(n, n))
         Ek = mesh.elements.size  # (N, E*k) 0/1 matrix summing element-node entries into nodes
         self._scatter = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.arange(Ek))), shape=(n, Ek))
-        incidence = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.repeat(np.arange(E), k))), shape=(n, E))
-        self._incidence9 = sp.kron(sp.identity(9), incidence, format="csr")  # sums (9, E) into (9, N)
+        # sums per-element rows (E, m) into nodes (N, m)
+        self._incidence = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.repeat(np.arange(E), k))),
+                                        shape=(n, E))
         self.node_mass = np.bincount(mesh.elements.ravel(), weights=Me.sum(axis=2).ravel(),
                                      minlength=mesh.n_nodes)  # row sums: consistent gravity load / g
 
@@ -352,6 +351,12 @@ class FemBody:
         self._used = mesh.used_nodes()
         self.fixed[~self._used] = True  # unused nodes carry no mass: hold them at rest
         self.prescribed: list[tuple[np.ndarray, Motion]] = []
+
+    @property
+    def M_blocks(self) -> np.ndarray:
+        """The consistent (or lumped) mass matrix as block data (nnzb, 3, 3), each block a multiple of I3 (made on
+        each call from M_data (nnzb,): the step reads M_data and its upper part, not these)."""
+        return self.M_data[:, None, None] * np.eye(3)
 
     # ------------------------------------------------------------------ state
     @property
@@ -616,7 +621,7 @@ class FemBody:
         the cost of S's polar factor and equal to it when the R_e agree; on the tet10 (9,9,2) sheet the
         PCG needed 1% more iterations than with the polar factor. Nodes whose S is nearly singular
         (adjacent elements turned far apart) get the polar factor."""
-        S9 = (self._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
+        S9 = np.ascontiguousarray((self._incidence @ R.reshape(len(R), 9)).T)  # (9, N)
         if kernels.ENABLED:  # the same arithmetic node by node (softbody.kernels)
             Q, bad = np.empty((S9.shape[1], 3, 3)), np.empty(S9.shape[1], dtype=bool)
             kernels.node_frames(S9, Q, bad)
@@ -937,7 +942,8 @@ class FemBody:
             F = self._centre_gradients(x)
             return _voigt(0.5 * (np.swapaxes(F, 1, 2) @ F - np.eye(3)), shear=2.0)
         u = self.local_displacements(x, self.rotations(x))
-        eps = (self.Bc @ u[:, :, None])[:, :, 0]
+        H = np.einsum("eka,ekb->eab", u.reshape(len(u), -1, 3), self._Gc)  # displacement gradients (E, 3, 3)
+        eps = _voigt(0.5 * (H + np.swapaxes(H, 1, 2)), shear=2.0)
         if self.volumetric == "mean":  # B-bar: the volume change is the element's mean, not the centre's
             eps[:, :3] += ((np.einsum("ej,ej->e", self._mean_divergence, u) - eps[:, :3].sum(axis=1)) / 3.0)[:, None]
         return eps

@@ -505,7 +505,7 @@ class IterativeSystem:
 
         With a backend that counts its costs (Preconditioner.refactor_cost), contacts never force a
         refactorisation: up to ``max_corrected_nodes`` of the nodes not eliminated are corrected (those with
-        cached columns first, at most 4 x that many cached), the rest only projected out by the PCG; the
+        cached columns first, at most Preconditioner.column_cap cached), the rest only projected out by the PCG; the
         extra iterations this costs add to the work that buys the next refactorisation. Without counts, more
         nodes than that refactorise at once, eliminating them all. An inexact preconditioner (multigrid)
         corrects none."""
@@ -513,22 +513,23 @@ class IterativeSystem:
         constrained = _any_component(mask)
         counted = pre.refactor_cost() is not None
         outside = lambda: constrained & ~pre.eliminated  # noqa: E731
-        # the columns of every node corrected since the factorisation are kept; past 4x the limit
-        # (memory n_dof x 3 per node) a refactorisation starts them afresh, or (counted) no more are added
-        if pre.stale or (not counted and (np.count_nonzero(outside()) > limit or pre.cached_nodes > 4 * limit)):
+        # the columns of every node corrected since the factorisation are kept; past their cap (memory: n_dof x 3
+        # per node) a refactorisation starts them afresh, or (counted) no more are added
+        cap = pre.column_cap(limit)
+        if pre.stale or (not counted and (np.count_nonzero(outside()) > limit or pre.cached_nodes > cap)):
             self._refactor(T, mask, everything=np.count_nonzero(constrained & ~self.body.supported()) > limit)
         nodes = np.flatnonzero(outside())
         if not pre.solver.exact:  # multigrid: a column is a V-cycle, as dear as an iteration; projection alone
             nodes = nodes[:0]
-        elif counted and len(nodes) > limit:
-            nodes = pre.correctable(nodes, limit, 4 * limit)
+        elif counted:
+            nodes = pre.correctable(nodes, limit, cap)
         with timed(self.timings, "solve"):
             C = self._preconditioner_frames(T)
         if not len(nodes):
             return C, None
         with timed(self.timings, "factorize"):  # preconditioner set-up: new columns, Schur complement
             try:
-                return C, pre.correction(nodes, mask[nodes], _frames_at(C, nodes, self.body.n_nodes))
+                return C, pre.correction(nodes, mask[nodes], _frames_at(C, nodes, self.body.n_nodes), cap)
             except np.linalg.LinAlgError:  # not positive definite: P is too far off for this set
                 pass
         self._refactor(T, mask, everything=True)

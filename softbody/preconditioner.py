@@ -47,6 +47,13 @@ class ConstraintCorrection:
         return u
 
 
+#: the correction's cached columns hold at most this many bytes per node of the body (Preconditioner.column_cap):
+#: 64 nodes' columns in single precision (IterativeSettings.max_corrected_nodes), whatever the body's size (at 72k
+#: nodes, 4 x 64 nodes' columns took 0.66 GB, 9 kB per node; the columns of the nodes in use are gathered once
+#: more for the products)
+COLUMN_BYTES_PER_NODE = 2304
+
+
 @dataclass
 class Preconditioner:
     """The last factorised system (per body): its solver, the constraint frames T and node rotations Q
@@ -72,7 +79,8 @@ class Preconditioner:
     spent: float = 0.0  # PCG iterations' worth spent since the factorisation that a fresh one saves (see above)
     fewest: int | None = None  # the fewest iterations of a full solve since the factorisation
     _slot: np.ndarray | None = None  # (N,) first column of each node's P^-1 columns in _Y, -1: none yet
-    _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors
+    _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors (a view of _store)
+    _store: np.ndarray | None = None  # (n_dof, 3 * column_cap): room for the columns, taken as they fill
     _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call
 
     @property
@@ -100,7 +108,7 @@ class Preconditioner:
         for name in self._STATE:
             if name in state:  # (a state saved before a field existed keeps its default)
                 setattr(self, name, copy.deepcopy(state[name]))
-        self._last = (None, None)
+        self._last, self._store = (None, None), None  # (the loaded columns are copied into new room when more come)
         self.solver.refactorize(state["factor"])
 
     def refactor_cost(self) -> float | None:
@@ -118,24 +126,39 @@ class Preconditioner:
         self.stale = False
         self.spent, self.fewest = 0.0, None
         self.factorizations += 1
-        self._slot, self._Y, self._last = np.full(len(eliminated), -1), None, (None, None)
+        self._slot, self._Y, self._store, self._last = np.full(len(eliminated), -1), None, None, (None, None)
 
-    def columns(self, nodes: np.ndarray) -> np.ndarray:
-        """P^-1 of the unit vectors of ``nodes`` (M,), (n_dof, 3M); solves for the nodes not cached yet."""
+    def columns(self, nodes: np.ndarray, cap: int = 0) -> np.ndarray:
+        """P^-1 of the unit vectors of ``nodes`` (M,), (n_dof, 3M); solves for the nodes not cached yet (room is
+        made for ``cap`` nodes' columns at once)."""
         new = nodes[self._slot[nodes] < 0]
         if len(new):
             n_dof = self.solver.n
             E = np.zeros((n_dof, 3 * len(new)), order="F")
             E[(3 * new[:, None] + np.arange(3)).ravel(), np.arange(3 * len(new))] = 1.0
-            Ynew = np.asfortranarray(self.solver.solve(E).reshape(n_dof, -1), dtype=self.solver.dtype)
             start = 0 if self._Y is None else self._Y.shape[1]
-            self._Y = Ynew if self._Y is None else np.concatenate([self._Y, Ynew], axis=1)
+            end = start + 3 * len(new)
+            if self._store is None or self._store.shape[1] < end:
+                # room for the cap at once, not grown by copies: np.empty's pages are taken only as columns fill
+                store = np.empty((n_dof, max(end, 3 * cap)), dtype=self.solver.dtype, order="F")
+                if start:
+                    store[:, :start] = self._Y
+                self._store = store
+            self._store[:, start:end] = self.solver.solve(E).reshape(n_dof, -1)
+            self._Y = self._store[:, :end]
             self._slot[new] = start + 3 * np.arange(len(new))
             self.column_nodes += len(new)
         slots = self._slot[nodes]
         if self._last[0] is None or not np.array_equal(self._last[0], slots):  # else the same gather as last time
             self._last = (slots, self._Y[:, (slots[:, None] + np.arange(3)).ravel()])
         return self._last[1]
+
+    def column_cap(self, limit: int) -> int:
+        """The most nodes whose columns are cached at once: 4 x ``limit`` (IterativeSettings.max_corrected_nodes), and
+        within COLUMN_BYTES_PER_NODE of memory per node of the body (each cached node holds 3 columns of 3N entries)
+        unless that is below ``limit``."""
+        within = int(COLUMN_BYTES_PER_NODE // (9 * np.dtype(self.solver.dtype).itemsize))
+        return max(limit, min(4 * limit, within))
 
     def correctable(self, nodes: np.ndarray, limit: int, cap: int) -> np.ndarray:
         """Of ``nodes`` (ascending), the at most ``limit`` to correct: those whose columns are cached first, then
@@ -144,14 +167,14 @@ class Preconditioner:
         room = max(0, min(limit - int(cached.sum()), cap - self.cached_nodes))
         return np.sort(np.r_[nodes[cached][:limit], nodes[~cached][:room]])
 
-    def correction(self, nodes: np.ndarray, mask: np.ndarray, frames: np.ndarray) -> ConstraintCorrection:
+    def correction(self, nodes: np.ndarray, mask: np.ndarray, frames: np.ndarray, cap: int = 0) -> ConstraintCorrection:
         """The correction for constrained components ``mask`` (M, 3) of ``nodes`` (M,), whose local axes
-        in P's frames are the columns of ``frames`` (M, 3, 3).
+        in P's frames are the columns of ``frames`` (M, 3, 3) (``cap``: see :meth:`columns`).
 
         Raises numpy.linalg.LinAlgError if S is not positive definite (P is then no preconditioner for
         this constraint set)."""
         M = len(nodes)
-        Y = self.columns(nodes)
+        Y = self.columns(nodes, cap)
         rows = (3 * nodes[:, None] + np.arange(3)).ravel()
         j, i = np.nonzero(mask)  # constraint c: node j[c], local axis i[c]
         B = np.zeros((3 * M, len(j)))

@@ -141,7 +141,6 @@ def test_node_frames_kernel_equals_numpy(monkeypatch):
     nodes with as many elements of each the sums' first two columns cancel (the polar fallback), and a few elements
     with the deformed mesh's own rotations: compiled and numpy paths agree, and every frame is a proper rotation."""
     from softbody import FemBody, LinearElastic, box_mesh
-    from softbody.body import _components
 
     rng = np.random.default_rng(8)
     body = FemBody(box_mesh((0.3, 0.2, 0.1), (3, 2, 2), "tet10"), LinearElastic(1e6, 0.3, 1000.0))
@@ -152,7 +151,7 @@ def test_node_frames_kernel_equals_numpy(monkeypatch):
     R[0::2] = turn
     R[1::2] = turn @ np.diag([-1.0, -1.0, 1.0])  # every other element half a turn from it (about its z)
     R[:6] = np.array(body.rotations())[:6]  # and a few as the deformed mesh gives them
-    S9 = (body._incidence9 @ _components(R).reshape(-1)).reshape(9, -1)
+    S9 = (body._incidence @ R.reshape(len(R), 9)).T  # the sums of the adjacent elements' rotations, (9, N)
     a, b = S9[[0, 3, 6]], S9[[1, 4, 7]]
     small = 1e-3 * np.linalg.norm(S9, axis=0)
     assert ((np.linalg.norm(a, axis=0) <= small) | (np.linalg.norm(b, axis=0) <= small)).any()  # fallback reached

@@ -417,3 +417,26 @@ def test_auto_preconditioner_is_multigrid_where_the_factor_would_be_large(monkey
     monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 100)
     assert solvers.new_preconditioner(body, "auto").solver.backend == "amg"
     assert solvers.new_preconditioner(body, "pardiso").solver.backend == "pardiso"  # named: kept
+
+
+def test_the_corrections_columns_stay_within_their_cap():
+    """With a backend that counts its costs, contacts beyond the correction's reach are projected, not a reason to
+    refactorise, and the cached columns never pass Preconditioner.column_cap, however many nodes come and go; the
+    answer stays the direct one."""
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system(12)
+    pre.refactor_cost = lambda: 1e9  # counted, and never worth a refactorisation here
+    n = body.n_nodes
+    A = body.M_blocks + 1e-3 * K
+    settings = IterativeSettings(tol=1e-10, max_corrected_nodes=6)  # each set within reach, all of them not
+    cap = pre.column_cap(6)
+    assert cap < 8 * 5
+    for trial in range(8):
+        nodes = np.sort(rng.choice(n, 5, replace=False))
+        cons = Constraints(nodes, np.ones((5, 3), bool), rng.standard_normal((5, 3)))
+        b = rng.standard_normal((n, 3))
+        y, _ = IterativeSystem(body, A, b, np.zeros((n, 3)), pre, settings).solve(cons)
+        assert pre.cached_nodes <= cap and pre.factorizations == 1
+        y_direct, _ = _direct(body, K, 1.0, 1e-3, b, cons)
+        np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-8 * np.abs(y_direct).max())
