@@ -49,36 +49,26 @@ class BlockPattern:
     @classmethod
     def from_elements(cls, elements: np.ndarray, n_nodes: int) -> "BlockPattern":
         E, k = elements.shape
-        rows = np.repeat(elements, k, axis=1).ravel()
-        cols = np.tile(elements, (1, k)).ravel()
         # every node gets a diagonal block, so that unused nodes can be constrained
-        rows = np.concatenate([rows, np.arange(n_nodes)])
-        cols = np.concatenate([cols, np.arange(n_nodes)])
-        key = rows.astype(np.int64) * n_nodes + cols
+        e = elements.astype(np.int64)
+        key = np.concatenate([(e[:, :, None] * n_nodes + e[:, None, :]).ravel(),
+                              np.arange(n_nodes, dtype=np.int64) * (n_nodes + 1)])
+        del e
         ukey, inv = np.unique(key, return_inverse=True)
+        del key
         brow, bcol = ukey // n_nodes, ukey % n_nodes
+        itype = np.int32 if 9 * len(ukey) < 2**31 else np.int64
         indptr = np.zeros(n_nodes + 1, dtype=np.int64)
         np.add.at(indptr, brow + 1, 1)
         indptr = np.cumsum(indptr)
-        scatter = inv[: E * k * k].reshape(E, k, k)
+        scatter = inv[: E * k * k].reshape(E, k, k).astype(itype)
         diag = inv[E * k * k:]
-        # scalar entries of every block, row-major within the 3x3 block
-        nnzb = len(ukey)
-        a, b = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        srow = (3 * brow[:, None] + a.ravel()[None]).ravel()
-        scol = (3 * bcol[:, None] + b.ravel()[None]).ravel()
-        flat = np.arange(nnzb * 9)
-        up = scol >= srow
-        srow, scol, flat = srow[up], scol[up], flat[up]
-        order = np.lexsort((scol, srow))
-        srow, scol, flat = srow[order], scol[order], flat[order]
-        up_indptr = np.zeros(3 * n_nodes + 1, dtype=np.int64)
-        np.add.at(up_indptr, srow + 1, 1)
-        up_indptr = np.cumsum(up_indptr)
-        up_diag = np.flatnonzero(srow == scol)
+        del inv
         mirror = np.searchsorted(ukey, bcol * n_nodes + brow)
+        del ukey
+        up_indptr, up_col, up_gather, up_row, up_diag = _upper_scalars(indptr, brow, bcol, n_nodes, itype)
         return cls(n_nodes, indptr, bcol.astype(np.int64), scatter, diag, mirror, brow.astype(np.int64),
-                   up_indptr, scol.astype(np.int64), flat, srow, scol, up_diag)
+                   up_indptr, up_col, up_gather, up_row, up_col, up_diag)
 
     @property
     def scatter_dof(self) -> np.ndarray:
@@ -134,6 +124,37 @@ class BlockPattern:
     def upper_data(self, block_data: np.ndarray) -> np.ndarray:
         """Values (nnz_up,) of the upper triangle in the order of ``up_indptr``/``up_indices``."""
         return block_data.reshape(-1)[self.up_gather]
+
+
+def _upper_scalars(indptr: np.ndarray, brow: np.ndarray, bcol: np.ndarray, n_nodes: int, itype
+                   ) -> tuple[np.ndarray, ...]:
+    """The upper triangle's scalar CSR of a block pattern (block rows ``indptr`` (N+1,), each block's row and
+    column (nnzb,), columns ascending within a row), made row by row from arithmetic, not by sorting every
+    scalar entry: row 3A+i holds its diagonal block's entries j >= i, then 3 per upper block (A, B > A) in
+    order. Returns up_indptr (3N+1,), up_col, up_gather (the entry's index in the flattened block data), up_row
+    (nnz_up,) and up_diag (3N,)."""
+    # the diagonal block's position in each block row (columns ascending: after the row's lower blocks)
+    lower = np.bincount(brow[bcol < brow], minlength=n_nodes)
+    dpos = indptr[:-1] + lower  # (N,)
+    upper_count = indptr[1:] - dpos  # blocks (A, B >= A) per block row, the diagonal included
+    i = np.tile(np.arange(3), n_nodes)
+    A = np.repeat(np.arange(n_nodes), 3)
+    length = 3 * (upper_count[A] - 1) + (3 - i)  # entries of scalar row 3A+i
+    up_indptr = np.zeros(3 * n_nodes + 1, dtype=np.int64)
+    np.cumsum(length, out=up_indptr[1:])
+    n_up = int(up_indptr[-1])
+    up_row = np.repeat(np.arange(3 * n_nodes, dtype=itype), length)
+    o = np.arange(n_up, dtype=itype) - up_indptr[:-1].astype(itype)[up_row]  # offset within the row
+    Ar, ir = up_row // 3, up_row % 3
+    in_diag = o < 3 - ir
+    q = o - (3 - ir)  # past the diagonal block: 3 per upper block
+    block = np.where(in_diag, dpos.astype(itype)[Ar], dpos.astype(itype)[Ar] + 1 + q // 3)
+    j = np.where(in_diag, ir + o, q % 3)
+    del o, q, in_diag
+    up_col = (3 * bcol.astype(itype)[block] + j).astype(itype)
+    up_gather = (9 * block + 3 * ir + j).astype(itype)
+    up_diag = up_indptr[:-1] + 0  # the diagonal entry is each row's first
+    return up_indptr, up_col, up_gather, up_row, up_diag
 
 
 @dataclass

@@ -202,3 +202,22 @@ def test_every_backend_is_a_factorization_chosen_in_one_place():
             s.solve(b)
     with pytest.raises(softbody.InvalidInputError, match="valid"):
         linsolve.choose_backend(p.up_indptr, p.up_indices, n, "cholmod")
+
+
+@pytest.mark.parametrize("kind, cells", [("tet4", (3, 2, 2)), ("hex8", (2, 2, 1)), ("tet10", (2, 1, 1))])
+def test_block_pattern_upper_triangle_is_scipys(kind, cells):
+    """The solver's upper-triangle CSR (made row by row from arithmetic, softbody.assembly._upper_scalars) is scipy's
+    triu of the whole matrix: the same row pointers, columns and values, the diagonal first in each row."""
+    import scipy.sparse as sp
+    from softbody.assembly import BlockPattern
+
+    mesh = softbody.box_mesh((0.3, 0.2, 0.1), cells, kind)
+    p = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
+    data = np.random.default_rng(3).uniform(1.0, 2.0, (p.nnzb, 3, 3))
+    U = sp.triu(p.to_bsr(data).tocsr()).tocsr()
+    U.sort_indices()
+    np.testing.assert_array_equal(p.up_indptr, U.indptr)
+    np.testing.assert_array_equal(p.up_indices, U.indices)
+    np.testing.assert_array_equal(p.upper_data(data), U.data)
+    np.testing.assert_array_equal(p.up_indices[p.up_diag], np.arange(3 * mesh.n_nodes))
+    np.testing.assert_array_equal(p.up_row, np.repeat(np.arange(3 * mesh.n_nodes), np.diff(U.indptr)))
