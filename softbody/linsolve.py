@@ -195,6 +195,7 @@ class PardisoFactorization:
         self.ordering = self.ORDERINGS[best]
         self.factor_mflop = int(ps.iparm[18])
         self.factor_nonzeros = int(ps.iparm[17])
+        self.factor_bytes = 1024 * int(ps.iparm[16])  # PARDISO's memory for the factorisation and solves (its count)
         self._analysed = True
 
     def costs(self) -> tuple[float, float] | None:

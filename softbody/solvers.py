@@ -81,13 +81,13 @@ def new_solver(body: FemBody, backend: str = "auto", precision: str = "double") 
     return SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, backend, precision=precision)
 
 
-#: "auto" sets up algebraic multigrid instead of a factor when the single-precision factor would hold more than this
-#: many bytes per node (PARDISO's count of its nonzeros, from the analysis): the factor of a 3-D body grows as
-#: N^4/3 and beyond, multigrid's hierarchy stays a few times A. Measured on the tet4 sheet-on-sphere (the factor
-#: 4.6 kB per node at 31k nodes, 7.3 kB at 72k): multigrid's V-cycle costs 1.5-2 of the factor's solves and needs
-#: more iterations, so through the impact a step takes 1.5-2x as long, for 0.5 GB less peak memory at 72k nodes
-#: (2.1 against 2.7 GB): the factor is kept while it is moderate
-MULTIGRID_FACTOR_BYTES = 12_000
+#: "auto" sets up algebraic multigrid instead of a factor when the single-precision factorisation would take more
+#: than this many bytes per node (PARDISO's own count from the analysis, iparm 17: about 4 bytes per nonzero of the
+#: factor): the factor of a 3-D body grows as N^4/3 and beyond, multigrid's hierarchy stays a few times A. On the tet4
+#: sheet-on-sphere the factor takes 4.6 kB per node at 31k nodes and 7.5 kB at 72k; multigrid's V-cycle costs 1.5-2
+#: of the factor's solves and needs more iterations, so through the impact a step takes 1.5-2x as long, for 0.5 GB
+#: less peak memory at 72k nodes (2.1 against 2.7 GB): the factor is kept while moderate
+MULTIGRID_FACTOR_BYTES = 8192
 
 #: bodies below this many unknowns keep a factor without asking (their factor is small; no analysis up front)
 MULTIGRID_MIN_DOFS = 60_000
@@ -96,12 +96,13 @@ MULTIGRID_MIN_DOFS = 60_000
 def new_preconditioner(body: FemBody, backend: str = "auto") -> Preconditioner:
     """A fresh preconditioner (not yet set up) for the body's iterative path: a single-precision factor of
     ``backend``, or algebraic multigrid for "amg", and for "auto" where the factor would be large
-    (MULTIGRID_FACTOR_BYTES per node; the analysis made to count it is kept)."""
+    (MULTIGRID_FACTOR_BYTES per node; the analysis made to count it, nested dissection alone, is kept)."""
     if backend == "amg":
         return Preconditioner(new_solver(body, "amg"), None, None)
     solver = new_solver(body, backend, precision="single")
     if backend == "auto" and solver.backend == "pardiso" and body.n_dofs >= MULTIGRID_MIN_DOFS and HAVE_PYAMG:
+        solver.ORDERINGS = {2: solver.ORDERINGS[2]}  # (minimum degree loses on bodies this large, at length)
         solver.analyse(body.pattern.upper_data(body.M_blocks))
-        if 4.0 * solver.factorization.factor_nonzeros > MULTIGRID_FACTOR_BYTES * body.n_nodes:
+        if solver.factorization.factor_bytes > MULTIGRID_FACTOR_BYTES * body.n_nodes:
             return Preconditioner(new_solver(body, "amg"), None, None)
     return Preconditioner(solver, None, None)
