@@ -413,8 +413,14 @@ def test_auto_preconditioner_is_multigrid_where_the_factor_would_be_large(monkey
         pytest.skip("the factor's size is PARDISO's count")
     body = softbody.FemBody(softbody.box_mesh((0.4, 0.3, 0.2), (10, 10, 5), "tet4"), softbody.LinearElastic(1e6, 0.3, 1e3))
     monkeypatch.setattr(solvers, "MULTIGRID_MIN_DOFS", 0)
-    assert solvers.new_preconditioner(body, "auto").solver.backend == "pardiso"  # a factor of a few kB per node
-    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 100)
+    factor = solvers.new_preconditioner(body, "pardiso").solver
+    factor.ORDERINGS = {2: factor.ORDERINGS[2]}  # as "auto" analyses (nested dissection)
+    factor.analyse(body.pattern.upper_data(body.M_blocks))
+    per_node = factor.factorization.factor_bytes / body.n_nodes  # PARDISO's count
+    assert per_node > 0
+    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 1.01 * per_node)
+    assert solvers.new_preconditioner(body, "auto").solver.backend == "pardiso"
+    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 0.99 * per_node)
     assert solvers.new_preconditioner(body, "auto").solver.backend == "amg"
     assert solvers.new_preconditioner(body, "pardiso").solver.backend == "pardiso"  # named: kept
 
