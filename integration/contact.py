@@ -800,7 +800,7 @@ class ContactSolver:
         solves would). Returns (None, iterations, None)."""
         out: list = [None] * len(steps)
         stale = [True] * len(steps)
-        loose = [st.system.iterative for st in steps]  # per body: a trial solve will do while its set changes (below)
+        loose = [st.system.trials_pay for st in steps]  # per body: a trial solve will do while its set changes (below)
         no_du = np.zeros(0)
         it = 0
         for it in range(1, self.max_iterations + 1):

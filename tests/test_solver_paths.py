@@ -354,6 +354,7 @@ def test_backends_count_their_costs_from_the_analysis():
     """PARDISO's costs are its own counts (the factor's nonzeros, at least those of A's upper triangle; the Mflop),
     the block Cholesky's its symbolic analysis's; SuperLU has none (the iteration count then decides alone)."""
     from softbody.linsolve import HAVE_PARDISO, PardisoFactorization, SpdSolver
+    from softbody.preconditioner import REFACTOR_HORIZON, Preconditioner
 
     body, K, _, _ = _small_system()
     p = body.pattern
@@ -365,12 +366,14 @@ def test_backends_count_their_costs_from_the_analysis():
         solver.factorize(data)
         costs = solver.costs()
         if backend == "superlu":
-            assert costs is None
+            assert costs is None and Preconditioner(solver, None, None).refactor_cost() is None
             continue
         factor, solve = costs
         assert solve >= 4 * len(p.up_indices) - 4 * body.n_dofs  # L holds at least A's lower part
         if backend == "blocks":
             assert factor > 0
+        pre = Preconditioner(solver, None, None)
+        assert pre.refactor_cost() == max(1.0, factor / solve / REFACTOR_HORIZON)  # in iterations, from the counts
         if backend == "pardiso":  # (its Mflop is a whole number: 0 for this small a system)
             f = solver.factorization
             assert solve == 4.0 * f.factor_nonzeros and factor == 1e6 * f.factor_mflop / PardisoFactorization.FACTOR_SPEEDUP
