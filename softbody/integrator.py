@@ -273,6 +273,11 @@ class DirectSystem:
     timings: Timings | None = None
     rotations: np.ndarray | None = None  # (E, 3, 3): the warped step's element rotations it was built with
 
+    def __post_init__(self):
+        if not self.solver.exact:
+            raise InvalidInputError(f"a direct solve needs an exact backend, not {self.solver.backend!r} (a "
+                                    "preconditioner only: for direct solves 'auto' chooses one)")
+
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False, homogeneous: bool = False, loose: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Solve A y = b (+ extra_rhs, (N, 3)) with the constrained components of y fixed to their values.
@@ -380,23 +385,26 @@ class IterativeSettings:
     (gravity against elastic forces), and a tolerance on ||b|| alone would ask for an accuracy far
     below what the terms themselves resolve. The warm start does not enter the tolerance.
 
-    The preconditioner is refactorised for the next solve when a solve needed more than
-    ``refactor_after`` iterations (a fixed count, not a timing, so runs are reproducible anywhere),
-    and at once when CG fails to converge. An iteration costs one product with A (sparse, or
-    matrix-free, see ``operator``) and one single-precision triangular solve pair, a refactorisation one
-    single-precision numeric factorisation (about 10-20 iterations' worth on the sheet meshes) plus
-    the Schur columns of the contact nodes (below). Contact changes no longer call for one, so
-    refactorisations follow the drift of K' alone. Measured on the tet10 (9,9,2) sheet-on-sphere run
-    (150 steps in contact, before the extrapolated warm start): refactor_after = 3 gave 3.3-3.6 PCG
-    iterations and 0.04-0.09 refactorisations per step, 4 gave 4.2 and 0.05, 6 and more a single
-    factorisation for the whole run and 5.7 iterations per step.
+    The preconditioner is refactorised for the next solve when the iterations spent beyond a fresh
+    preconditioner's (``refactor_after`` a solve for a factor; multigrid's own first count after its set-up)
+    reach Preconditioner.refactor_cost, the factorisation's cost from the backend's own counts (flops, not
+    timings, so runs are reproducible anywhere) over REFACTOR_HORIZON; with a backend that does not count
+    (SuperLU), when a solve needed more than ``refactor_after`` iterations. And at once when CG fails to
+    converge. An iteration costs one product with A (sparse, or matrix-free, see ``operator``) and one
+    single-precision triangular solve pair (multigrid: one V-cycle). Measured with the fixed count on the tet10
+    (9,9,2) sheet-on-sphere run (150 steps in contact, before the extrapolated warm start): refactor_after = 3
+    gave 3.3-3.6 PCG iterations and 0.04-0.09 refactorisations per step, 4 gave 4.2 and 0.05, 6 and more a
+    single factorisation for the whole run and 5.7 iterations per step.
 
-    The factorisation eliminates the supports only; every other constrained node (contacts) is removed
-    from the preconditioner exactly by a Schur complement (softbody.preconditioner), for up to
-    ``max_corrected_nodes`` nodes. With more, the next factorisation eliminates them all; those stay
-    eliminated (in their frames of that moment) until the iteration count calls for a refactorisation,
-    and the correction's cached columns (every node corrected since the factorisation) are started
-    afresh by a refactorisation once they exceed 4 x max_corrected_nodes nodes.
+    The factorisation eliminates the supports only; other constrained nodes (contacts) are removed from the
+    preconditioner exactly by a Schur complement (softbody.preconditioner), for up to ``max_corrected_nodes``
+    nodes, their columns cached within Preconditioner.column_cap; with a counting backend the others are
+    projected out by the PCG (their extra iterations count towards the next refactorisation), without one the
+    next factorisation eliminates them all (they stay eliminated, in their frames of that moment, until a
+    refactorisation), as it does when the cache is full. Multigrid corrects none.
+
+    ``loose_tol``: the tolerance of an active set's trial solves (IterativeSystem.trials_pay; default
+    max(1e-3, tol)), each set confirmed by a solve to ``tol``.
 
     ``operator``: how the PCG applies A. "assembled": K' is assembled every step (its upper blocks
     into A's BSR data) and each product is one sparse product; "matrix-free": K' y comes element by
@@ -421,7 +429,7 @@ class IterativeSettings:
     operator: Literal["auto", "assembled", "matrix-free"] = "auto"
     matrix_free_max_products: int = 10
     pcg_responses: int = 4
-    loose_tol: float = 1e-3
+    loose_tol: float | None = None
 
     def __post_init__(self):
         if self.operator not in ("auto", "assembled", "matrix-free"):
@@ -429,8 +437,11 @@ class IterativeSettings:
                                     f"got {self.operator!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
+        if self.loose_tol is None:
+            self.loose_tol = max(1e-3, float(self.tol))
         if not (isinstance(self.loose_tol, (int, float)) and self.tol <= self.loose_tol < 1):
-            raise InvalidInputError(f"IterativeSettings.loose_tol must be a number in [tol, 1), got {self.loose_tol!r}")
+            raise InvalidInputError(f"IterativeSettings.loose_tol must be None or a number in [tol, 1), got "
+                                    f"{self.loose_tol!r}")
         for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0),
                             ("matrix_free_max_products", 0), ("pcg_responses", 0)):
             value = getattr(self, name)
@@ -526,7 +537,8 @@ class IterativeSystem:
         # the columns of every node corrected since the factorisation are kept; past their cap (memory: n_dof x 3
         # per node) a refactorisation starts them afresh, or (counted) no more are added
         cap = pre.column_cap(limit)
-        if pre.stale or (not counted and (np.count_nonzero(outside()) > limit or pre.cached_nodes > cap)):
+        if pre.stale or (not counted and (np.count_nonzero(outside()) > limit
+                                          or pre.cached_nodes + np.count_nonzero(outside()) > cap)):
             self._refactor(T, mask, everything=np.count_nonzero(constrained & ~self.body.supported()) > limit)
         nodes = np.flatnonzero(outside())
         if not pre.solver.exact:  # multigrid: a column is a V-cycle, as dear as an iteration; projection alone
@@ -625,8 +637,8 @@ class IterativeSystem:
         of an earlier solve since its set-up (at least that)."""
         pre = self.pre
         fresh = self.settings.refactor_after
-        if not pre.solver.exact and pre.fewest is not None:
-            fresh = max(fresh, pre.fewest)
+        if not pre.solver.exact:  # multigrid: its own first count after a set-up is what a fresh one needs
+            fresh = max(fresh, its if pre.fewest is None else pre.fewest)
         pre.spent += max(0, its - fresh)
         pre.fewest = its if pre.fewest is None else min(pre.fewest, its)
         pre.last_iterations = its

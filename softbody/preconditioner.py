@@ -13,8 +13,9 @@ complement of E is
     P^-1 - P^-1 E S^-1 E^T P^-1,   S = E^T P^-1 E (m, m).
 
 P^-1 E only needs P^-1 of the three unit vectors of each constrained node: one 3-column solve per node,
-kept for the life of the factorisation. A change of the contact set then costs no refactorisation and
-no extra iterations, and a node that stays in contact costs nothing after its first solve.
+kept for the life of the factorisation (within a memory cap). A change of the contact set then costs no
+refactorisation and no extra iterations, and a node that stays in contact costs nothing after its first solve;
+contacts beyond the cap are projected out by the PCG, at the cost of iterations.
 """
 from __future__ import annotations
 
@@ -109,6 +110,7 @@ class Preconditioner:
         out = {name: copy.deepcopy(getattr(self, name)) for name in self._STATE}
         out["factor"] = self.solver.factor_values()
         out["backend"] = self.solver.backend
+        out["orderings"] = sorted(self.solver.ORDERINGS)  # the orderings its analysis tried (the same again)
         return out
 
     def load_state(self, state: dict) -> None:
@@ -120,6 +122,8 @@ class Preconditioner:
             if name in state:  # (a state saved before a field existed keeps its default)
                 setattr(self, name, copy.deepcopy(state[name]))
         self._last, self._store = (None, None), None  # (the loaded columns are copied into new room when more come)
+        if "orderings" in state:
+            self.solver.ORDERINGS = {k: type(self.solver).ORDERINGS[k] for k in state["orderings"]}
         self.solver.refactorize(state["factor"])
 
     def refactor_cost(self) -> float | None:

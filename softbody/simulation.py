@@ -95,10 +95,10 @@ class ExternalForces(MutableMapping):
 
 def body_solver(body: FemBody, backend: str = "auto") -> SpdSolver:
     """A new SPD solver on the body's pattern (solve_static's; a Simulation keeps its own per body, see
-    softbody.solvers.BodySolvers)."""
+    softbody.solvers.BodySolvers). These solves are direct: for "amg" (a preconditioner only) "auto" chooses."""
     from .solvers import new_solver
 
-    return new_solver(body, backend)
+    return new_solver(body, "auto" if backend == "amg" else backend)
 
 
 class Simulation:

@@ -379,13 +379,17 @@ def test_backends_count_their_costs_from_the_analysis():
             assert solve == 4.0 * f.factor_nonzeros and factor == 1e6 * f.factor_mflop / PardisoFactorization.FACTOR_SPEEDUP
 
 
-def test_multigrid_preconditioner_gives_the_direct_trajectory():
-    """Backend "amg" (pyamg's smoothed aggregation, a V-cycle per PCG iteration, contacts projected, no factor):
-    the sheet-on-sphere run through contact agrees with the direct solves to the iterative path's tolerance
-    (module docstring); it refuses the direct method, and "auto" takes it where the factor would be large."""
+def test_multigrid_preconditioner_gives_the_direct_trajectory(monkeypatch):
+    """Backend "amg" (pyamg's smoothed aggregation, a V-cycle per PCG iteration, contacts projected, no factor; a
+    coarsest level of 60 unknowns, so that this small sheet has a real hierarchy): the sheet-on-sphere run through
+    contact agrees with the direct solves to the iterative path's tolerance (module docstring), without a set-up
+    per solve; it refuses the direct method, and static solves with it are exact."""
     pytest.importorskip("pyamg")
-    from softbody import Simulation
+    from softbody import Simulation, solve_static
     from softbody.errors import InvalidInputError
+    from softbody.linsolve import AMGFactorization
+
+    monkeypatch.setattr(AMGFactorization, "MAX_COARSE", 60)
 
     direct, contacts, _ = _trajectory("tet4", (4, 4, 2), "direct")
     assert contacts > 0
@@ -398,12 +402,29 @@ def test_multigrid_preconditioner_gives_the_direct_trajectory():
             xs.append(scene.body.positions.copy())
         pre = sim.solvers.held_preconditioner(scene.body, sim.solvers.solver(scene.body, "amg").backend)
         assert pre.solver.backend == "amg" and not pre.solver.exact and pre.iterations > 0
+        assert pre.factorizations < len(xs) / 4  # set up again now and then, not for every solve
     finally:
         scene.world.close()
     diff = np.abs(direct - np.array(xs)).max()
     assert diff < TOL, f"multigrid and direct trajectories differ by {diff:.3g} m"
     with pytest.raises(InvalidInputError, match="amg"):
         Simulation(scene.body, 0.01, solver="amg", method="direct")
+    body = scene.body
+    body.positions = body.rest.copy()
+    body.fix(np.flatnonzero(body.rest[:, 0] < body.rest[:, 0].min() + 1e-9))
+    np.testing.assert_array_equal(solve_static(body, solver="amg"), solve_static(body, solver="auto"))
+
+
+def test_a_coarse_tolerance_is_taken():
+    """Simulation(tol) above the trial solves' default 1e-3: the trials take the tolerance itself."""
+    from softbody import Simulation
+
+    scene = sheet_on_sphere("tet4", (4, 4, 2))
+    try:
+        sim = Simulation(scene.body, 0.01, tol=0.01)
+        assert sim.settings.loose_tol == 0.01
+    finally:
+        scene.world.close()
 
 
 def test_auto_preconditioner_is_multigrid_where_the_factor_would_be_large(monkeypatch):
@@ -449,3 +470,30 @@ def test_the_corrections_columns_stay_within_their_cap():
         assert pre.cached_nodes <= cap and pre.factorizations == 1
         y_direct, _ = _direct(body, K, 1.0, 1e-3, b, cons)
         np.testing.assert_allclose(y, y_direct, rtol=0, atol=1e-8 * np.abs(y_direct).max())
+
+
+def test_multigrid_is_not_set_up_again_for_its_own_iteration_count(monkeypatch):
+    """Multigrid needs more iterations than a fresh factor (its V-cycle approximates A^-1): those are its baseline
+    (its own first count after a set-up), not work to buy a new set-up with. The same system solved again and again
+    keeps its one set-up."""
+    pytest.importorskip("pyamg")
+    import softbody
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+    from softbody.linsolve import AMGFactorization, SpdSolver
+    from softbody.preconditioner import Preconditioner
+
+    monkeypatch.setattr(AMGFactorization, "MAX_COARSE", 30)
+    body = softbody.FemBody(softbody.box_mesh((1.0, 0.1, 0.1), (40, 3, 3), "tet4"), softbody.LinearElastic(1e6, 0.3, 1e3))
+    p, n = body.pattern, body.n_nodes
+    K, _ = body.warped_stiffness_blocks(None)
+    pre = Preconditioner(SpdSolver(p.up_indptr, p.up_indices, body.n_dofs, "amg"), None, None)
+    A = body.M_blocks + 1e-3 * K
+    cons = Constraints(np.arange(16), np.ones((16, 3), bool), np.zeros((16, 3)))
+    rng = np.random.default_rng(4)
+    counts = []
+    for _ in range(6):
+        system = IterativeSystem(body, A, rng.standard_normal((n, 3)), np.zeros((n, 3)), pre, IterativeSettings())
+        system.solve(cons)
+        counts.append(system.stats["iterations"])
+    assert min(counts) > IterativeSettings().refactor_after + 2  # more than a factor would need
+    assert pre.factorizations == 1, counts
