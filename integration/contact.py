@@ -814,8 +814,9 @@ class ContactSolver:
                 cons = _stack([b_cons, c_cons])
                 # an iterative system solves to a loose tolerance while the set is changing, and once a trial
                 # leaves it standing, once more to the full tolerance (from the trial) and reads that answer: the
-                # set is settled on full solves alone, as before, at a fraction of the iterations (the last
-                # iteration the loop allows solves in full)
+                # set that ends the loop stands on a full solve, as before, at a fraction of the iterations (the
+                # trials' answers may steer the way there, e.g. which contacts were released; the last iteration
+                # the loop allows solves in full)
                 loose[i] &= it < self.max_iterations
                 out[i] = st.system.solve(cons, extra, reuse=nset.reuse, loose=loose[i])
                 stale[i] = nset.read(out[i][0], out[i][1], no_du, it)

@@ -442,9 +442,10 @@ def test_auto_preconditioner_is_multigrid_where_the_factor_would_be_large(monkey
     factor.analyse(body.pattern.upper_data(body.M_blocks))
     per_node = factor.factorization.factor_bytes / body.n_nodes  # PARDISO's count
     assert per_node > 0
-    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 1.01 * per_node)
+    # (two analyses in one process may order a little differently: MKL's METIS keeps a random state)
+    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 1.5 * per_node)
     assert solvers.new_preconditioner(body, "auto").solver.backend == "pardiso"
-    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 0.99 * per_node)
+    monkeypatch.setattr(solvers, "MULTIGRID_FACTOR_BYTES", 0.5 * per_node)
     assert solvers.new_preconditioner(body, "auto").solver.backend == "amg"
     assert solvers.new_preconditioner(body, "pardiso").solver.backend == "pardiso"  # named: kept
 
