@@ -273,11 +273,6 @@ class DirectSystem:
     timings: Timings | None = None
     rotations: np.ndarray | None = None  # (E, 3, 3): the warped step's element rotations it was built with
 
-    def __post_init__(self):
-        if not self.solver.exact:
-            raise InvalidInputError(f"a direct solve needs an exact backend, not {self.solver.backend!r} (a "
-                                    "preconditioner only: for direct solves 'auto' chooses one)")
-
     def solve(self, cons: Constraints, extra_rhs: np.ndarray | None = None,
               reuse: bool = False, homogeneous: bool = False, loose: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """Solve A y = b (+ extra_rhs, (N, 3)) with the constrained components of y fixed to their values.
@@ -290,6 +285,9 @@ class DirectSystem:
         homogeneous=True drops the step's own load b (extra_rhs alone is the load): the response to the
         constrained values and extra_rhs alone, for a coupling that makes them unknowns.
         """
+        if not self.solver.factorization.exact:
+            raise InvalidInputError(f"a direct solve needs an exact backend, not {self.solver.backend!r} (a "
+                                    "preconditioner only: for direct solves 'auto' chooses one)")
         if kernels.ENABLED:  # the same arithmetic in a few compiled passes (softbody.kernels)
             return self._solve_compiled(cons, extra_rhs, reuse, homogeneous)
         pat = self.body.pattern
