@@ -498,3 +498,53 @@ def test_multigrid_is_not_set_up_again_for_its_own_iteration_count(monkeypatch):
         counts.append(system.stats["iterations"])
     assert min(counts) > IterativeSettings().refactor_after + 2  # more than a factor would need
     assert pre.factorizations == 1, counts
+
+
+def test_a_loose_solve_stops_at_its_own_tolerance():
+    """IterativeSystem.solve(loose=True) (an active set's trial) stops at IterativeSettings.loose_tol of the load, a full
+    one at tol; both from the same inexact preconditioner."""
+    from softbody.integrator import Constraints, IterativeSettings, IterativeSystem
+
+    body, K, pre, rng = _small_system(13)
+    n = body.n_nodes
+    b = rng.standard_normal((n, 3))
+    cons = Constraints(np.array([2, 6]), np.ones((2, 3), bool), np.zeros((2, 3)))
+    IterativeSystem(body, 30.0 * body.M_blocks + 1e-3 * K, b, np.zeros((n, 3)), pre, IterativeSettings()).solve(cons)
+    A = body.M_blocks + 1e-3 * K
+    settings = IterativeSettings(tol=1e-9, loose_tol=1e-2, refactor_after=1000)
+    free = np.ones((n, 3), bool)
+    free[[2, 6]] = False
+    its = {}
+    for loose in (True, False):
+        system = IterativeSystem(body, A, b, np.zeros((n, 3)), pre, settings)
+        y, _ = system.solve(cons, loose=loose)
+        r = np.linalg.norm((b - (body.pattern.to_bsr(A) @ y.reshape(-1)).reshape(-1, 3))[free])
+        tol = settings.loose_tol if loose else settings.tol
+        assert r <= 1.01 * tol * np.linalg.norm(b[free])
+        its[loose] = system.stats["iterations"]
+    assert its[True] < its[False]
+
+
+def test_trial_solves_end_on_a_full_solve(monkeypatch):
+    """With trial solves forced on for every body (IterativeSystem.trials_pay) and made very loose (a residual of 0.3
+    of the load), the node contacts' active set still ends on a full solve: the sheet's trajectory equals the direct
+    one to the iterative path's tolerance."""
+    from softbody.integrator import IterativeSystem
+
+    direct, contacts, _ = _trajectory("tet4", (4, 4, 2), "direct")
+    assert contacts > 0
+    monkeypatch.setattr(IterativeSystem, "trials_pay", property(lambda self: True))
+    monkeypatch.setattr(IterativeSystem, "solve", _counting(IterativeSystem.solve))
+    trials, _, _ = _trajectory("tet4", (4, 4, 2), "iterative")
+    assert _counting.loose > 0  # the trials ran
+    diff = np.abs(direct - trials).max()
+    assert diff < TOL, f"with trial solves the trajectory differs from the direct one by {diff:.3g} m"
+
+
+def _counting(solve):
+    def counted(self, *args, loose=False, **kwargs):
+        _counting.loose += bool(loose)
+        self.settings.loose_tol = 0.3
+        return solve(self, *args, loose=loose, **kwargs)
+    _counting.loose = 0
+    return counted
