@@ -333,6 +333,20 @@ class BulletAdapter:
                 self._cache[key] = hit
         return hit
 
+    def point_distances(self, body: int, link: int, points: np.ndarray, reach: float) -> np.ndarray:
+        """pybullet's signed distances (m,) [m] of world points (m, 3) to a link's collision shapes (their collision
+        margin included), inf where none lies within ``reach`` [m]: one query per point, for probes, not for a
+        step's contacts."""
+        if "_probe" not in self.__dict__:
+            self._probe = p.createCollisionShape(p.GEOM_SPHERE, radius=1e-9, physicsClientId=self.client)
+        out = np.full(len(points), np.inf)
+        for i, x in enumerate(np.asarray(points, float).tolist()):
+            res = p.getClosestPoints(-1, body, reach, linkIndexB=link, collisionShapeA=self._probe,
+                                     collisionShapePositionA=x, physicsClientId=self.client)
+            if res:
+                out[i] = min(r[8] for r in res) + 1e-9
+        return out
+
     def reset_pose(self, body: int, position, orientation) -> None:
         self._cache.clear()
         p.resetBasePositionAndOrientation(body, list(position), list(orientation), physicsClientId=self.client)

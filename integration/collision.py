@@ -22,7 +22,7 @@ import scipy.sparse as sp
 from . import kernels
 from .bullet import quat_matrix
 from .distance import cross
-from .segments import edge_normals
+from .segments import closest_between_segments, edge_normals
 from .rigid import RigidLink
 
 
@@ -44,6 +44,13 @@ EDGE_EXPLAINED = 5e-5
 CORNERS_PER_FACET = 4
 # an edge's deepest point counts between its nodes only (within this fraction of an end it is the node's contact)
 EDGE_END = 0.02
+# a soft edge meets a mesh's sharp edge between the ends of both only where they cross at more than ~6 degrees
+# (nearly parallel edges are held at their ends, by node and corner contacts), and within this fraction of the
+# rigid edge's ends it is that corner's contact on the soft faces
+CROSSING_SINE = 0.1
+CORNER_END = 1e-6
+# a contact normal counts within a sharp edge's cone of outward normals to within this cosine
+CONE_SLACK = 1e-3
 # golden-section steps for an edge's deepest point into a part (its signed distance is convex along the edge):
 # the bracket shrinks to 0.618^36 ~ 3e-8 of the edge
 GOLDEN_STEPS = 36
@@ -261,8 +268,11 @@ class CollisionDetector:
                 found = found.select(facing | (found.distance <= 0))
                 parts.append(found)
             gap = node_gaps(found, len(positions))
-            if edges is not None and (movable_edges or not rb.movable) and _edge_parts(rb):
-                faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
+            if edges is not None and (movable_edges or not rb.movable):
+                if _edge_parts(rb):
+                    faces.append(edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
+                elif len(rb.feature_edges()[0]):  # a link with a mesh part: its sharp edges
+                    faces.append(mesh_edge_contacts(body_index, positions, triangles, edges, rb, sweep, gap))
             if not len(rb.round_parts()) and not len(rb.corner_points()[0]):
                 continue  # a plane: no face contacts (CollisionDetector.face_contacts)
             if touching is None:
@@ -494,7 +504,10 @@ class CollisionDetector:
         if not len(ti) and not len(vi):
             return FaceHits.empty()
         centre = np.concatenate([centre, corner_centres[vi]])
-        ti, q = np.concatenate([ti, vt]), np.concatenate([q, corners[vi]])
+        corner_q = corners[vi]
+        if len(vi) and rigid.primitive_parts() is None:  # a mesh's corner: where pybullet's surface lies (its margin)
+            corner_q = corner_q - rigid.corner_rounding()[corner_ids[vi], None] * nrm[vt]
+        ti, q = np.concatenate([ti, vt]), np.concatenate([q, corner_q])
         # which rigid point: a corner is one (numbered after the round parts' points, below), a round part's point
         # is named by its position once the candidates are few (round entries -1 until then)
         group = np.concatenate([np.full(len(feature), -1), len(round_tris) * S + vi])
@@ -731,6 +744,105 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
     return FaceHits(np.full(m, body_index), edge_tris[e, 0], nodes, np.column_stack([1 - t, t, np.zeros(m)]), point,
                     normal, d, np.full(m, rigid.id), np.full(m, rigid.link), np.arange(m), np.ones(m, dtype=bool), key,
                     np.ones(m, dtype=bool))
+
+
+def mesh_edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
+                       edges: tuple[np.ndarray, np.ndarray], rigid: RigidLink, sweep: Sweep, node_gap: np.ndarray
+                       ) -> "FaceHits":
+    """Points of soft surface edges against the sharp edges of a link's meshes (RigidLink.feature_edges: a URDF's
+    convex hulls, a concave mesh's ridges and rim), where the two cross between the ends of both: a robot's finger
+    edge pressed across a soft edge, a soft bar across a mesh's ridge. The vertex of one and the faces of the other
+    are node and corner contacts; this is the rest of a pair of surfaces' features.
+
+    ``edges``: the soft surface's edges (E, 2) and the triangles each bounds (E, 2); ``node_gap`` (N,): the gaps [m]
+    the link's node contacts hold (inf where none). A soft edge and a rigid edge near each other (their boxes grown
+    by the reach) give their closest points (segments.closest_between_segments); these count if they lie between
+    both edges' ends (EDGE_END on the soft edge, CORNER_END on the rigid one), the edges cross (CROSSING_SINE), the
+    normal along their cross product, turned out of the link, lies in the rigid edge's cone of outward normals
+    (CONE_SLACK; else a face of the link is nearer, and the soft edge's nodes hold it) and faces the soft edge's
+    outward normal (FACING), the soft point is within reach (margin plus closing within the step) and, for an
+    immovable link, deeper than the edge's node contacts hold it (interpolated, less EDGE_EXPLAINED). Each is a face
+    hit as in edge_contacts: weights (1 - s, s, 0) over the soft edge's nodes and the third of a triangle it bounds,
+    the rigid point on pybullet's surface (the edge's point moved out along the normal by the collision margin
+    pybullet keeps around a convex mesh, RigidLink.edge_rounding, where the node contacts also find it), its own
+    group, primary, ``edge`` set; the key names the soft and the rigid edge."""
+    local, middle, cosine = rigid.feature_edges()
+    E, edge_tris = edges
+    if not len(local) or not len(E):
+        return FaceHits.empty()
+    x0, x1 = positions.take(E[:, 0], axis=0), positions.take(E[:, 1], axis=0)
+    lo, hi = rigid.aabb()
+    bound = sweep.bound()
+    cand = np.flatnonzero(((np.maximum(x0, x1) >= lo - bound) & (np.minimum(x0, x1) <= hi + bound)).all(axis=1))
+    if not len(cand):
+        return FaceHits.empty()
+    a, b = x0[cand], x1[cand]
+    slo, shi = np.minimum(a, b) - bound, np.maximum(a, b) + bound  # the soft edges' boxes, grown by the reach
+    c, q = rigid.pose()
+    Rl = quat_matrix(q)
+    r0, r1 = local[:, 0] @ Rl.T + c, local[:, 1] @ Rl.T + c
+    rlo, rhi = np.minimum(r0, r1), np.maximum(r0, r1)
+    near = np.flatnonzero(((rhi >= slo.min(axis=0)) & (rlo <= shi.max(axis=0))).all(axis=1))
+    if not len(near):
+        return FaceHits.empty()
+    # the pairs whose boxes meet (a few dozen rigid edges against the soft edges around them)
+    meet = ((rhi[near][None] >= slo[:, None]) & (rlo[near][None] <= shi[:, None])).all(axis=2)
+    i, k = np.nonzero(meet)
+    if not len(i):
+        return FaceHits.empty()
+    j = near[k]
+    pa, pb, qa, qb = a[i], b[i], r0[j], r1[j]
+    s, t = closest_between_segments(pa, pb, qa, qb)
+    ds, dr = pb - pa, qb - qa
+    n = cross(ds, dr)
+    length = np.sqrt(np.einsum("ij,ij->i", n, n))
+    ok = ((s > EDGE_END) & (s < 1 - EDGE_END) & (t > CORNER_END) & (t < 1 - CORNER_END)
+          & (length > CROSSING_SINE * np.sqrt(np.einsum("ij,ij->i", ds, ds) * np.einsum("ij,ij->i", dr, dr))))
+    if not ok.any():
+        return FaceHits.empty()
+    i, j, s, t, ds, dr, n, length = i[ok], j[ok], s[ok], t[ok], ds[ok], dr[ok], n[ok], length[ok]
+    e = cand[i]
+    n /= length[:, None]
+    soft_out = edge_normals(positions, triangles, edge_tris[e])  # the soft edges' outward normals
+    mid = middle[j] @ Rl.T
+    # out of the link: along the edge's cone; a rim's cone holds both sides of its face, which the soft edge's
+    # own outward normal decides
+    towards = np.einsum("ij,ij->i", n, mid)
+    side = np.where(np.abs(towards) > CONE_SLACK, towards, -np.einsum("ij,ij->i", n, soft_out))
+    n *= np.where(side < 0, -1.0, 1.0)[:, None]
+    point_s = a[i] + s[:, None] * ds
+    round_by = rigid.edge_rounding()[j]  # pybullet's surface lies that far out of the edge (its collision margin)
+    point_r = r0[j] + t[:, None] * dr + round_by[:, None] * n
+    d = np.einsum("ij,ij->i", n, point_s - point_r)
+    v_soft = (1 - s)[:, None] * sweep.velocities[E[e, 0]] + s[:, None] * sweep.velocities[E[e, 1]]
+    ok = ((np.einsum("ij,ij->i", n, mid) >= cosine[j] - CONE_SLACK) & (np.einsum("ij,ij->i", n, soft_out) < FACING)
+          & (d < sweep.reach(point_r, n, v_soft)))
+    if not rigid.movable:  # an immovable link: only where the edge's nodes do not hold it already
+        ok &= d < held_gap(np.column_stack([1 - s, s]), node_gap[E[e]]) - EDGE_EXPLAINED
+    # behind the edge: only a soft point inside the edge's convex part (grown by pybullet's margin; a soft edge far
+    # behind a finger, across the cube it grips, is no crossing) and by less than the reach
+    behind = np.flatnonzero(ok & (d < 0))
+    if len(behind):
+        ok[behind] = d[behind] > -sweep.bound()
+        planes, part = rigid.edge_part_planes(), rigid.edge_part[j[behind]]
+        local_s = (point_s[behind] - c) @ Rl
+        for k in np.unique(part).tolist():
+            if planes[k] is not None:
+                at = part == k
+                normals, offsets = planes[k]
+                ok[behind[at]] &= (local_s[at] @ normals.T - offsets).max(axis=1) < round_by[behind[at]]
+    if not ok.any():
+        return FaceHits.empty()
+    e, j, s, d, point_r, n = e[ok], j[ok], s[ok], d[ok], point_r[ok], n[ok]
+    m = len(e)
+    tri = triangles[edge_tris[e, 0]]  # the edge's nodes first, the triangle's third node (weight 0) last
+    third = np.where((tri != E[e, 0:1]) & (tri != E[e, 1:2]), tri, -1).max(axis=1)
+    nodes = np.column_stack([E[e, 0], E[e, 1], third])
+    key = ((1 << 62) | (e.astype(np.int64) << 28) | ((j.astype(np.int64) % 4096) << 16)
+           | ((rigid.id * 64 + rigid.link + 1) & 0xFFFF)).astype(np.int64)
+    return FaceHits(np.full(m, body_index), edge_tris[e, 0], nodes, np.column_stack([1 - s, s, np.zeros(m)]),
+                    point_r, n, d, np.full(m, rigid.id), np.full(m, rigid.link), np.arange(m), np.ones(m, dtype=bool),
+                    key, np.ones(m, dtype=bool))
 
 
 def _golden(f, m: int) -> np.ndarray:

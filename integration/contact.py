@@ -615,11 +615,13 @@ class ContactSolver:
         return make(self.previous.get((kind, body), (set(), set(), {})))
 
     def solve(self, steps: list[BodyStep], h: float, mass_matrix: np.ndarray | None = None,
-              pairs: PairContacts | None = None, joints: JointRows | None = None) -> StepSolution:
+              pairs: PairContacts | None = None, joints: JointRows | None = None,
+              du_guess: np.ndarray | None = None) -> StepSolution:
         """Solve one step of every body in ``steps``; ``mass_matrix`` (n, n): the movable rigid bodies' mass
         matrix for the coupled velocity change du (None: no rigid body is coupled); ``pairs``: contacts
         between the soft bodies (their parts index ``steps``); ``joints``: motors and joint limits of the coupled
-        rigid bodies (convex.JointRows: rows of the convex problem, solved with it even where no soft body is).
+        rigid bodies (convex.JointRows: rows of the convex problem, solved with it even where no soft body is);
+        ``du_guess`` (n,): where the coupled solve starts du (coupling.RigidWarmStart; None: 0).
 
         A body in touch with a movable rigid body (a contact or attachment whose Jacobian is not zero) is
         solved in the coupled convex problem with all others like it (:meth:`_solve_convex`, convex.py); so are
@@ -682,7 +684,7 @@ class ContactSolver:
                 sub = pairs.select(np.isin(pairs.parts[:, 0], index))
                 sub = sub.relabel(local) if len(sub) else None
             out, its, res = solve([steps[i] for i in index], [prepared[i] for i in index], h, index, results, sub,
-                                  *(() if solve == self._solve_sparse else (mass_matrix, joints)))
+                                  *(() if solve == self._solve_sparse else (mass_matrix, joints, du_guess)))
             if solve == self._solve_convex:
                 du, joint_impulses = out
             iterations = max(iterations, its)
@@ -836,7 +838,7 @@ class ContactSolver:
             results[j] = (v, r, node_result, None)
         return None, it, None
 
-    def _solve_convex(self, steps, prepared, h, index, results, pairs=None, M=None, joints=None
+    def _solve_convex(self, steps, prepared, h, index, results, pairs=None, M=None, joints=None, du_guess=None
                       ) -> tuple[tuple[np.ndarray, np.ndarray], int, ContactResult | None]:
         """Bodies touching movable rigid bodies, each other or frictional faces, together: every contact and two-way
         attachment a row of one convex problem (convex.py) over their velocities and the rigid velocity change du,
@@ -888,7 +890,7 @@ class ContactSolver:
         if pairs is not None and len(pairs):
             add(None, "soft", pairs, self._contact_rows(pairs, pairs.parts, pairs.nodes, pairs.weights, h, n), None)
         rows = ConvexRows.concat(row_parts, n)
-        sol = self.convex.solve(parts, rows, M, h, joints)
+        sol = self.convex.solve(parts, rows, M, h, joints, du_guess)
         F = rows.frames
         force = np.einsum("mij,mj->mi", F, sol.gamma) / h  # on the weighted (soft) point [N]
         gap_end = h * (sol.vc[:, 0] - rows.v_hat)  # the normal gap at the end of the step (of its bounded target)

@@ -490,11 +490,11 @@ class ConvexSolver:
         self.patterns = GroupPatterns(backend)
 
     def solve(self, parts: list[SoftPart], rows: Rows, M: np.ndarray | None, h: float,
-              joints: JointRows | None = None) -> Solution:
+              joints: JointRows | None = None, du_guess: np.ndarray | None = None) -> Solution:
         """Minimise the step's cost for the soft ``parts``, the ``rows``, the rigid mass matrix M (n, n) (None: no
-        rigid unknowns) and the scalar ``joints`` rows on the rigid unknowns (motors, limits, user constraints).
-        Returns the Solution."""
-        return _Newton(self, parts, rows, M, h, joints).run()
+        rigid unknowns) and the scalar ``joints`` rows on the rigid unknowns (motors, limits, user constraints),
+        Newton starting from the parts' guesses and ``du_guess`` (n,) (None: 0). Returns the Solution."""
+        return _Newton(self, parts, rows, M, h, joints).run(du_guess)
 
 
 class _Newton:
@@ -777,14 +777,14 @@ class _Newton:
         return None
 
     # -- the iteration
-    def run(self) -> Solution:
+    def run(self, du_guess: np.ndarray | None = None) -> Solution:
         """Newton's method on Castro et al.'s cone (:func:`cone_law`); where rows slide fast enough to lift off by more
         than GLIDE_TOL in the step, again on Coulomb's law with the friction bounds lagged on the normal impulses
         (:func:`contact_law`), until the bounds hold with the impulses found (to LAG_TOL) or LAG_ROUNDS rounds, each
         round from the last one's velocities."""
         parts, rows = self.parts, self.rows
         V = np.concatenate([np.where(p.held, p.value, p.guess) for p in parts]) if parts else np.zeros((0, 3))
-        du = np.zeros(self.n)
+        du = np.zeros(self.n) if du_guess is None else np.array(du_guess, dtype=float)
         self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs()) if parts else None
         self.b = self._loads()
         free = ~self.held

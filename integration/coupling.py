@@ -33,7 +33,7 @@ overshot.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -358,3 +358,28 @@ class RigidCoupling:
                 sel = on_body & (link == lk)
                 J[sel, :, o:o + dyn.n] = adapter.point_jacobians(dyn, lk, points[sel])
         return J
+
+
+@dataclass
+class RigidWarmStart:
+    """The coupled rigid bodies' velocity change du of the last coupled solve, per body (its pybullet id): where the
+    next solve starts. In a steady grasp or a body at rest du is nearly the same from step to step (the contacts'
+    impulses against the motors' and gravity's); from du = 0 the solve's first iterate drives the links through the
+    soft body at their free motion and Newton spends its iterations finding which rows hold (a Panda gripping with
+    20 N: 31 iterations a solve from zero, 14 from the last du). A body whose unknowns changed in number starts from 0."""
+
+    kept: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def guess(self, coupling: RigidCoupling) -> np.ndarray:
+        """(n,) the starting du of a solve over ``coupling``'s bodies."""
+        du = np.zeros(coupling.n)
+        for b, o in coupling.offset.items():
+            last = self.kept.get(b)
+            if last is not None and len(last) == coupling.dynamics[b].n:
+                du[o:o + len(last)] = last
+        return du
+
+    def keep(self, coupling: RigidCoupling, du: np.ndarray) -> None:
+        """Keep a solve's du (n,) per body (only the bodies of this step: the others start from 0 when they come
+        back)."""
+        self.kept = {b: du[o:o + coupling.dynamics[b].n].copy() for b, o in coupling.offset.items()}

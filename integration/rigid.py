@@ -23,6 +23,8 @@ from .shapes import RigidShape, load_trimesh, of_kind  # noqa: F401  (load_trime
 PoseScript = Callable[[float], object]
 
 SHAPES = ("sphere", "box", "plane", "mesh", "urdf")
+# [m] how far outside a sharp edge RigidLink.edge_rounding probes pybullet's surface (beyond any collision margin)
+PROBE_CLEARANCE = 0.01
 
 
 class Part(NamedTuple):
@@ -228,17 +230,86 @@ class RigidLink:
         """World positions (k, 3) of the link's corners (box corners, the vertices of convex and concave
         meshes) and the centres (k, 3) of the convex parts they belong to (NaN for a concave mesh's)."""
         if "_corners_local" not in self.__dict__:
-            local, centre = [], []
-            for shape, R, pos in self.parts:
+            local, centre, part = [], [], []
+            for k, (shape, R, pos) in enumerate(self.parts):
                 corners, middle = shape.corners()
                 if len(corners):
                     local.append(corners @ R.T + pos)
                     centre.append(np.broadcast_to(middle @ R.T + pos, local[-1].shape))
+                    part.append(np.full(len(corners), k))
             self._corners_local = np.concatenate(local) if local else np.zeros((0, 3))
             self._corner_centres = np.concatenate(centre) if centre else np.zeros((0, 3))
+            self._corner_part = np.concatenate(part) if part else np.zeros(0, np.int64)
         if not len(self._corners_local):
             return np.zeros((0, 3)), np.zeros((0, 3))
         return self.to_world(self._corners_local), self.to_world(self._corner_centres)
+
+    def feature_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sharp edges of the link's parts in its frame (RigidShape.feature_edges: ends (k, 2, 3) [m], cone
+        middles (k, 3), cone half angles' cosines (k,)), made once; none for a link of primitive parts only (a soft
+        edge meets those in collision.edge_contacts)."""
+        if "_feature_edges" not in self.__dict__:
+            ends, middles, cosines = [np.zeros((0, 2, 3))], [np.zeros((0, 3))], [np.zeros(0)]
+            part = [np.zeros(0, np.int64)]
+            if self.primitive_parts() is None:
+                for k, (shape, R, pos) in enumerate(self.parts):
+                    e, m, c = shape.feature_edges()
+                    ends.append(e @ R.T + pos)
+                    middles.append(m @ R.T)
+                    cosines.append(c)
+                    part.append(np.full(len(c), k))
+            self._feature_edges = (np.concatenate(ends), np.concatenate(middles), np.concatenate(cosines))
+            self._feature_part = np.concatenate(part)
+        return self._feature_edges
+
+    def edge_part_planes(self) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """Per part of the link, the planes of its convex shape in the link's frame (RigidShape.hull_planes: normals
+        (f, 3), offsets (f,) [m]; None for a concave mesh), and which part each sharp edge belongs to
+        (:attr:`edge_part` (k,)), made once."""
+        if "_edge_part_planes" not in self.__dict__:
+            planes = []
+            for shape, R, pos in self.parts:
+                hp = shape.hull_planes()
+                planes.append(None if hp is None else (hp[0] @ R.T, hp[1] + hp[0] @ R.T @ pos))
+            self._edge_part_planes = planes
+        return self._edge_part_planes
+
+    @property
+    def edge_part(self) -> np.ndarray:
+        """(k,) the part (index into :attr:`parts`) of each sharp edge of :meth:`feature_edges`."""
+        self.feature_edges()
+        return self._feature_part
+
+    def part_rounding(self) -> np.ndarray:
+        """(P,) [m] per part: how far outside its sharp edges and corners pybullet's own surface lies, the collision
+        margin pybullet keeps around a convex mesh (where its distance query, and so the node contacts, find the
+        surface; ~1 mm) and 0 for a box (its margin lies inside its edges) or a part without sharp edges. Probed once
+        per part with pybullet's distance query, from a point just outside the middle of its first sharp edge along
+        its cone's middle (the edge's point is the nearest there)."""
+        if "_part_rounding" not in self.__dict__:
+            ends, middles, _ = self.feature_edges()
+            out = np.zeros(len(self.parts))
+            if len(ends):
+                part = self._feature_part
+                first = np.flatnonzero(np.r_[True, part[1:] != part[:-1]])
+                clear = PROBE_CLEARANCE
+                probe = self.to_world(0.5 * (ends[first, 0] + ends[first, 1]) + clear * middles[first])
+                d = self.adapter.point_distances(self.id, self.link, probe, 2.0 * clear)
+                out[part[first]] = np.where(np.isfinite(d), np.clip(clear - d, 0.0, clear), 0.0)
+            self._part_rounding = out
+        return self._part_rounding
+
+    def edge_rounding(self) -> np.ndarray:
+        """(k,) [m] :meth:`part_rounding` per sharp edge (:meth:`feature_edges`)."""
+        return self.part_rounding()[self.edge_part]
+
+    def corner_rounding(self) -> np.ndarray:
+        """(k,) [m] :meth:`part_rounding` per corner (:meth:`corner_points`); zeros for a link of primitive parts."""
+        if "_corner_rounding" not in self.__dict__:
+            self.corner_points()
+            self._corner_rounding = (np.zeros(len(self._corner_part)) if self.primitive_parts() is not None
+                                     else self.part_rounding()[self._corner_part])
+        return self._corner_rounding
 
     def support_centres(self) -> np.ndarray:
         """World centres (S, 3) of the round parts, one per point of :meth:`support_points`."""

@@ -43,6 +43,49 @@ def _round_sags(radius: float, lengths: np.ndarray) -> np.ndarray:
         return np.where(L <= 2.0 * radius, radius - np.sqrt(radius ** 2 - 0.25 * L ** 2), np.nan)
 
 
+#: two faces of a mesh meeting at less than this angle [rad] are one flat face (no sharp edge between them)
+FEATURE_ANGLE = 1e-3
+_NO_EDGES = (np.zeros((0, 2, 3)), np.zeros((0, 3)), np.zeros(0))
+
+
+def _planes(tm) -> tuple[np.ndarray, np.ndarray]:
+    """The face planes of a convex trimesh.Trimesh: outward unit normals (f, 3) and offsets (f,) [m] (n . x <= offset
+    inside)."""
+    normals = np.asarray(tm.face_normals)
+    return normals, np.einsum("ij,ij->i", normals, np.asarray(tm.vertices)[np.asarray(tm.faces)[:, 0]])
+
+
+def _feature_edges(tm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """RigidShape.feature_edges of a trimesh.Trimesh: its convex edges between faces more than FEATURE_ANGLE apart
+    (a valley between two faces cannot poke into anything) and the edges of an open mesh's rim (bounding one
+    face: their cone the half space beyond the rim, both sides of the face)."""
+    import trimesh
+
+    if not len(tm.faces):
+        return _NO_EDGES
+    sharp = (np.asarray(tm.face_adjacency_angles) > FEATURE_ANGLE) & np.asarray(tm.face_adjacency_convex, bool)
+    pairs = np.asarray(tm.face_adjacency)[sharp]
+    normals = np.asarray(tm.face_normals)
+    n1, n2 = normals[pairs[:, 0]], normals[pairs[:, 1]]
+    middle = n1 + n2
+    middle /= np.linalg.norm(middle, axis=1, keepdims=True)
+    ends = [np.asarray(tm.vertices)[np.asarray(tm.face_adjacency_edges)[sharp]]]
+    middles, cosines = [middle], [np.einsum("ij,ij->i", middle, n1)]
+    rim = trimesh.grouping.group_rows(tm.edges_sorted, require_count=1)
+    if len(rim):  # an open mesh: the rim's edges, their cone the half space beyond the face's edge
+        edge, face = np.asarray(tm.edges_sorted)[rim], np.asarray(tm.edges_face)[rim]
+        v = np.asarray(tm.vertices)
+        a, b = v[edge[:, 0]], v[edge[:, 1]]
+        away = np.cross(b - a, normals[face])
+        away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-300)
+        inward = v[tm.faces[face]].mean(axis=1) - a  # towards the face's centre
+        away *= np.where(np.einsum("ij,ij->i", away, inward) > 0, -1.0, 1.0)[:, None]
+        ends.append(np.stack([a, b], axis=1))
+        middles.append(away)
+        cosines.append(np.zeros(len(rim)))
+    return np.concatenate(ends), np.concatenate(middles), np.concatenate(cosines)
+
+
 def _pose(pose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(position (3,), quaternion xyzw (4,), rotation (3, 3)) of a pose (position, quaternion) or None (identity)."""
     from .bullet import quat_matrix  # bullet.py builds on this module
@@ -140,6 +183,19 @@ class RigidShape:
         """For unit world directions (T, 3), the shape's points (T, 3) furthest along each, one array per flag of
         :attr:`round`, with the shape at ``centre`` (3,) [m] turned by ``rotation`` (3, 3) (shape to world)."""
         return []
+
+    def feature_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Its sharp edges in its own frame, for a soft edge meeting one between the ends of both
+        (collision.mesh_edge_contacts: meshes, and boxes on a link with a mesh part; a link of primitive parts only
+        has collision.edge_contacts): ends (k, 2, 3) [m], the unit middle (k, 3) of each edge's cone of outward
+        normals (between the normals of the faces it joins) and the cosine (k,) of the cone's half angle. None
+        by default."""
+        return _NO_EDGES
+
+    def hull_planes(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The planes of a convex shape with sharp edges (a box, a convex mesh) in its own frame: outward unit normals
+        (f, 3) and offsets (f,) [m], n . x <= offset inside; None for others (a concave mesh, round shapes)."""
+        return None
 
     @cached_property
     def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -309,6 +365,18 @@ class Box(RigidShape):
         same = (np.argmax(qb, axis=1) == axis) & (np.sign(a[rows, axis]) == np.sign(b[rows, axis]))
         qa[rows, axis] = qb[rows, axis] = -np.inf  # the other two axes: within the face's extents
         return same & (qa.max(axis=1) <= 0.0) & (qb.max(axis=1) <= 0.0)
+
+    def feature_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Its twelve edges, each the cone of quarter turn between its two faces."""
+        if "_edges" not in self.__dict__:
+            import trimesh
+
+            object.__setattr__(self, "_edges", _feature_edges(trimesh.creation.box(extents=2.0 * self.half_extents)))
+        return self._edges
+
+    def hull_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        eye = np.eye(3)
+        return np.concatenate([eye, -eye]), np.concatenate([self.half_extents, self.half_extents])
 
     @cached_property
     def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -574,6 +642,36 @@ class Mesh(RigidShape):
         if self.hull is None:
             return _NO_CORNERS
         return self.hull, self.hull.mean(axis=0)
+
+    def feature_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sharp edges of the convex hull pybullet collides with, or of a concave mesh's own triangles (its
+        convex edges and an open mesh's rim); none for a file that cannot be read."""
+        if "_edges" not in self.__dict__:
+            import trimesh
+
+            tm = None
+            if self.hull is not None:
+                tm = trimesh.convex.convex_hull(self.hull)
+            elif self.vertices is not None:
+                tm = trimesh.Trimesh(np.asarray(self.vertices, float), np.asarray(self.faces), process=True)
+            elif self.file and Path(self.file).exists():
+                try:
+                    tm = load_trimesh(self.file)
+                    tm = trimesh.Trimesh(np.asarray(tm.vertices) * self.scale, tm.faces, process=True)
+                except InvalidInputError:
+                    tm = None
+            object.__setattr__(self, "_edges", _NO_EDGES if tm is None else _feature_edges(tm))
+        return self._edges
+
+    def hull_planes(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The convex hull's planes (None for a concave mesh)."""
+        if self.hull is None:
+            return None
+        if "_planes" not in self.__dict__:
+            import trimesh
+
+            object.__setattr__(self, "_planes", _planes(trimesh.convex.convex_hull(self.hull)))
+        return self._planes
 
     @cached_property
     def closed_surface(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

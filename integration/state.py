@@ -41,6 +41,7 @@ class WorldState:
     bullet: bytes
     format: int = FORMAT
     patterns: dict[tuple, Any] = field(default_factory=dict)  # the coupled problem's sparse patterns (their extra blocks)
+    rigid_warm: dict[int, Any] = field(default_factory=dict)  # the coupled solve's last du per rigid body (its id)
 
     def write(self, path: str | Path) -> Path:
         """Write this state to ``path`` (pickle); ``World.restore_state(path)`` reads it back, also in a new process

@@ -44,7 +44,7 @@ from softbody.state import not_copyable, read_state
 
 from .bullet import BASE, BodyDynamics, BulletAdapter, quat_difference, quat_from_euler, quat_matrix
 from .collision import CollisionDetector, Contacts, FaceHits, Sweep, primitive_distances, run_starts
-from .coupling import RigidCoupling
+from .coupling import RigidCoupling, RigidWarmStart
 from .contact import (Attachments, BodyStep, ContactResult, ContactSolver, FaceContacts, NodeContacts,
                       PairContacts)
 from .distance import cross
@@ -196,6 +196,7 @@ class World:
         self.attachments: list[Attachment] = []
         self.detector = CollisionDetector(self.client)
         self.contact_solver = ContactSolver(push_speed=_positive(push_speed, "push_speed"))
+        self._rigid_warm = RigidWarmStart()  # the coupled solve's last du, where the next one starts
         self._entries: list[SoftEntry] = []  # the soft bodies as added (World.bodies), by handle
         self._stepped: list[SteppedEntry] = []  # the stepped bodies (sim.bodies), by index
         self._stack = bool(stack)
@@ -1016,13 +1017,15 @@ class World:
                                                      self.adapter.constraint_forces, self.dt))
                     joints = at_free_motion(record.joint_rows, u, applied)
             M = coupling.mass_matrix() if coupling.n else None
-            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints)
+            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, self._rigid_warm.guess(coupling))
             for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
                 if not self._end_contacts(record, sol.velocities, sol.du):
                     break
                 with timed(timings, "rigid"):
                     steps = self._body_steps(record, systems, supports, u)
-                sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints)
+                sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, sol.du)
+            if coupling.n:
+                self._rigid_warm.keep(coupling, sol.du)
         record.joints = joints
         record.solution = sol
         return sol.velocities
@@ -1451,7 +1454,8 @@ class World:
                            {k: e.group for k, e in enumerate(self._entries) if e.group is not None},
                            self._restack_due, [k for k, e in enumerate(self._entries) if e.started],
                            previous, copy.deepcopy(self._lagged), copy.deepcopy(self.report), self.adapter.save_world(),
-                           patterns=self.contact_solver.convex.patterns.save_state(handle.get))
+                           patterns=self.contact_solver.convex.patterns.save_state(handle.get),
+                           rigid_warm=copy.deepcopy(self._rigid_warm.kept))
         if path is not None:
             state.write(path)
         return state
@@ -1525,6 +1529,7 @@ class World:
         self.contact_solver.previous = {(kind, key if kind == "soft" else stepped[key]): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
         self.contact_solver.convex.patterns.load_state(state.patterns, lambda h: stepped[h])
+        self._rigid_warm.kept = copy.deepcopy(state.rigid_warm)
         self._lagged = copy.deepcopy(state.lagged)
         self.report = copy.deepcopy(state.results)
 

@@ -360,6 +360,53 @@ def pybullet_penetration(client: int, body: int, x: np.ndarray, tris: np.ndarray
     return float(max(-d.min(initial=0.0), 0.0))
 
 
+def convex_mesh_vertices(client: int, body: int, link: int = -1) -> np.ndarray:
+    """World positions (k, 3) of the vertices pybullet keeps for a link's convex mesh shape (getMeshData, which gives
+    them in the link's centre-of-mass frame), at the link's current pose."""
+    _, vertices = p.getMeshData(body, link, physicsClientId=client)
+    if link == -1:
+        pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=client)
+    else:
+        pos, orn = p.getLinkState(body, link, physicsClientId=client)[:2]
+    return np.asarray(vertices, dtype=float) @ _quat_matrix(orn).T + np.asarray(pos, dtype=float)
+
+
+def hull_depth(points: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """(P,): how deep points lie inside the convex hull of ``vertices`` (scipy's Qhull): inside a convex polytope the
+    distance to its surface is the least distance to its face planes, exactly; 0 for the points outside."""
+    from scipy.spatial import ConvexHull
+
+    eq = ConvexHull(vertices).equations  # unit outward normals and offsets: n . x + c <= 0 inside
+    return np.maximum(-(np.atleast_2d(points) @ eq[:, :3].T + eq[:, 3]).max(axis=1), 0.0)
+
+
+def hull_edge_samples(vertices: np.ndarray, spacing: float = 1e-3) -> np.ndarray:
+    """Points (n, 3) on every edge of the convex hull of ``vertices`` (its triangulated facets' sides, the diagonals of
+    a flat facet among them: they lie on the surface too), at most ``spacing`` [m] apart, ends included."""
+    from scipy.spatial import ConvexHull
+
+    tri = ConvexHull(vertices).simplices
+    edges = np.unique(np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1), axis=0)
+    a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
+    n = int(max(2, math.ceil(float(np.linalg.norm(b - a, axis=1).max()) / spacing) + 1))
+    t = np.linspace(0.0, 1.0, n)[None, :, None]
+    return (a[:, None] * (1 - t) + b[:, None] * t).reshape(-1, 3)
+
+
+def convex_mesh_penetration(client: int, body: int, x: np.ndarray, tris: np.ndarray, link: int = -1) -> float:
+    """Deepest [m] a soft surface x[tris] and a link's convex mesh interpenetrate, from the mesh's own vertices
+    (pybullet's getMeshData) alone: the surface's triangle samples inside the vertices' convex hull (exact, by its
+    face planes) and the hull's edges inside the surface (by the winding number). pybullet's query (in
+    ``pybullet_penetration``) measures against the hull grown by its collision margin, ~1 mm."""
+    v = convex_mesh_vertices(client, body, link)
+    soft_in = float(hull_depth(triangle_samples(x, tris), v).max(initial=0.0))
+    edges = hull_edge_samples(v)
+    lo, hi = x.min(axis=0) - 1e-9, x.max(axis=0) + 1e-9
+    edges = edges[np.all((edges >= lo) & (edges <= hi), axis=1)]
+    rigid_in = float(depth_inside(edges, x, tris).max(initial=0.0)) if len(edges) else 0.0
+    return max(soft_in, rigid_in)
+
+
 # ------------------------------------------------------------------------------------------ reference shapes
 def box_surface(half_extents, center=(0, 0, 0)) -> tuple[np.ndarray, np.ndarray]:
     """(vertices (8, 3), outward triangles (12, 3)) of an axis-aligned box."""

@@ -244,6 +244,74 @@ def test_bar_rests_across_a_thin_box_edge(kind, half_thickness):
     assert depth < DEPTH
 
 
+# ------------------------------------------------------------------------------------ 2b. mesh links' edges
+@pytest.mark.parametrize("half_thickness", [0.002, 0.01])
+@pytest.mark.parametrize("kind", ["tet4", "tet10"])
+def test_bar_rests_across_a_thin_mesh_edge(kind, half_thickness):
+    """The thin box of test_bar_rests_across_a_thin_box_edge as a triangle mesh (pybullet collides with its convex
+    hull; the World offers its sharp edges against soft edges): after 1 s the bar hangs on it, the fin carries the bar's
+    weight (within 5%), and nothing is more than 0.1 mm inside anything, both against the mesh's own hull (its
+    vertices from pybullet, the bar's triangle samples by the hull's planes and the hull's edges inside the bar by the
+    winding number) and by pybullet's own query (the hull grown by pybullet's collision margin, which the contacts
+    keep to). Before the mesh's edges were rows the bar fell through onto the floor (3 mm deep at t = 0.1 s)."""
+    import trimesh
+
+    world = World(dt=0.01)
+    world.add_plane()
+    fin = world.add_mesh(trimesh.creation.box((2 * half_thickness, 0.2, 0.1)), position=(0, 0, 0.05), name="fin")
+    bar = soft(world, bar_mesh(kind, 0, (0, 0, 0.1 + 0.003 + 0.02)), 1e6)
+    assert (np.abs(bar.rest[:, 0]) > half_thickness).all()  # the premise: no node over the fin
+    run(world, 1.0)
+    weight = bar.total_mass * G
+    carried = -float(world.contact_force(fin)[2])
+    own = geo.convex_mesh_penetration(world.client, fin.id, *surface(bar))
+    pb = geo.pybullet_penetration(world.client, fin.id, *surface(bar))
+    print(f"measured: {kind} mesh fin {2e3 * half_thickness:.0f} mm: carries {carried / weight:.4f} m g, penetration "
+          f"{1e3 * own:.3f} mm (pybullet's query {1e3 * pb:.3f} mm), bar's lowest point {bar.positions[:, 2].min():.4f} m")
+    assert bar.positions[:, 2].min() > 0.05
+    assert abs(carried - weight) < 0.05 * weight
+    assert own < DEPTH and pb < DEPTH
+
+
+def test_panda_mesh_fingers_gripping_hard_do_not_cut_into_the_cube():
+    """pybullet_data's Panda (convex-hull mesh fingers) grips examples/robot_grasp.py's soft cube (E = 1e5) with 20 N per
+    finger and lifts it: the fingers' edges press across the cube's edges between its nodes. Nothing is more than
+    0.1 mm inside anything, against each finger's own hull (pybullet's getMeshData vertices) and by pybullet's own
+    query, and the grip is the motors' limit. Before the fingers' edges were rows they cut 1.5-1.7 mm into the cube
+    (2.2 mm by pybullet's query)."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "robot_grasp.py"
+    spec = importlib.util.spec_from_file_location("robot_grasp", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    example.FINGER_FORCE = 20.0
+    cid, panda, world, cube = example.build(dt=0.01)
+    try:
+        grasp = example.Grasp(cid, panda, world, cube)
+        size = np.ptp(cube.positions[:, 2])
+        grasp.go([0.5, 0, 0.2], 0.04, 1.0)
+        grasp.go([0.5, 0, size / 2], 0.04, 1.0)
+        grasp.go([0.5, 0, size / 2], 0.015, 0.5)
+        worst = pb = 0.0
+        for k in range(3):  # closed, then lifting
+            grasp.go([0.5, 0, size / 2 + 0.05 * k], 0.015, 0.1)
+            for finger in example.FINGERS:
+                x, tris = surface(cube)
+                worst = max(worst, geo.convex_mesh_penetration(cid, panda, x, tris, finger))
+                pb = max(pb, geo.pybullet_penetration(cid, panda, x, tris, finger))
+        grip = grasp.grip()
+        print(f"measured: Panda fingers at 20 N: penetration {1e3 * worst:.3f} mm (pybullet's query {1e3 * pb:.3f} "
+              f"mm), grip {grip[0]:.2f} / {grip[1]:.2f} N, cube centre z {cube.positions[:, 2].mean():.4f} m")
+        assert worst < DEPTH and pb < DEPTH
+        assert grip == pytest.approx((20.0, 20.0), rel=0.05)
+        assert cube.positions[:, 2].mean() > size / 2 + 0.05  # lifted with the hand
+    finally:
+        world.close()
+        p.disconnect(cid)
+
+
 # --------------------------------------------------------------------------------------------- 3. rails
 def rails_scene(kind: str, shape: str):
     """(world, rails, plate): two fixed rails along y (box of half thickness 5 mm, or capsule or cylinder of radius
