@@ -273,6 +273,37 @@ def test_bar_rests_across_a_thin_mesh_edge(kind, half_thickness):
     assert own < DEPTH and pb < DEPTH
 
 
+@pytest.mark.parametrize("kind", ["tet4", "tet10"])
+def test_bar_rests_across_the_ridge_of_an_open_concave_mesh(kind):
+    """A fixed open triangle soup (World.add_mesh(..., convex=False)): a roof of two faces meeting at a ridge along y at
+    0.1 m, its eaves 20 mm either side at 0.06 m (open: its rim edges bound one face each). The soft bar of the
+    thin-box test dropped across the ridge, no node within 30 mm of it: after 1 s it hangs on the ridge (its lowest
+    point above the eaves), the roof carries its weight (within 5%), and no point of the ridge is more than 0.1 mm
+    inside the bar (the winding number)."""
+    import trimesh
+
+    v = np.array([[-0.02, -0.1, 0.06], [0.0, -0.1, 0.1], [0.02, -0.1, 0.06],
+                  [-0.02, 0.1, 0.06], [0.0, 0.1, 0.1], [0.02, 0.1, 0.06]])
+    f = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])  # outward: up and to the sides
+    roof = trimesh.Trimesh(v, f, process=False)
+    assert not roof.is_watertight and (roof.face_normals[:, 2] > 0).all()  # the premise: open, facing up
+    world = World(dt=0.01)
+    world.add_plane()
+    ridge = world.add_mesh(roof, convex=False, name="roof")
+    bar = soft(world, bar_mesh(kind, 0, (0, 0, 0.1 + 0.003 + 0.02)), 1e6)
+    run(world, 1.0)
+    weight = bar.total_mass * G
+    carried = -float(world.contact_force(ridge)[2])
+    t = np.linspace(0.0, 1.0, 401)[:, None]
+    line = (1 - t) * v[1] + t * v[4]  # the ridge
+    depth = float(geo.depth_inside(line, *surface(bar)).max())
+    print(f"measured: {kind} bar on an open roof's ridge: carries {carried / weight:.4f} m g, ridge {1e3 * depth:.3f} mm "
+          f"inside the bar, bar's lowest point {bar.positions[:, 2].min():.4f} m")
+    assert bar.positions[:, 2].min() > 0.06
+    assert abs(carried - weight) < 0.05 * weight
+    assert depth < DEPTH
+
+
 def test_panda_mesh_fingers_gripping_hard_do_not_cut_into_the_cube():
     """pybullet_data's Panda (convex-hull mesh fingers) grips examples/robot_grasp.py's soft cube (E = 1e5) with 20 N per
     finger and lifts it: the fingers' edges press across the cube's edges between its nodes. Nothing is more than
