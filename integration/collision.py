@@ -18,6 +18,7 @@ import math
 import numpy as np
 import pybullet as p
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from . import kernels
 from .bullet import quat_matrix
@@ -49,8 +50,10 @@ EDGE_END = 0.02
 # rigid edge's ends it is that corner's contact on the soft faces
 CROSSING_SINE = 0.1
 CORNER_END = 1e-6
-# a contact normal counts within a sharp edge's cone of outward normals to within this cosine
+# a contact normal counts within a sharp edge's cone of outward normals widened by this angle [rad]
 CONE_SLACK = 1e-3
+# soft edges times a link's sharp edges up to which their boxes are compared all at once (beyond: a k-d tree first)
+DENSE_PAIRS = 20_000
 # golden-section steps for an edge's deepest point into a part (its signed distance is convex along the edge):
 # the bracket shrinks to 0.618^36 ~ 3e-8 of the edge
 GOLDEN_STEPS = 36
@@ -774,6 +777,9 @@ def mesh_edge_contacts(body_index: int, positions: np.ndarray, triangles: np.nda
     lo, hi = rigid.aabb()
     bound = sweep.bound()
     cand = np.flatnonzero(((np.maximum(x0, x1) >= lo - bound) & (np.minimum(x0, x1) <= hi + bound)).all(axis=1))
+    if len(cand) and math.isfinite(sweep.radius):  # and within the link's bounding sphere swept over the step
+        mid, half = 0.5 * (x0[cand] + x1[cand]), 0.5 * np.linalg.norm(x1[cand] - x0[cand], axis=1)
+        cand = cand[sweep.swept(mid, half, sweep.soft_travel(E[cand]))]
     if not len(cand):
         return FaceHits.empty()
     a, b = x0[cand], x1[cand]
@@ -785,9 +791,18 @@ def mesh_edge_contacts(body_index: int, positions: np.ndarray, triangles: np.nda
     near = np.flatnonzero(((rhi >= slo.min(axis=0)) & (rlo <= shi.max(axis=0))).all(axis=1))
     if not len(near):
         return FaceHits.empty()
-    # the pairs whose boxes meet (a few dozen rigid edges against the soft edges around them)
-    meet = ((rhi[near][None] >= slo[:, None]) & (rlo[near][None] <= shi[:, None])).all(axis=2)
-    i, k = np.nonzero(meet)
+    # the pairs whose boxes meet: all at once where they are few (a finger's few dozen edges against the soft edges
+    # around it), else the pairs of midpoints within reach of each other (a k-d tree) first
+    if len(cand) * len(near) <= DENSE_PAIRS:
+        i, k = np.nonzero(((rhi[near][None] >= slo[:, None]) & (rlo[near][None] <= shi[:, None])).all(axis=2))
+    else:
+        sm, rm = 0.5 * (a + b), 0.5 * (r0[near] + r1[near])
+        radius = 0.5 * (float(np.linalg.norm(b - a, axis=1).max()) + float(np.linalg.norm(r1 - r0, axis=1)[near].max()))
+        found = cKDTree(sm).sparse_distance_matrix(cKDTree(rm), radius + math.sqrt(3.0) * bound,
+                                                   output_type="ndarray")
+        i, k = found["i"].astype(np.int64), found["j"].astype(np.int64)
+        meet = ((rhi[near[k]] >= slo[i]) & (rlo[near[k]] <= shi[i])).all(axis=1)
+        i, k = i[meet], k[meet]
     if not len(i):
         return FaceHits.empty()
     j = near[k]
@@ -815,7 +830,8 @@ def mesh_edge_contacts(body_index: int, positions: np.ndarray, triangles: np.nda
     point_r = r0[j] + t[:, None] * dr + round_by[:, None] * n
     d = np.einsum("ij,ij->i", n, point_s - point_r)
     v_soft = (1 - s)[:, None] * sweep.velocities[E[e, 0]] + s[:, None] * sweep.velocities[E[e, 1]]
-    ok = ((np.einsum("ij,ij->i", n, mid) >= cosine[j] - CONE_SLACK) & (np.einsum("ij,ij->i", n, soft_out) < FACING)
+    widened = np.cos(np.minimum(np.arccos(np.clip(cosine[j], -1.0, 1.0)) + CONE_SLACK, math.pi))
+    ok = ((np.einsum("ij,ij->i", n, mid) >= widened) & (np.einsum("ij,ij->i", n, soft_out) < FACING)
           & (d < sweep.reach(point_r, n, v_soft)))
     if not rigid.movable:  # an immovable link: only where the edge's nodes do not hold it already
         ok &= d < held_gap(np.column_stack([1 - s, s]), node_gap[E[e]]) - EDGE_EXPLAINED

@@ -25,6 +25,8 @@ PoseScript = Callable[[float], object]
 SHAPES = ("sphere", "box", "plane", "mesh", "urdf")
 # [m] how far outside a sharp edge RigidLink.edge_rounding probes pybullet's surface (beyond any collision margin)
 PROBE_CLEARANCE = 0.01
+# ... from up to this many of a part's sharp edges
+PROBES = 8
 
 
 class Part(NamedTuple):
@@ -264,8 +266,8 @@ class RigidLink:
 
     def edge_part_planes(self) -> list[tuple[np.ndarray, np.ndarray] | None]:
         """Per part of the link, the planes of its convex shape in the link's frame (RigidShape.hull_planes: normals
-        (f, 3), offsets (f,) [m]; None for a concave mesh), and which part each sharp edge belongs to
-        (:attr:`edge_part` (k,)), made once."""
+        (f, 3), offsets (f,) [m]; None for a concave mesh or a round part), made once (:attr:`edge_part`: which part
+        each sharp edge belongs to)."""
         if "_edge_part_planes" not in self.__dict__:
             planes = []
             for shape, R, pos in self.parts:
@@ -284,18 +286,22 @@ class RigidLink:
         """(P,) [m] per part: how far outside its sharp edges and corners pybullet's own surface lies, the collision
         margin pybullet keeps around a convex mesh (where its distance query, and so the node contacts, find the
         surface; ~1 mm) and 0 for a box (its margin lies inside its edges) or a part without sharp edges. Probed once
-        per part with pybullet's distance query, from a point just outside the middle of its first sharp edge along
-        its cone's middle (the edge's point is the nearest there)."""
+        per part with pybullet's distance query from points just outside the middles of up to PROBES of its sharp
+        edges, along their cones' middles (the edge's point is the nearest there, unless another part of the link is
+        nearer: the least over the probes), rounded to 1e-9 m (the same in any pose: a restored World steps alike)."""
         if "_part_rounding" not in self.__dict__:
             ends, middles, _ = self.feature_edges()
             out = np.zeros(len(self.parts))
             if len(ends):
                 part = self._feature_part
-                first = np.flatnonzero(np.r_[True, part[1:] != part[:-1]])
                 clear = PROBE_CLEARANCE
-                probe = self.to_world(0.5 * (ends[first, 0] + ends[first, 1]) + clear * middles[first])
-                d = self.adapter.point_distances(self.id, self.link, probe, 2.0 * clear)
-                out[part[first]] = np.where(np.isfinite(d), np.clip(clear - d, 0.0, clear), 0.0)
+                for k in np.unique(part).tolist():
+                    mine = np.flatnonzero(part == k)
+                    mine = mine[np.linspace(0, len(mine) - 1, min(PROBES, len(mine))).round().astype(int)]
+                    probe = self.to_world(0.5 * (ends[mine, 0] + ends[mine, 1]) + clear * middles[mine])
+                    d = self.adapter.point_distances(self.id, self.link, probe, 2.0 * clear)
+                    margin = np.clip(clear - d[np.isfinite(d)], 0.0, clear)
+                    out[k] = round(float(margin.min()), 9) if len(margin) else 0.0
             self._part_rounding = out
         return self._part_rounding
 

@@ -57,24 +57,32 @@ def _planes(tm) -> tuple[np.ndarray, np.ndarray]:
 
 def _feature_edges(tm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """RigidShape.feature_edges of a trimesh.Trimesh: its convex edges between faces more than FEATURE_ANGLE apart
-    (a valley between two faces cannot poke into anything) and the edges of an open mesh's rim (bounding one
-    face: their cone the half space beyond the rim, both sides of the face)."""
+    (a valley between two faces cannot poke into anything); of an open mesh (pybullet's triangle soup is two-sided)
+    also its valleys as ridges seen from behind (their cone between the faces' back normals), and its rim's edges
+    (bounding one face: their cone the half space beyond the rim, both sides of the face)."""
     import trimesh
 
     if not len(tm.faces):
         return _NO_EDGES
-    sharp = (np.asarray(tm.face_adjacency_angles) > FEATURE_ANGLE) & np.asarray(tm.face_adjacency_convex, bool)
-    pairs = np.asarray(tm.face_adjacency)[sharp]
-    normals = np.asarray(tm.face_normals)
-    n1, n2 = normals[pairs[:, 0]], normals[pairs[:, 1]]
-    middle = n1 + n2
-    middle /= np.linalg.norm(middle, axis=1, keepdims=True)
-    ends = [np.asarray(tm.vertices)[np.asarray(tm.face_adjacency_edges)[sharp]]]
-    middles, cosines = [middle], [np.einsum("ij,ij->i", middle, n1)]
-    rim = trimesh.grouping.group_rows(tm.edges_sorted, require_count=1)
+    v, normals = np.asarray(tm.vertices), np.asarray(tm.face_normals)
+    angles = np.asarray(tm.face_adjacency_angles)
+    convex = np.asarray(tm.face_adjacency_convex, bool)
+    pairs, shared = np.asarray(tm.face_adjacency), np.asarray(tm.face_adjacency_edges)
+    sides = [(angles > FEATURE_ANGLE) & convex, 1.0]
+    open_mesh = not tm.is_watertight
+    ends, middles, cosines = [], [], []
+    for sharp, sign in [sides] + ([[(angles > FEATURE_ANGLE) & ~convex, -1.0]] if open_mesh else []):
+        n1, n2 = sign * normals[pairs[sharp, 0]], sign * normals[pairs[sharp, 1]]
+        middle = n1 + n2
+        length = np.linalg.norm(middle, axis=1)
+        ok = length > 1e-9  # faces back to back (a flat sliver) have no cone between them
+        middle = middle[ok] / length[ok, None]
+        ends.append(v[shared[sharp][ok]])
+        middles.append(middle)
+        cosines.append(np.einsum("ij,ij->i", middle, n1[ok]))
+    rim = trimesh.grouping.group_rows(tm.edges_sorted, require_count=1) if open_mesh else []
     if len(rim):  # an open mesh: the rim's edges, their cone the half space beyond the face's edge
         edge, face = np.asarray(tm.edges_sorted)[rim], np.asarray(tm.edges_face)[rim]
-        v = np.asarray(tm.vertices)
         a, b = v[edge[:, 0]], v[edge[:, 1]]
         away = np.cross(b - a, normals[face])
         away /= np.maximum(np.linalg.norm(away, axis=1, keepdims=True), 1e-300)
@@ -188,8 +196,8 @@ class RigidShape:
         """Its sharp edges in its own frame, for a soft edge meeting one between the ends of both
         (collision.mesh_edge_contacts: meshes, and boxes on a link with a mesh part; a link of primitive parts only
         has collision.edge_contacts): ends (k, 2, 3) [m], the unit middle (k, 3) of each edge's cone of outward
-        normals (between the normals of the faces it joins) and the cosine (k,) of the cone's half angle. None
-        by default."""
+        normals (between the normals of the faces it joins) and the cosine (k,) of the cone's half angle; none (empty
+        arrays) by default."""
         return _NO_EDGES
 
     def hull_planes(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -645,7 +653,8 @@ class Mesh(RigidShape):
 
     def feature_edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The sharp edges of the convex hull pybullet collides with, or of a concave mesh's own triangles (its
-        convex edges and an open mesh's rim); none for a file that cannot be read."""
+        convex edges and, open, its valleys from behind and its rim); none for a concave mesh's file that cannot be
+        read (a convex one's unreadable file raises InvalidInputError, as :attr:`hull` does)."""
         if "_edges" not in self.__dict__:
             import trimesh
 

@@ -1024,8 +1024,7 @@ class World:
                 with timed(timings, "rigid"):
                     steps = self._body_steps(record, systems, supports, u)
                 sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, sol.du)
-            if coupling.n:
-                self._rigid_warm.keep(coupling, sol.du)
+            self._rigid_warm.keep(coupling, sol.du)  # (none coupled: forgotten, a body coming back starts from 0)
         record.joints = joints
         record.solution = sol
         return sol.velocities
@@ -1529,7 +1528,7 @@ class World:
         self.contact_solver.previous = {(kind, key if kind == "soft" else stepped[key]): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
         self.contact_solver.convex.patterns.load_state(state.patterns, lambda h: stepped[h])
-        self._rigid_warm.kept = copy.deepcopy(state.rigid_warm)
+        self._rigid_warm.kept = copy.deepcopy(getattr(state, "rigid_warm", {}))  # (none in states saved before it)
         self._lagged = copy.deepcopy(state.lagged)
         self.report = copy.deepcopy(state.results)
 

@@ -273,10 +273,12 @@ def test_bar_rests_across_a_thin_mesh_edge(kind, half_thickness):
     assert own < DEPTH and pb < DEPTH
 
 
+@pytest.mark.parametrize("reversed_winding", [False, True])
 @pytest.mark.parametrize("kind", ["tet4", "tet10"])
-def test_bar_rests_across_the_ridge_of_an_open_concave_mesh(kind):
+def test_bar_rests_across_the_ridge_of_an_open_concave_mesh(kind, reversed_winding):
     """A fixed open triangle soup (World.add_mesh(..., convex=False)): a roof of two faces meeting at a ridge along y at
-    0.1 m, its eaves 20 mm either side at 0.06 m (open: its rim edges bound one face each). The soft bar of the
+    0.1 m, its eaves 20 mm either side at 0.06 m (open: its rim edges bound one face each; its triangles facing up, or
+    down: a ridge seen from behind its faces). The soft bar of the
     thin-box test dropped across the ridge, no node within 30 mm of it: after 1 s it hangs on the ridge (its lowest
     point above the eaves), the roof carries its weight (within 5%), and no point of the ridge is more than 0.1 mm
     inside the bar (the winding number)."""
@@ -285,8 +287,9 @@ def test_bar_rests_across_the_ridge_of_an_open_concave_mesh(kind):
     v = np.array([[-0.02, -0.1, 0.06], [0.0, -0.1, 0.1], [0.02, -0.1, 0.06],
                   [-0.02, 0.1, 0.06], [0.0, 0.1, 0.1], [0.02, 0.1, 0.06]])
     f = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4]])  # outward: up and to the sides
-    roof = trimesh.Trimesh(v, f, process=False)
-    assert not roof.is_watertight and (roof.face_normals[:, 2] > 0).all()  # the premise: open, facing up
+    roof = trimesh.Trimesh(v, f[:, ::-1] if reversed_winding else f, process=False)
+    # the premise: open, facing up (or down: pybullet's triangle soup is two-sided, and so is the ridge)
+    assert not roof.is_watertight and (np.sign(roof.face_normals[:, 2]) == (-1 if reversed_winding else 1)).all()
     world = World(dt=0.01)
     world.add_plane()
     ridge = world.add_mesh(roof, convex=False, name="roof")
@@ -302,6 +305,36 @@ def test_bar_rests_across_the_ridge_of_an_open_concave_mesh(kind):
     assert bar.positions[:, 2].min() > 0.06
     assert abs(carried - weight) < 0.05 * weight
     assert depth < DEPTH
+
+
+def test_mesh_edge_search_finds_the_same_pairs_through_its_k_d_tree():
+    """collision.mesh_edge_contacts compares the boxes of few soft-edge / sharp-edge pairs all at once and, beyond
+    DENSE_PAIRS, those of the pairs a k-d tree over their midpoints finds: the same contacts either way (the bar
+    pressed into the fin's edge, by the open roof's ridge: both kinds of mesh)."""
+    import trimesh
+
+    from integration import collision
+
+    world = World(dt=0.01)
+    world.add_plane()
+    fin = world.add_mesh(trimesh.creation.box((0.004, 0.2, 0.1)), position=(0, 0, 0.05), name="fin")
+    bar = soft(world, bar_mesh("tet10", 0, (0, 0, 0.1 + 0.003 + 0.02)), 1e6)
+    run(world, 0.3)
+    sf = world.entry(bar).surface
+    v = bar.velocities
+    sweep = collision.Sweep(world.contact_margin, world.dt, v, np.linalg.norm(v, axis=1))
+    args = (0, bar.positions, sf.triangles, (sf.edges, sf.edge_tris), world.rigid(fin.id), sweep,
+            np.full(bar.n_nodes, np.inf))
+    dense = collision.mesh_edge_contacts(*args)
+    kept = collision.DENSE_PAIRS
+    try:
+        collision.DENSE_PAIRS = 0
+        tree = collision.mesh_edge_contacts(*args)
+    finally:
+        collision.DENSE_PAIRS = kept
+    assert len(dense) > 0
+    a, b = np.argsort(dense.key), np.argsort(tree.key)
+    assert np.array_equal(dense.key[a], tree.key[b]) and np.allclose(dense.distance[a], tree.distance[b])
 
 
 def test_panda_mesh_fingers_gripping_hard_do_not_cut_into_the_cube():
