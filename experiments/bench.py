@@ -35,7 +35,8 @@ ms/step from the configuration's own process over pybullet's, minutes apart, is 
 paired steps are ``world.step()`` alone (no recorder, even with ``record``). pybullet's process holds
 our scene too, so its peak RSS is not pybullet's alone.
 
-``run_bench`` writes ``bench.json``, ``bench.md`` and ``bench.png`` (``scaling.*`` for the scaling ladder):
+``run_bench`` writes ``bench.json``, ``bench.md`` and ``bench.png`` (``scaling.*`` for the scaling ladder, ``large.*`` for
+the large bodies):
 the plot is ms per step and peak memory against nodes, log-log, with fitted exponents, from every result
 in ``out_dir``.
 """
@@ -80,12 +81,17 @@ SCALING_CONFIGS = [
     (SHEET, "tet10", (4, 4, 1)), (SHEET, "tet10", (6, 6, 2)), (SHEET, "tet10", (9, 9, 2)),
     (SHEET, "tet10", (14, 14, 3)), (SHEET, "tet10", (18, 18, 4)), (SHEET, "tet10", (24, 24, 5)),
 ]
+#: large bodies (issue 34): tet4 sheets of 72k, 235k and 549k nodes, through the impact (peak memory per node)
+LARGE_CONFIGS = [(SHEET, "tet4", (64, 64, 16)), (SHEET, "tet4", (96, 96, 24)), (SHEET, "tet4", (128, 128, 32))]
 #: tet4 meshes that get the pybullet comparison in the default run (1445 and 4375 nodes)
 PYBULLET_CELLS = [(16, 16, 4), (24, 24, 6)]
 
 DEFAULTS = dict(steps=50, repeats=3, warmup=20, threads=1)
 TINY = dict(steps=5, repeats=2, warmup=12, floor_repeats=3, profile_steps=3, pybullet_max_k=8)
 SCALING = dict(steps=10, repeats=1, warmup=15, floor_repeats=3, profile_steps=3)
+#: the large ladder: the 3 steps after the sheet meets the sphere (12 steps in), no floor (a fresh double-precision
+#: factorisation of the 549k-node system needs more memory than the machine has) and no profile
+LARGE = dict(steps=3, repeats=1, warmup=12, floor_repeats=0, profile_steps=0)
 
 PHASES = ("collision", "rotations", "forces", "assembly", "factorize", "solve", "contact", "other", "rigid",
           "recording")
@@ -928,7 +934,7 @@ def fit_scaling(results: list[dict]) -> dict:
 
 def _all_results(out: Path) -> list[dict]:
     res = {}
-    for name in ("scaling", "bench"):  # bench.json wins for a configuration in both
+    for name in ("large", "scaling", "bench"):  # bench.json wins for a configuration in two
         path = out / f"{name}.json"
         if path.exists():
             try:
@@ -1002,6 +1008,9 @@ def add_bench_arguments(parser) -> None:
     parser.add_argument("--scaling", action="store_true",
                         help="the scaling ladder (each element type up to >= 4x the paper's largest mesh), fewer steps; "
                              "writes scaling.json / scaling.md")
+    parser.add_argument("--large", action="store_true",
+                        help="large bodies: tet4 sheets of 72k, 235k and 549k nodes through the impact (3 steps after 12; "
+                             "no floor, no profile; about 25 min, 11 GB at the largest); writes large.json / large.md")
     parser.add_argument("--configs", nargs="+", default=None, metavar="CFG",
                         help="configurations [scene:]element:NXxNYxNZ, e.g. tet4:24x24x6 hex8:20x20x5")
     parser.add_argument("--steps", type=int, default=None, help="timed steps per block (default 50; scaling 10)")
@@ -1023,6 +1032,8 @@ def add_bench_arguments(parser) -> None:
 def bench_command(args) -> list[dict]:
     if args.tiny:
         configs, preset, name, pb_cells = TINY_CONFIGS, dict(TINY), "bench", None
+    elif getattr(args, "large", False):
+        configs, preset, name, pb_cells = LARGE_CONFIGS, dict(LARGE), "large", []
     elif args.scaling:
         configs, preset, name, pb_cells = SCALING_CONFIGS, dict(SCALING), "scaling", []
     else:

@@ -86,6 +86,25 @@ def test_cli_bench_tiny_without_pybullet(tmp_path, capsys):
     assert (tmp_path / "bench.md").exists() and (tmp_path / "bench.png").exists()
 
 
+def test_cli_bench_large_runs_the_large_ladder_without_floor_profile_or_pybullet(tmp_path, monkeypatch):
+    """``softbody bench --large``: the tet4 sheets of issue 34 (72k, 235k and 549k nodes: (n+1)^2 (n/4+1) corners), the
+    steps into the impact, no floor (a fresh double-precision factor of the largest does not fit), no profile, no
+    pybullet, into large.json (here the measurement is replaced by a recorder of its arguments)."""
+    seen = {}
+
+    def fake(configs, **kw):
+        seen.update(kw, configs=[bench.parse_config(c) for c in configs])
+        return []
+
+    monkeypatch.setattr(bench, "run_bench", fake)
+    assert main(["bench", "--large", "--out", str(tmp_path)]) == 0
+    cells = [c.cells for c in seen["configs"]]
+    assert [(a + 1) * (b + 1) * (c + 1) for a, b, c in cells] == [71_825, 235_225, 549_153]
+    assert {c.element for c in seen["configs"]} == {"tet4"}
+    assert seen["name"] == "large" and seen["floor_repeats"] == 0 and seen["profile_steps"] == 0
+    assert seen["pybullet_cells"] == [] and seen["warmup"] >= 11  # into the impact: the sheet meets the sphere at ~10
+
+
 def test_parse_config_forms():
     c = bench.parse_config("tet4:24x24x6")
     assert c == bench.Config("sheet-on-sphere", "tet4", (24, 24, 6)) and c.label == "sheet tet4 (24,24,6)"
