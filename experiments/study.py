@@ -953,8 +953,9 @@ def _figure(w: float, h: float):
 
 
 def _log_axes(ax) -> None:
-    """Log-log axes with plain-number tick labels (2, 50, 0.5; never 4x10^0): at 1, 2, 5 x 10^k, or at
-    every integer multiple of 10^k on an axis too short for two of those. Call it after plotting."""
+    """Log-log axes with plain-number tick labels (2, 50, 0.5; never 4x10^0): at 1, 2, 5 x 10^k, at 10^k only
+    on an axis of more than four decades (the labels would run into each other), or at every integer multiple of
+    10^k on an axis too short for two of those. Call it after plotting."""
     from matplotlib import ticker
 
     ax.set_xscale("log")
@@ -962,7 +963,7 @@ def _log_axes(ax) -> None:
     plain = ticker.FuncFormatter(lambda v, _: f"{v:g}")
     for axis in (ax.xaxis, ax.yaxis):
         lo, hi = sorted(axis.get_view_interval())
-        locator = ticker.LogLocator(subs=(1.0, 2.0, 5.0))
+        locator = ticker.LogLocator(subs=(1.0,) if hi > 1e4 * lo > 0 else (1.0, 2.0, 5.0))
         if sum(lo <= t <= hi for t in locator.tick_values(lo, hi)) < 2:
             locator = ticker.LogLocator(subs=tuple(range(1, 10)))
         axis.set_major_locator(locator)
