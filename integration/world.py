@@ -1017,14 +1017,18 @@ class World:
                                                      self.adapter.constraint_forces, self.dt))
                     joints = at_free_motion(record.joint_rows, u, applied)
             M = coupling.mass_matrix() if coupling.n else None
-            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, self._rigid_warm.guess(coupling))
+            guess = self._rigid_warm.guess(coupling) if coupling.n else None
+            sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, guess)
             for _ in range(END_ROUNDS):  # contacts the start of the step could not see: solve again with them
                 if not self._end_contacts(record, sol.velocities, sol.du):
                     break
                 with timed(timings, "rigid"):
                     steps = self._body_steps(record, systems, supports, u)
                 sol = self.contact_solver.solve(steps, self.dt, M, record.pairs, joints, sol.du)
-            self._rigid_warm.keep(coupling, sol.du)  # (none coupled: forgotten, a body coming back starts from 0)
+            if coupling.n:
+                self._rigid_warm.keep(coupling, sol.du)
+            elif self._rigid_warm.kept:  # none coupled: forgotten, a body coming back starts from 0
+                self._rigid_warm.kept = {}
         record.joints = joints
         record.solution = sol
         return sol.velocities
