@@ -68,10 +68,11 @@ def _feature_edges(tm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     angles = np.asarray(tm.face_adjacency_angles)
     convex = np.asarray(tm.face_adjacency_convex, bool)
     pairs, shared = np.asarray(tm.face_adjacency), np.asarray(tm.face_adjacency_edges)
-    sides = [(angles > FEATURE_ANGLE) & convex, 1.0]
     open_mesh = not tm.is_watertight
+    sides = [(convex, 1.0), (~convex, -1.0)] if open_mesh else [(convex, 1.0)]  # (which edges, their faces' side)
     ends, middles, cosines = [], [], []
-    for sharp, sign in [sides] + ([[(angles > FEATURE_ANGLE) & ~convex, -1.0]] if open_mesh else []):
+    for which, sign in sides:
+        sharp = (angles > FEATURE_ANGLE) & which
         n1, n2 = sign * normals[pairs[sharp, 0]], sign * normals[pairs[sharp, 1]]
         middle = n1 + n2
         length = np.linalg.norm(middle, axis=1)

@@ -214,12 +214,18 @@ def test_crossing_bars_of_one_body_rest_on_each_other_by_self_contact():
 
 
 # --------------------------------------------------------------------------------------- 2. thin box edge
-def bar_on_edge_scene(kind: str, half_thickness: float):
+def bar_on_edge_scene(kind: str, half_thickness: float, mesh: bool = False):
     """(world, box, bar): a fixed box (half extents (t, 0.1, 0.05)) standing on a plane, its top edge along y at
-    0.1 m; a soft bar (E = 1e6) along x across it, dropped from 3 mm."""
+    0.1 m (``mesh``: the same box as a triangle mesh, World.add_mesh); a soft bar (E = 1e6) along x across it, dropped
+    from 3 mm."""
     world = World(dt=0.01)
     world.add_plane()
-    box = world.add_box((half_thickness, 0.1, 0.05), position=(0, 0, 0.05), name="fin")
+    if mesh:
+        import trimesh
+
+        box = world.add_mesh(trimesh.creation.box((2 * half_thickness, 0.2, 0.1)), position=(0, 0, 0.05), name="fin")
+    else:
+        box = world.add_box((half_thickness, 0.1, 0.05), position=(0, 0, 0.05), name="fin")
     bar = soft(world, bar_mesh(kind, 0, (0, 0, 0.1 + 0.003 + 0.02)), 1e6)
     return world, box, bar
 
@@ -254,12 +260,7 @@ def test_bar_rests_across_a_thin_mesh_edge(kind, half_thickness):
     vertices from pybullet, the bar's triangle samples by the hull's planes and the hull's edges inside the bar by the
     winding number) and by pybullet's own query (the hull grown by pybullet's collision margin, which the contacts
     keep to). Before the mesh's edges were rows the bar fell through onto the floor (3 mm deep at t = 0.1 s)."""
-    import trimesh
-
-    world = World(dt=0.01)
-    world.add_plane()
-    fin = world.add_mesh(trimesh.creation.box((2 * half_thickness, 0.2, 0.1)), position=(0, 0, 0.05), name="fin")
-    bar = soft(world, bar_mesh(kind, 0, (0, 0, 0.1 + 0.003 + 0.02)), 1e6)
+    world, fin, bar = bar_on_edge_scene(kind, half_thickness, mesh=True)
     assert (np.abs(bar.rest[:, 0]) > half_thickness).all()  # the premise: no node over the fin
     run(world, 1.0)
     weight = bar.total_mass * G
