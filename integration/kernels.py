@@ -13,7 +13,12 @@ for the contact search, where numpy would spread a little arithmetic over dozens
 - ``tangent_frames``, ``contact_start``, ``friction_update``, ``contact_finish``: the contact set's arithmetic in
   the active-set loop (contact.py), contact by contact, bit for bit numpy's;
 - ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible);
-- ``law_slopes``: the convex problem's line search, the contact cost's slopes along a step (convex.py).
+- ``law_slopes``: the convex problem's line search, the contact cost's slopes along a step (convex.py);
+- ``centre_grid``, ``soft_candidates``, ``soft_deep_candidates``: the soft-soft search's broad phase (its two passes)
+  over one uniform grid of all bodies' triangle centres (numpy: a k-d tree per body), node by node;
+- ``soft_nearest``: the soft-soft search's narrow phase (softcontact.soft_contacts), candidate pair by pair;
+- ``edges_near_partners``, ``edge_narrow``: the edge search's broad phase, which of a body's edges may meet a
+  partner, and its narrow phase, candidate pair by pair (softcontact.edge_contacts).
 
 Each is compared with its numpy reference in tests/test_kernels.py."""
 from __future__ import annotations
@@ -24,11 +29,11 @@ import sys
 import numpy as np
 
 from softbody import compilation
-from softbody.kernels import AVAILABLE, _jit
+from softbody.kernels import AVAILABLE, _inline, _jit
 
-__all__ = ["ENABLED", "contact_finish", "contact_start", "face_contacts_possible", "face_eligible",
+__all__ = ["ENABLED", "centre_grid", "contact_finish", "contact_start", "edge_narrow", "edges_near_partners", "face_contacts_possible", "face_eligible",
            "friction_update", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
-           "primitive_node_contacts", "round_face_prefilter", "tangent_frames"]
+           "primitive_node_contacts", "round_face_prefilter", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -814,6 +819,400 @@ def law_slopes(vc0: np.ndarray, dvc: np.ndarray, alpha: float, R: np.ndarray, v_
                 td = (v1 * d1 + v2 * d2) / speed
                 s2 += scale * (d1 * d1 + d2 * d2 - td * td)
     return s1, s2
+
+
+@_jit
+def soft_nearest(xs: np.ndarray, X: np.ndarray, tris: np.ndarray, nodes: np.ndarray, node_b: np.ndarray,
+                 tri_b: np.ndarray, R: np.ndarray, rest_edge: np.ndarray, vnormals: np.ndarray, cand_i: np.ndarray,
+                 cand_t: np.ndarray, margin: float, n_bodies: int, prism_tol: float, facing_cos: float,
+                 w: np.ndarray, nrm: np.ndarray, d: np.ndarray, facing: np.ndarray) -> np.ndarray:
+    """softcontact.soft_contacts' narrow phase candidate by candidate: for the candidate pairs (surface node cand_i
+    (m,) in the concatenation xs (S, 3), triangle cand_t (m,) of tris (T, 3) over X (N, 3)), the signed distance d
+    (m,), clipped barycentric weights w (m, 3), unit normal nrm (m, 3) and whether the triangle faces the node's
+    own surface (facing (m,)), written in place; returns the chosen candidates (ascending by node * n_bodies + the
+    triangle's body): per node and other body the nearest facing triangle whose prism holds the node, if it lies
+    within ``margin`` of the nearest of all (softcontact.nearest_facing; ties to the smaller triangle). Pairs
+    within one body (self-contact) leave out triangles within one rest edge length (rest_edge (T,)) of the node's
+    rest position (R (N, 3)) and count facing triangles only."""
+    m = cand_i.shape[0]
+    ok = np.zeros(m, dtype=np.bool_)
+    key = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        i, t = cand_i[k], cand_t[k]
+        g = nodes[i]
+        same = node_b[i] == tri_b[t]
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        key[k] = i * n_bodies + tri_b[t]
+        if same:  # self-contact: not against the node's own surroundings at rest
+            gap2 = 0.0
+            for j in range(3):
+                lo = min(R[a, j], R[b, j], R[c, j])
+                hi = max(R[a, j], R[b, j], R[c, j])
+                r = R[g, j]
+                e = r - min(max(r, lo), hi)
+                gap2 += e * e
+            if not gap2 > (1.01 * rest_edge[t]) ** 2:
+                continue
+        u0, u1, u2 = X[b, 0] - X[a, 0], X[b, 1] - X[a, 1], X[b, 2] - X[a, 2]
+        v0, v1, v2 = X[c, 0] - X[a, 0], X[c, 1] - X[a, 1], X[c, 2] - X[a, 2]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        nn = n0 * n0 + n1 * n1 + n2 * n2
+        ln = math.sqrt(nn)
+        e0, e1, e2 = n0 / ln, n1 / ln, n2 / ln
+        dk = (xs[i, 0] - X[a, 0]) * e0 + (xs[i, 1] - X[a, 1]) * e1 + (xs[i, 2] - X[a, 2]) * e2
+        p0, p1, p2 = xs[i, 0] - dk * e0, xs[i, 1] - dk * e1, xs[i, 2] - dk * e2
+        # barycentric weights of the projection (collision.barycentric)
+        c0, c1, c2 = X[c, 0] - X[b, 0], X[c, 1] - X[b, 1], X[c, 2] - X[b, 2]
+        q0, q1, q2 = p0 - X[b, 0], p1 - X[b, 1], p2 - X[b, 2]
+        wa = ((c1 * q2 - c2 * q1) * n0 + (c2 * q0 - c0 * q2) * n1 + (c0 * q1 - c1 * q0) * n2) / nn
+        c0, c1, c2 = X[a, 0] - X[c, 0], X[a, 1] - X[c, 1], X[a, 2] - X[c, 2]
+        q0, q1, q2 = p0 - X[c, 0], p1 - X[c, 1], p2 - X[c, 2]
+        wb = ((c1 * q2 - c2 * q1) * n0 + (c2 * q0 - c0 * q2) * n1 + (c0 * q1 - c1 * q0) * n2) / nn
+        wc = 1.0 - wa - wb
+        if not (wa >= -prism_tol and wb >= -prism_tol and wc >= -prism_tol):
+            continue
+        fk = vnormals[g, 0] * e0 + vnormals[g, 1] * e1 + vnormals[g, 2] * e2 < facing_cos
+        if same and not fk:
+            continue
+        wa, wb, wc = max(wa, 0.0), max(wb, 0.0), max(wc, 0.0)
+        s = wa + wb + wc
+        w[k, 0], w[k, 1], w[k, 2] = wa / s, wb / s, wc / s
+        nrm[k, 0], nrm[k, 1], nrm[k, 2] = e0, e1, e2
+        d[k] = dk
+        facing[k] = fk
+        ok[k] = True
+    idx = np.flatnonzero(ok)
+    order = idx[np.argsort(key[idx], kind="mergesort")]
+    chosen = np.empty(len(order), dtype=np.int64)
+    count = 0
+    start = 0
+    while start < len(order):
+        stop = start + 1
+        while stop < len(order) and key[order[stop]] == key[order[start]]:
+            stop += 1
+        nearest = np.inf
+        best = -1
+        for r in range(start, stop):
+            k = order[r]
+            ad = abs(d[k])
+            nearest = min(nearest, ad)
+            if facing[k] and (best < 0 or ad < abs(d[best]) or (ad == abs(d[best]) and cand_t[k] < cand_t[best])):
+                best = k
+        if best >= 0 and abs(d[best]) <= nearest + margin:
+            chosen[count] = best
+            count += 1
+        start = stop
+    return chosen[:count]
+
+
+@_jit
+def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: np.ndarray, lo: np.ndarray,
+                        hi: np.ndarray, slack: np.ndarray, keys: np.ndarray, node_bits: int) -> np.ndarray:
+    """softcontact.edge_contacts' broad phase for one body's ``edges`` (E, 2) at positions x (N, 3): (E,) whether
+    an edge's box meets the box (lo, hi) (P, 3) of some partner (partners (P,), the bodies' indices) grown by
+    slack (P,) [m], with neither end in a node contact with that partner (keys: the node contacts' keys, sorted,
+    softcontact._gap_table; empty: none)."""
+    E = edges.shape[0]
+    near = np.zeros(E, dtype=np.bool_)
+    nk = keys.shape[0]
+    for e in range(E):
+        a, b = edges[e, 0], edges[e, 1]
+        for r in range(partners.shape[0]):
+            meets = True
+            for j in range(3):
+                elo = min(x[a, j], x[b, j])
+                ehi = max(x[a, j], x[b, j])
+                if not (elo <= hi[r, j] + slack[r] and ehi >= lo[r, j] - slack[r]):
+                    meets = False
+                    break
+            if not meets:
+                continue
+            if nk:
+                tag = (body * 1024 + partners[r]) << node_bits
+                ka, kb = a | tag, b | tag
+                ia = min(np.searchsorted(keys, ka), nk - 1)
+                ib = min(np.searchsorted(keys, kb), nk - 1)
+                if keys[ia] == ka or keys[ib] == kb:
+                    continue
+            near[e] = True
+            break
+    return near
+
+
+@_jit
+def centre_grid(centre: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A uniform grid of cell size ``cell`` [m] over points ``centre`` (T, 3): (the lowest cell (3,), the points'
+    cell keys sorted (T,), the points in that order (T,)); a cell's points are a run of equal keys (21 bits per
+    axis)."""
+    T = centre.shape[0]
+    base = np.zeros(3, dtype=np.int64)
+    for j in range(3):
+        lo = np.inf
+        for t in range(T):
+            lo = min(lo, centre[t, j])
+        base[j] = int(math.floor(lo / cell)) if T else 0
+    keys = np.empty(T, dtype=np.int64)
+    for t in range(T):
+        c0 = int(math.floor(centre[t, 0] / cell)) - base[0]
+        c1 = int(math.floor(centre[t, 1] / cell)) - base[1]
+        c2 = int(math.floor(centre[t, 2] / cell)) - base[2]
+        keys[t] = (c0 << 42) | (c1 << 21) | c2
+    order = np.argsort(keys, kind="mergesort")
+    return base, keys[order], order
+
+
+@_inline
+def _grid_range(x: float, r: float, cell: float, base: int) -> tuple[int, int]:
+    """The cells along one axis (relative to base, clipped to [0, 2^21)) within r of x."""
+    lo = max(int(math.floor((x - r) / cell)) - base, 0)
+    hi = min(int(math.floor((x + r) / cell)) - base, (1 << 21) - 1)
+    return lo, hi
+
+
+@_jit
+def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, between: np.ndarray,
+                    meet: np.ndarray, grow: np.ndarray, plo: np.ndarray, phi: np.ndarray, centre: np.ndarray,
+                    radius: np.ndarray, travel_b: np.ndarray, tri_b: np.ndarray, tb_max: np.ndarray, margin: float,
+                    depth: float, cell: float, base: np.ndarray, keys: np.ndarray, order: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """softcontact.soft_contacts' broad phase, first pass, for all surface nodes xs (S, 3) (of bodies node_b (S,))
+    against all triangles (centres (T, 3) in the grid centre_grid(centre, cell) = (base, keys, order), bounding
+    radii (T,), travels about their body's mean (T,), bodies tri_b (T,)): the pairs (node, triangle) where the
+    direction (p, q) is searched and meets (meet (B, B)), the node lies in q's box (plo, phi) (B, 3) grown by
+    grow[p, q], and the centres lie within both margin + depth + radius + the node's travel against q + the
+    triangle's, and margin + that travel + tb_max[q] + 1.1 radius (the node's own reach; the k-d tree query's
+    conditions). Also the pairs (node, body q != p) to search as deep as depth where the first pass leaves the node
+    unsettled: the node inside q's box grown by the margin. Returns (node, triangle, deep node, deep body)."""
+    S, B = xs.shape[0], meet.shape[0]
+    r_max = 0.0
+    for t in range(radius.shape[0]):
+        r_max = max(r_max, radius[t])
+    tb_all = 0.0
+    for q in range(B):
+        tb_all = max(tb_all, tb_max[q])
+    cap = max(16, 8 * S)
+    out_i = np.empty(cap, dtype=np.int64)
+    out_t = np.empty(cap, dtype=np.int64)
+    deep_i = np.empty(S, dtype=np.int64)
+    deep_q = np.empty(S, dtype=np.int64)
+    n_out = 0
+    n_deep = 0
+    searched = np.zeros(B, dtype=np.bool_)
+    qs = np.empty(B, dtype=np.int64)
+    nk = keys.shape[0]
+    for i in range(S):
+        p = node_b[i]
+        x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
+        n_q = 0
+        ta_max = 0.0
+        for q in range(B):
+            if not meet[p, q]:
+                continue
+            g = grow[p, q]
+            if (x0 >= plo[q, 0] - g and x1 >= plo[q, 1] - g and x2 >= plo[q, 2] - g
+                    and x0 <= phi[q, 0] + g and x1 <= phi[q, 1] + g and x2 <= phi[q, 2] + g):
+                searched[q] = True
+                qs[n_q] = q
+                n_q += 1
+                ta_max = max(ta_max, travel_a[i] + between[p, q])
+                if q != p and (x0 >= plo[q, 0] - margin and x1 >= plo[q, 1] - margin and x2 >= plo[q, 2] - margin
+                               and x0 <= phi[q, 0] + margin and x1 <= phi[q, 1] + margin
+                               and x2 <= phi[q, 2] + margin):
+                    if n_deep == deep_i.shape[0]:
+                        deep_i = np.concatenate((deep_i, np.empty(n_deep, dtype=np.int64)))
+                        deep_q = np.concatenate((deep_q, np.empty(n_deep, dtype=np.int64)))
+                    deep_i[n_deep] = i
+                    deep_q[n_deep] = q
+                    n_deep += 1
+        if n_q == 0:
+            continue
+        reach = min(margin + depth + r_max + ta_max + tb_all, margin + ta_max + tb_all + 1.1 * r_max)
+        a0, b0 = _grid_range(x0, reach, cell, base[0])
+        a1, b1 = _grid_range(x1, reach, cell, base[1])
+        a2, b2 = _grid_range(x2, reach, cell, base[2])
+        for c0 in range(a0, b0 + 1):
+            for c1 in range(a1, b1 + 1):
+                k0 = (c0 << 42) | (c1 << 21)
+                at = np.searchsorted(keys, k0 | a2)
+                while at < nk and keys[at] <= (k0 | b2):
+                    t = order[at]
+                    at += 1
+                    q = tri_b[t]
+                    if not searched[q]:
+                        continue
+                    ta = travel_a[i] + between[p, q]
+                    v = math.sqrt((x0 - centre[t, 0]) ** 2 + (x1 - centre[t, 1]) ** 2 + (x2 - centre[t, 2]) ** 2)
+                    if v <= margin + depth + radius[t] + ta + travel_b[t] and v <= (margin + ta + tb_max[q]) + 1.1 * radius[t]:
+                        if n_out == out_i.shape[0]:
+                            out_i = np.concatenate((out_i, np.empty(n_out, dtype=np.int64)))
+                            out_t = np.concatenate((out_t, np.empty(n_out, dtype=np.int64)))
+                        out_i[n_out] = i
+                        out_t[n_out] = t
+                        n_out += 1
+        for r in range(n_q):
+            searched[qs[r]] = False
+    return out_i[:n_out], out_t[:n_out], deep_i[:n_deep], deep_q[:n_deep]
+
+
+@_jit
+def soft_deep_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, between: np.ndarray,
+                         nodes: np.ndarray, bodies: np.ndarray, centre: np.ndarray, radius: np.ndarray,
+                         travel_b: np.ndarray, tri_b: np.ndarray, margin: float, depth: float, cell: float,
+                         base: np.ndarray, keys: np.ndarray, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """softcontact.soft_contacts' broad phase, second pass: for each (node, body q) of ``nodes`` (k,) and
+    ``bodies`` (k,), the triangles of q whose centres lie within margin + depth + radius + the node's travel against
+    q + the triangle's (soft_candidates' grid and arrays). Returns (node, triangle)."""
+    r_max = 0.0
+    tb_all = 0.0
+    for t in range(radius.shape[0]):
+        r_max = max(r_max, radius[t])
+        tb_all = max(tb_all, travel_b[t])
+    n = nodes.shape[0]
+    cap = max(16, 32 * n)
+    out_i = np.empty(cap, dtype=np.int64)
+    out_t = np.empty(cap, dtype=np.int64)
+    n_out = 0
+    nk = keys.shape[0]
+    for r in range(n):
+        i, q = nodes[r], bodies[r]
+        p = node_b[i]
+        x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
+        ta = travel_a[i] + between[p, q]
+        reach = margin + depth + r_max + ta + tb_all
+        a0, b0 = _grid_range(x0, reach, cell, base[0])
+        a1, b1 = _grid_range(x1, reach, cell, base[1])
+        a2, b2 = _grid_range(x2, reach, cell, base[2])
+        for c0 in range(a0, b0 + 1):
+            for c1 in range(a1, b1 + 1):
+                k0 = (c0 << 42) | (c1 << 21)
+                at = np.searchsorted(keys, k0 | a2)
+                while at < nk and keys[at] <= (k0 | b2):
+                    t = order[at]
+                    at += 1
+                    if tri_b[t] != q:
+                        continue
+                    v = math.sqrt((x0 - centre[t, 0]) ** 2 + (x1 - centre[t, 1]) ** 2 + (x2 - centre[t, 2]) ** 2)
+                    if v <= margin + depth + radius[t] + ta + travel_b[t]:
+                        if n_out == out_i.shape[0]:
+                            out_i = np.concatenate((out_i, np.empty(n_out, dtype=np.int64)))
+                            out_t = np.concatenate((out_t, np.empty(n_out, dtype=np.int64)))
+                        out_i[n_out] = i
+                        out_t[n_out] = t
+                        n_out += 1
+    return out_i[:n_out], out_t[:n_out]
+
+
+@_inline
+def _segment_params(p0, p1, p2, e0, e1, e2, q0, q1, q2, f0, f1, f2) -> tuple[float, float]:
+    """segments.closest_between_segments for one pair: the parameters (s, t) of the closest points of the segments
+    from p to e and from q to f."""
+    d10, d11, d12 = e0 - p0, e1 - p1, e2 - p2
+    d20, d21, d22 = f0 - q0, f1 - q1, f2 - q2
+    r0, r1, r2 = p0 - q0, p1 - q1, p2 - q2
+    a = d10 * d10 + d11 * d11 + d12 * d12
+    e = d20 * d20 + d21 * d21 + d22 * d22
+    b = d10 * d20 + d11 * d21 + d12 * d22
+    c = d10 * r0 + d11 * r1 + d12 * r2
+    f = d20 * r0 + d21 * r1 + d22 * r2
+    denom = a * e - b * b
+    s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > 1e-12 * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0:
+        s = min(max(-c / a, 0.0), 1.0)
+    elif t > 1.0:
+        s = min(max((b - c) / a, 0.0), 1.0)
+    return s, min(max(t, 0.0), 1.0)
+
+
+@_inline
+def _explained(keys: np.ndarray, node: int, tag: int) -> bool:
+    """Whether node ``node`` has a node contact keyed node | tag among the sorted ``keys``."""
+    nk = keys.shape[0]
+    if not nk:
+        return False
+    want = node | tag
+    at = min(np.searchsorted(keys, want), nk - 1)
+    return keys[at] == want
+
+
+@_jit
+def edge_narrow(ci: np.ndarray, cj: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0: np.ndarray, V1: np.ndarray,
+                N: np.ndarray, R0: np.ndarray, R1: np.ndarray, half: np.ndarray, travel: np.ndarray,
+                body_of: np.ndarray, ends: np.ndarray, mean_v: np.ndarray, keys: np.ndarray, node_bits: int,
+                margin: float, reach: float, depth: float, slack_h: float, edge_sin: float, edge_end: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """softcontact.edge_contacts' narrow phase pair by pair, for candidate edge pairs (ci, cj) (m,) (edges with ends
+    P0, P1 (E, 3), their velocities about their body's mean V0, V1, outward normals N, rest ends R0, R1, half lengths,
+    travels, bodies body_of (E,) and nodes ends (E, 2); the bodies' mean velocities mean_v (B, 3); the node contacts'
+    sorted keys): the same tests in the same order (reach, self-contact's own surroundings, ends in node contact,
+    near-parallel or unfacing edges, closest points between the ends, facing, within reach and less than depth
+    crossed). Returns (kept pair indices (k,), s (k,), t (k,), normal (k, 3), distance (k,))."""
+    m = ci.shape[0]
+    keep = np.empty(m, dtype=np.int64)
+    s_out = np.empty(m)
+    t_out = np.empty(m)
+    n_out = np.empty((m, 3))
+    d_out = np.empty(m)
+    count = 0
+    for k in range(m):
+        i, j = ci[k], cj[k]
+        a, b = body_of[i], body_of[j]
+        g0 = 0.5 * (P0[i, 0] + P1[i, 0]) - 0.5 * (P0[j, 0] + P1[j, 0])
+        g1 = 0.5 * (P0[i, 1] + P1[i, 1]) - 0.5 * (P0[j, 1] + P1[j, 1])
+        g2 = 0.5 * (P0[i, 2] + P1[i, 2]) - 0.5 * (P0[j, 2] + P1[j, 2])
+        m0, m1, m2 = mean_v[a, 0] - mean_v[b, 0], mean_v[a, 1] - mean_v[b, 1], mean_v[a, 2] - mean_v[b, 2]
+        if not (math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) <= half[i] + half[j] + reach + travel[i] + travel[j]
+                + slack_h * math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)):
+            continue
+        if a == b:  # self-contact: not against the edge's own surroundings at rest
+            rs, rt = _segment_params(R0[i, 0], R0[i, 1], R0[i, 2], R1[i, 0], R1[i, 1], R1[i, 2],
+                                     R0[j, 0], R0[j, 1], R0[j, 2], R1[j, 0], R1[j, 1], R1[j, 2])
+            w2 = 0.0
+            li, lj = 0.0, 0.0
+            for x in range(3):
+                di, dj = R1[i, x] - R0[i, x], R1[j, x] - R0[j, x]
+                w = (R0[i, x] + rs * di) - (R0[j, x] + rt * dj)
+                w2 += w * w
+                li += di * di
+                lj += dj * dj
+            if w2 <= (1.01 * max(math.sqrt(li), math.sqrt(lj))) ** 2:
+                continue
+        tag_a, tag_b = (a * 1024 + b) << node_bits, (b * 1024 + a) << node_bits
+        if (_explained(keys, ends[i, 0], tag_a) or _explained(keys, ends[i, 1], tag_a)
+                or _explained(keys, ends[j, 0], tag_b) or _explained(keys, ends[j, 1], tag_b)):
+            continue
+        da0, da1, da2 = P1[i, 0] - P0[i, 0], P1[i, 1] - P0[i, 1], P1[i, 2] - P0[i, 2]
+        db0, db1, db2 = P1[j, 0] - P0[j, 0], P1[j, 1] - P0[j, 1], P1[j, 2] - P0[j, 2]
+        c0, c1, c2 = da1 * db2 - da2 * db1, da2 * db0 - da0 * db2, da0 * db1 - da1 * db0
+        crn = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        cni = c0 * N[i, 0] + c1 * N[i, 1] + c2 * N[i, 2]
+        cnj = c0 * N[j, 0] + c1 * N[j, 1] + c2 * N[j, 2]
+        if not (crn > edge_sin * 4.0 * half[i] * half[j] and cni * cnj < 0 and abs(cni) > 0.05 * crn
+                and abs(cnj) > 0.05 * crn):
+            continue
+        s, t = _segment_params(P0[i, 0], P0[i, 1], P0[i, 2], P1[i, 0], P1[i, 1], P1[i, 2],
+                               P0[j, 0], P0[j, 1], P0[j, 2], P1[j, 0], P1[j, 1], P1[j, 2])
+        if not (s > edge_end and s < 1 - edge_end and t > edge_end and t < 1 - edge_end):
+            continue
+        n0, n1, n2 = c0 / crn, c1 / crn, c2 / crn
+        if n0 * N[j, 0] + n1 * N[j, 1] + n2 * N[j, 2] < 0.0:  # out of b's edge
+            n0, n1, n2 = -n0, -n1, -n2
+        d = (n0 * ((P0[i, 0] + s * da0) - (P0[j, 0] + t * db0)) + n1 * ((P0[i, 1] + s * da1) - (P0[j, 1] + t * db1))
+             + n2 * ((P0[i, 2] + s * da2) - (P0[j, 2] + t * db2)))
+        v0 = ((1 - s) * V0[i, 0] + s * V1[i, 0]) - ((1 - t) * V0[j, 0] + t * V1[j, 0]) + mean_v[a, 0] - mean_v[b, 0]
+        v1 = ((1 - s) * V0[i, 1] + s * V1[i, 1]) - ((1 - t) * V0[j, 1] + t * V1[j, 1]) + mean_v[a, 1] - mean_v[b, 1]
+        v2 = ((1 - s) * V0[i, 2] + s * V1[i, 2]) - ((1 - t) * V0[j, 2] + t * V1[j, 2]) + mean_v[a, 2] - mean_v[b, 2]
+        closing = max(-(v0 * n0 + v1 * n1 + v2 * n2), 0.0)
+        facing = ((n0 * N[j, 0] + n1 * N[j, 1] + n2 * N[j, 2] > 0.05)
+                  and (n0 * N[i, 0] + n1 * N[i, 1] + n2 * N[i, 2] < -0.05))
+        deepest = -margin if a == b else -depth
+        if facing and d < margin + slack_h * closing and d > deepest:
+            keep[count] = k
+            s_out[count], t_out[count] = s, t
+            n_out[count, 0], n_out[count, 1], n_out[count, 2] = n0, n1, n2
+            d_out[count] = d
+            count += 1
+    return keep[:count], s_out[:count], t_out[:count], n_out[:count], d_out[:count]
 
 
 ENABLED = compilation.register(sys.modules[__name__], AVAILABLE, warmup="integration.warmup")

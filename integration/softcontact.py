@@ -31,6 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from . import kernels
 from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, read_only, run_starts, vertex_normals
 from .distance import cross
 from .segments import closest_between_segments, edge_normals, surface_edges
@@ -270,31 +271,43 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # The first reaches a node's own margin and closing only (rho: the triangles within rho of it, all of them);
     # where it finds a triangle whose prism holds the node within rho, that triangle is the node's nearest (any
     # nearer lies within rho too). Only the nodes left, inside q's box (a node outside it cannot be inside q),
-    # are searched again as deep as a node may lie inside (depth): in a pile, the few that are.
-    tb_max = np.zeros(B)  # per body, its triangles' largest travel about its mean
+    # are searched again as deep as a node may lie inside (depth): in a pile, the few that are. Compiled: one
+    # uniform grid over all bodies' triangle centres, node by node (kernels.soft_candidates), the same pairs.
     R = np.concatenate([r for _, _, _, r in data])
     rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
     vnormals = None
 
-    def query(q: int, sel: np.ndarray, first: bool, centre, radius, travel_b) -> tuple[np.ndarray, np.ndarray]:
+    def query(q: int, sel: np.ndarray, first: bool) -> tuple[np.ndarray, np.ndarray]:
         """Candidates (node, triangle) of nodes sel against q's triangles: within the reach of a contact as deep as
         depth; in the first pass also within rho (+ q's travel) of the triangle (1.1 radius: the prism's slack)."""
+        span = slice(t_off[q], t_off[q] + t_of[q])
+        centre_q, radius_q, travel_q = centre[span], radius[span], travel_b[span]
         ta = travel_a[sel] + between[node_b[sel], q]  # the nodes' travel against q
-        reach = margin + depth + radius.max() + ta.max() + travel_b.max()
+        reach = margin + depth + radius_q.max() + ta.max() + travel_q.max()
         if first:
-            rho = margin + ta + travel_b.max()
-            reach = min(reach, rho.max() + 1.1 * radius.max())
-        found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre), reach, output_type="ndarray")
+            rho = margin + ta + travel_q.max()
+            reach = min(reach, rho.max() + 1.1 * radius_q.max())
+        found = cKDTree(xs[sel]).sparse_distance_matrix(cKDTree(centre_q), reach, output_type="ndarray")
         k, t = found["i"], found["j"].astype(np.int64)
         i = sel[k]
-        ok = found["v"] <= margin + depth + radius[t] + ta[k] + travel_b[t]
+        ok = found["v"] <= margin + depth + radius_q[t] + ta[k] + travel_q[t]
         if first:
-            ok &= found["v"] <= rho[k] + 1.1 * radius[t]
+            ok &= found["v"] <= rho[k] + 1.1 * radius_q[t]
         return i[ok], t[ok] + t_off[q]
 
     def nearest(i: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per node and other body, the nearest facing triangle whose prism holds it."""
         nonlocal vnormals
+        if vnormals is None:
+            vnormals = vertex_normals(X, tris)
+        if kernels.ENABLED:  # the lines below, candidate by candidate (integration.kernels)
+            m = len(i)
+            w, nrm, d, facing = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m, dtype=bool)
+            k = kernels.soft_nearest(xs, X, tris, nodes, node_b, tri_b, R, rest_edge, vnormals, i, t, margin,
+                                     len(bodies), PRISM_TOL, FACING, w, nrm, d, facing)
+            i, t = i[k], t[k]
+            pb, qb = node_b[i], tri_b[t]
+            return i, t, pb, qb, pb == qb, w[k], nrm[k], d[k], facing[k]
         pb, qb = node_b[i], tri_b[t]
         same = pb == qb
         if same.any():  # self-contact: not against the node's own surroundings
@@ -313,54 +326,61 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         inside = (w >= -PRISM_TOL).all(axis=1)
         w = np.clip(w, 0.0, None)
         w /= w.sum(axis=1, keepdims=True)
-        if vnormals is None:
-            vnormals = vertex_normals(X, tris)
         facing = np.einsum("ij,ij->i", vnormals[nodes[i]], nrm) < FACING
         ok = inside & (facing | ~same)  # self-contact: facing triangles only
         i, t, pb, qb, same, w, nrm, d, facing = (a[ok] for a in (i, t, pb, qb, same, w, nrm, d, facing))
         first = nearest_facing(i.astype(np.int64) * len(bodies) + qb, t, d, facing, margin)
         return tuple(a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
 
-    first_i, first_t, deep_i, deep_q = [], [], [], []
-    tri_data = {}
-    for q in reached.tolist():
-        near = np.flatnonzero(meet[:, q])  # the bodies whose nodes may lie in q's grown box, and those nodes
-        sel = np.concatenate([np.arange(starts[p], starts[p] + s_of[p]) for p in near.tolist()])
-        g = grow[node_b[sel], q][:, None]
-        sel = sel[((xs[sel] >= plo[q] - g) & (xs[sel] <= phi[q] + g)).all(axis=1)]
-        if not len(sel):
-            continue
-        tq = tris[t_off[q]:t_off[q] + t_of[q]]
-        Pq = X[tq]  # (T_q, 3, 3)
-        centre = Pq.mean(axis=1)
-        radius = np.sqrt(((Pq - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
-        travel_b = SOFT_SLACK * h * np.sqrt(((V[tq] - mean_v[q]) ** 2).sum(axis=2).max(axis=1))
-        tri_data[q] = (centre, radius, travel_b)
-        tb_max[q] = travel_b.max()
-        i, t = query(q, sel, True, centre, radius, travel_b)
-        first_i.append(i)
-        first_t.append(t)
-        inbox = sel[(node_b[sel] != q) & ((xs[sel] >= plo[q] - margin) & (xs[sel] <= phi[q] + margin)).all(axis=1)]
-        deep_i.append(inbox)
-        deep_q.append(np.full(len(inbox), q))
-    if not first_i:
-        return SoftHits.empty()
-    i, t, pb, qb, same, w, nrm, d, facing = nearest(np.concatenate(first_i), np.concatenate(first_t))
+    # every triangle's bounding sphere and largest travel about its body's mean (one pass over all bodies)
+    P = X[tris]  # (T, 3, 3)
+    centre = P.mean(axis=1)
+    radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
+    travel_b = SOFT_SLACK * h * np.sqrt(((V[tris] - mean_v[tri_b][:, None]) ** 2).sum(axis=2).max(axis=1))
+    tb_max = np.maximum.reduceat(travel_b, t_off)  # per body, its triangles' largest travel about its mean
+    if kernels.ENABLED:  # both passes node by node over one grid of all triangles' centres (integration.kernels)
+        cell = margin + 1.1 * float(radius.max()) + float(tb_max.max())  # a resting node's first-pass reach
+        cell = max(cell, float(np.ptp(centre, axis=0).max()) / (2 ** 21 - 2), 1e-9)  # 21 bits a key per axis
+        grid = (cell,) + kernels.centre_grid(centre, cell)
+        first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
+            xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max, margin,
+            depth, *grid)
+        if not len(first_i) and not len(deep_i):
+            return SoftHits.empty()
+    else:
+        first_i, first_t, deep_i, deep_q = [], [], [], []
+        for q in reached.tolist():
+            near = np.flatnonzero(meet[:, q])  # the bodies whose nodes may lie in q's grown box, and those nodes
+            sel = np.concatenate([np.arange(starts[p], starts[p] + s_of[p]) for p in near.tolist()])
+            g = grow[node_b[sel], q][:, None]
+            sel = sel[((xs[sel] >= plo[q] - g) & (xs[sel] <= phi[q] + g)).all(axis=1)]
+            if not len(sel):
+                continue
+            i, t = query(q, sel, True)
+            first_i.append(i)
+            first_t.append(t)
+            inbox = sel[(node_b[sel] != q) & ((xs[sel] >= plo[q] - margin) & (xs[sel] <= phi[q] + margin)).all(axis=1)]
+            deep_i.append(inbox)
+            deep_q.append(np.full(len(inbox), q))
+        if not first_i:
+            return SoftHits.empty()
+        first_i, first_t, deep_i, deep_q = (np.concatenate(z) for z in (first_i, first_t, deep_i, deep_q))
+    i, t, pb, qb, same, w, nrm, d, facing = nearest(first_i, first_t)
     # the nodes to search again: inside a body's box and not settled by the first pass (a first-pass nearest
     # farther than rho is no contact: outside the box the node is not inside the body, and beyond its reach)
-    deep_i, deep_q = np.concatenate(deep_i), np.concatenate(deep_q)
     settled = np.abs(d) <= margin + travel_a[i] + between[pb, qb] + tb_max[qb]
     i, t, pb, qb, same, w, nrm, d, facing = (a[settled] for a in (i, t, pb, qb, same, w, nrm, d, facing))
     if len(deep_i):
         deep = ~np.isin(deep_i * (B + 1) + deep_q, i * (B + 1) + qb)
         deep_i, deep_q = deep_i[deep], deep_q[deep]
     if len(deep_i):
-        again_i, again_t = [], []
-        for q in np.unique(deep_q).tolist():
-            a2, t2 = query(q, deep_i[deep_q == q], False, *tri_data[q])
-            again_i.append(a2)
-            again_t.append(t2)
-        second = nearest(np.concatenate(again_i), np.concatenate(again_t))
+        if kernels.ENABLED:
+            again = kernels.soft_deep_candidates(xs, node_b, travel_a, between, deep_i, deep_q, centre, radius,
+                                                 travel_b, tri_b, margin, depth, *grid)
+        else:
+            again = [np.concatenate(z) for z in zip(*(query(q, deep_i[deep_q == q], False)
+                                                      for q in np.unique(deep_q).tolist()))]
+        second = nearest(*again)
         i, t, pb, qb, same, w, nrm, d, facing = (np.concatenate([a, b]) for a, b in
                                                  zip((i, t, pb, qb, same, w, nrm, d, facing), second))
     if not len(i):
@@ -460,6 +480,87 @@ def _gap_table(explained: SoftHits) -> tuple[np.ndarray, np.ndarray]:
     return explained.key[order], explained.distance[order]
 
 
+def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: np.ndarray, lo: np.ndarray,
+                        hi: np.ndarray, slack: np.ndarray, keys: np.ndarray, node_bits: int = NODE_BITS) -> np.ndarray:
+    """(E,) whether an edge of ``edges`` (E, 2) of body ``body`` at positions x (N, 3) has its box meet the box
+    (lo, hi) (P, 3) of some partner (``partners`` (P,), body indices) grown by slack (P,) [m], with neither end in
+    a node contact with that partner (``keys``: the node contacts' keys sorted, _gap_table's; empty: none):
+    edge_contacts' broad phase for one body (integration.kernels.edges_near_partners, edge by edge)."""
+    e0, e1 = x[edges[:, 0]], x[edges[:, 1]]
+    elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
+    near = np.zeros(len(edges), dtype=bool)
+    table = (keys, np.zeros(len(keys))) if len(keys) else None
+    for r, o in enumerate(partners.tolist()):
+        inside = np.flatnonzero(((elo <= hi[r] + slack[r]) & (ehi >= lo[r] - slack[r])).all(axis=1) & ~near)
+        if len(inside) and table is not None:
+            # not where an end has a node contact with o already (edge_contacts' final filter drops those pairs with
+            # o): in a stack or a pile, most edges near a neighbour lie in the faces that touch it
+            free = np.isinf(_node_gaps(table, edges[inside], np.full((len(inside), 1), body),
+                                       np.full((len(inside), 1), o)))
+            inside = inside[free.all(axis=1)]
+        near[inside] = True
+    return near
+
+
+def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0: np.ndarray, V1: np.ndarray,
+                N: np.ndarray, R0: np.ndarray, R1: np.ndarray, half: np.ndarray, travel: np.ndarray,
+                body_of: np.ndarray, ends: np.ndarray, mean_v: np.ndarray, keys: np.ndarray, node_bits: int,
+                margin: float, reach: float, depth: float, slack_h: float, edge_sin: float = EDGE_SIN,
+                edge_end: float = EDGE_END) -> tuple[np.ndarray, ...]:
+    """edge_contacts' narrow phase over the candidate edge pairs (i, j) (m,) (edges with ends P0, P1 (E, 3), their
+    velocities about their body's mean V0, V1, outward normals N, rest ends R0, R1, half lengths, travels, bodies
+    body_of (E,), nodes ends (E, 2); the bodies' mean velocities mean_v (B, 3), indexed by body; the node contacts'
+    keys sorted): within reach, not the edge's own surroundings (self-contact), no end in a node contact with the
+    other body, not nearly parallel, closest points between the ends of both, facing, within reach and less than
+    depth crossed. Returns (the kept candidates (k,), s (k,), t (k,), normal (k, 3) from b's edge towards a's,
+    distance (k,) signed [m]) (integration.kernels.edge_narrow, pair by pair)."""
+    explained = (keys, np.zeros(len(keys))) if len(keys) else None
+    idx = np.arange(len(i))
+    mid, mean_v_of = 0.5 * (P0 + P1), mean_v.__getitem__
+    gap = mid[i] - mid[j]
+    means = mean_v_of(body_of[i]) - mean_v_of(body_of[j])  # the bodies' mean velocities' difference, per pair
+    ok = (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]
+          + slack_h * np.sqrt(np.einsum("ij,ij->i", means, means)))
+    i, j, idx = i[ok], j[ok], idx[ok]
+    same = body_of[i] == body_of[j]
+    if same.any():  # self-contact: not against the edge's own surroundings at rest
+        k = np.flatnonzero(same)
+        rs, rt = closest_between_segments(R0[i[k]], R1[i[k]], R0[j[k]], R1[j[k]])
+        between = (R0[i[k]] + rs[:, None] * (R1[i[k]] - R0[i[k]])) - (R0[j[k]] + rt[:, None] * (R1[j[k]] - R0[j[k]]))
+        longest = np.maximum(np.linalg.norm(R1[i[k]] - R0[i[k]], axis=1), np.linalg.norm(R1[j[k]] - R0[j[k]], axis=1))
+        near = np.einsum("ij,ij->i", between, between) <= (1.01 * longest) ** 2
+        keep = np.ones(len(i), dtype=bool)
+        keep[k[near]] = False
+        i, j, idx = i[keep], j[keep], idx[keep]
+    # what costs nothing first: a node of either edge already in contact with the other body (its faces and nodes
+    # are in touch there, and the node contacts hold the crossing: rows for crossings next to them gained energy in
+    # settling stacks), edges nearly parallel, or whose outward normals cannot both face the normal between them
+    a, b = body_of[i], body_of[j]
+    ok = (np.isinf(_node_gaps(explained, ends[i], a[:, None], b[:, None])).all(axis=1)
+          & np.isinf(_node_gaps(explained, ends[j], b[:, None], a[:, None])).all(axis=1))
+    i, j, idx = i[ok], j[ok], idx[ok]
+    da, db = P1[i] - P0[i], P1[j] - P0[j]
+    cr = cross(da, db)
+    crn = np.sqrt(np.einsum("ij,ij->i", cr, cr))
+    ci, cj = np.einsum("ij,ij->i", cr, N[i]), np.einsum("ij,ij->i", cr, N[j])
+    ok = ((crn > edge_sin * 4.0 * half[i] * half[j]) & (ci * cj < 0)
+          & (np.abs(ci) > 0.05 * crn) & (np.abs(cj) > 0.05 * crn))
+    i, j, idx, da, db, cr, crn = (z[ok] for z in (i, j, idx, da, db, cr, crn))
+    s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
+    ok = (s > edge_end) & (s < 1 - edge_end) & (t > edge_end) & (t < 1 - edge_end)
+    i, j, idx, s, t, da, db, cr, crn = (z[ok] for z in (i, j, idx, s, t, da, db, cr, crn))
+    n = cr / crn[:, None]
+    n *= np.where(np.einsum("ij,ij->i", n, N[j]) < 0.0, -1.0, 1.0)[:, None]  # out of b's edge
+    d = np.einsum("ij,ij->i", n, (P0[i] + s[:, None] * da) - (P0[j] + t[:, None] * db))
+    v_rel = (((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
+             + mean_v_of(body_of[i]) - mean_v_of(body_of[j]))
+    closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
+    facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
+    deepest = np.where(body_of[i] == body_of[j], -margin, -depth)  # within one body: never pulled through
+    ok = facing & (d < margin + slack_h * closing) & (d > deepest)
+    return idx[ok], s[ok], t[ok], n[ok], d[ok]
+
+
 def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
                   margin: float, h: float, depth: float, explained: SoftHits | None = None,
                   layout: SoftLayout | None = None) -> EdgeHits:
@@ -484,6 +585,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not len(layout.used):
         return EdgeHits.empty()
     explained = None if explained is None or not len(explained) else _gap_table(explained)
+    keys = np.zeros(0, np.int64) if explained is None else explained[0]  # the node contacts' keys, sorted
     # every body's box grown by what it may close within the step (one pass over all of them; a crossing already
     # made lies in both boxes)
     data = [bodies[k] for k in layout.used.tolist()]
@@ -518,18 +620,11 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     for k, others in sorted(partners.items()):  # each body's edges inside a partner's grown box
         x, v, sf, _ = bodies[k]
         e0, e1 = x.take(sf.edges[:, 0], axis=0), x.take(sf.edges[:, 1], axis=0)
-        elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
-        near = np.zeros(len(e0), dtype=bool)
-        for o in set(others):
-            t_ko = slack_with[(k, o)]
-            inside = np.flatnonzero(((elo <= hi[o] + t_ko) & (ehi >= lo[o] - t_ko)).all(axis=1) & ~near)
-            if len(inside) and explained is not None:
-                # not where an end has a node contact with o already (the final filter below drops those pairs
-                # with o): in a stack or a pile, most edges near a neighbour lie in the faces that touch it
-                free = np.isinf(_node_gaps(explained, sf.edges[inside], np.full((len(inside), 1), k),
-                                           np.full((len(inside), 1), o)))
-                inside = inside[free.all(axis=1)]
-            near[inside] = True
+        part = sorted(set(others))
+        box_lo, box_hi = np.array([lo[o] for o in part]), np.array([hi[o] for o in part])
+        slack = np.array([slack_with[(k, o)] for o in part])
+        near = (kernels.edges_near_partners if kernels.ENABLED else edges_near_partners)(
+            sf.edges, x, k, np.array(part, dtype=np.int64), box_lo, box_hi, slack, keys, NODE_BITS)
         e = np.flatnonzero(near)
         if not len(e):
             continue
@@ -547,13 +642,9 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not body_of:
         return EdgeHits.empty()
     body_of, edge_of, ends = np.concatenate(body_of), np.concatenate(edge_of), np.concatenate(ends)
-    table = np.zeros((max(mean_of) + 1, 3))
+    table = np.zeros((max(mean_of) + 1, 3))  # the bodies' mean velocities, by body
     for k, m in mean_of.items():
         table[k] = m
-
-    def mean_v_of(k: np.ndarray) -> np.ndarray:
-        return table[k]
-
     P0, P1, V0, V1, N, R0, R1 = (np.concatenate(z) for z in (P0, P1, V0, V1, N, R0, R1))
     mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
@@ -585,54 +676,12 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not found_i:
         return EdgeHits.empty()
     i, j = np.concatenate(found_i), np.concatenate(found_j)
-    gap = mid[i] - mid[j]
-    means = mean_v_of(body_of[i]) - mean_v_of(body_of[j])  # the bodies' mean velocities' difference, per pair
-    ok = (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]
-          + SOFT_SLACK * h * np.sqrt(np.einsum("ij,ij->i", means, means)))
-    i, j = i[ok], j[ok]
-    same = body_of[i] == body_of[j]
-    if same.any():  # self-contact: not against the edge's own surroundings at rest
-        k = np.flatnonzero(same)
-        rs, rt = closest_between_segments(R0[i[k]], R1[i[k]], R0[j[k]], R1[j[k]])
-        between = (R0[i[k]] + rs[:, None] * (R1[i[k]] - R0[i[k]])) - (R0[j[k]] + rt[:, None] * (R1[j[k]] - R0[j[k]]))
-        longest = np.maximum(np.linalg.norm(R1[i[k]] - R0[i[k]], axis=1), np.linalg.norm(R1[j[k]] - R0[j[k]], axis=1))
-        near = np.einsum("ij,ij->i", between, between) <= (1.01 * longest) ** 2
-        keep = np.ones(len(i), dtype=bool)
-        keep[k[near]] = False
-        i, j = i[keep], j[keep]
-    # what costs nothing first: a node of either edge already in contact with the other body (its faces and nodes
-    # are in touch there, and the node contacts hold the crossing: rows for crossings next to them gained energy in
-    # settling stacks), edges nearly parallel, or whose outward normals cannot both face the normal between them
-    a, b = body_of[i], body_of[j]
-    ok = (np.isinf(_node_gaps(explained, ends[i], a[:, None], b[:, None])).all(axis=1)
-          & np.isinf(_node_gaps(explained, ends[j], b[:, None], a[:, None])).all(axis=1))
-    i, j = i[ok], j[ok]
-    da, db = P1[i] - P0[i], P1[j] - P0[j]
-    cr = cross(da, db)
-    crn = np.sqrt(np.einsum("ij,ij->i", cr, cr))
-    ci, cj = np.einsum("ij,ij->i", cr, N[i]), np.einsum("ij,ij->i", cr, N[j])
-    ok = ((crn > EDGE_SIN * 4.0 * half[i] * half[j]) & (ci * cj < 0)
-          & (np.abs(ci) > 0.05 * crn) & (np.abs(cj) > 0.05 * crn))
-    i, j, da, db, cr, crn = (z[ok] for z in (i, j, da, db, cr, crn))
-    if not len(i):
+    k, s, t, n, d = (kernels.edge_narrow if kernels.ENABLED else edge_narrow)(
+        i, j, P0, P1, V0, V1, N, R0, R1, half, travel, body_of, ends, table, keys, NODE_BITS, margin, reach, depth,
+        SOFT_SLACK * h, EDGE_SIN, EDGE_END)
+    if not len(k):
         return EdgeHits.empty()
-    s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
-    ok = (s > EDGE_END) & (s < 1 - EDGE_END) & (t > EDGE_END) & (t < 1 - EDGE_END)
-    i, j, s, t, da, db, cr, crn = (z[ok] for z in (i, j, s, t, da, db, cr, crn))
-    if not len(i):
-        return EdgeHits.empty()
-    n = cr / crn[:, None]
-    n *= np.where(np.einsum("ij,ij->i", n, N[j]) < 0.0, -1.0, 1.0)[:, None]  # out of b's edge
-    d = np.einsum("ij,ij->i", n, (P0[i] + s[:, None] * da) - (P0[j] + t[:, None] * db))
-    v_rel = (((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
-             + mean_v_of(body_of[i]) - mean_v_of(body_of[j]))
-    closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
-    facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
-    deepest = np.where(body_of[i] == body_of[j], -margin, -depth)  # within one body: never pulled through
-    ok = facing & (d < margin + SOFT_SLACK * h * closing) & (d > deepest)
-    i, j, s, t, n, d = (z[ok] for z in (i, j, s, t, n, d))
-    if not len(i):
-        return EdgeHits.empty()
+    i, j = i[k], j[k]
     a, b = body_of[i], body_of[j]
     key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (edge_of[i] << EDGE_BITS) | edge_of[j]).astype(np.int64)
     return EdgeHits(a, b, np.column_stack([ends[i], ends[j]]), np.column_stack([1 - s, s, -(1 - t), -t]), n, d, key)

@@ -657,7 +657,9 @@ class World:
         member_pairs, coupling = record.member_pairs, record.coupling
         if not (len(member_pairs) or coupling.n or len(record.face_hits)):
             return  # nothing that calls for the coupled solve (no soft contact, no movable body, no face contact)
-        links: list[tuple[int, int]] = [tuple(p) for p in member_pairs.tolist()]
+        n = len(self._members)  # each pair of members in contact once (a pile's contacts are many rows per pair)
+        pairs = np.unique(member_pairs[:, 0] * n + member_pairs[:, 1]) if len(member_pairs) else np.zeros(0, np.int64)
+        links: list[tuple[int, int]] = list(zip((pairs // n).tolist(), (pairs % n).tolist()))
         by_rigid: dict[int, int] = {}
 
         def member_of(stepped: np.ndarray, node: np.ndarray) -> np.ndarray:

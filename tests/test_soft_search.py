@@ -1,13 +1,20 @@
 """The one-pass soft contact search (softcontact.soft_contacts) against the search pair by pair and direction by
 direction (softcontact.pair_contacts_reference): the same contacts, in the same order, for random piles of
-overlapping, moving bodies with and without self-contact."""
+overlapping, moving bodies with and without self-contact; with the compiled narrow phase (integration.kernels) to
+round-off, with numpy's bit for bit."""
 import numpy as np
+import pytest
 
 from softbody import box_mesh
+from integration import kernels
 from integration.softcontact import SoftSurface, pair_contacts_reference, soft_contacts
 
 
-def test_one_pass_search_finds_what_the_pairwise_search_finds():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_one_pass_search_finds_what_the_pairwise_search_finds(compiled, monkeypatch):
+    if compiled and not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    monkeypatch.setattr(kernels, "ENABLED", compiled)
     rng = np.random.default_rng(5)
 
     def body(center, kind):
@@ -29,7 +36,10 @@ def test_one_pass_search_finds_what_the_pairwise_search_finds():
         for f in ("a", "node", "b", "triangle", "nodes", "weights", "normal", "distance", "key"):
             x, y = getattr(fast, f), getattr(slow, f)
             assert x.shape == y.shape, f
-            np.testing.assert_array_equal(x, y, err_msg=f)
+            if compiled and x.dtype.kind == "f":  # the same arithmetic in another order: round-off
+                np.testing.assert_allclose(x, y, rtol=0, atol=1e-13, err_msg=f)
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f)
     assert found > 200  # the piles overlap: the comparison is not between two empty sets
 
 
@@ -47,3 +57,41 @@ def test_bodies_joined_only_by_edge_edge_rows_solve_together():
     label = _groups(5, Rows())
     assert label[0] == label[2] and label[1] == label[3]
     assert len({label[0], label[1], label[4]}) == 3
+
+
+def test_compiled_edge_search_finds_what_numpys_finds(monkeypatch):
+    """softcontact.edge_contacts with the compiled broad and narrow phases (kernels.edges_near_partners,
+    kernels.edge_narrow) and with numpy's (softcontact.edges_near_partners, softcontact.edge_narrow): the same edge
+    crossings (to round-off in the weights, normals and distances) in random piles of overlapping, turned bodies,
+    with and without the node contacts that explain edges."""
+    from integration.softcontact import edge_contacts
+
+    if not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    rng = np.random.default_rng(11)
+
+    def body(center, kind):
+        m = box_mesh((0.04, 0.04, 0.04), (2, 2, 2), kind, center=center)
+        R = np.linalg.qr(rng.standard_normal((3, 3)))[0]  # turned: edges cross at all angles
+        x = (m.nodes - center) @ R.T + center + 0.002 * rng.standard_normal(m.nodes.shape)
+        v = 0.3 * rng.standard_normal(m.nodes.shape)
+        return x, v, SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes.copy()
+
+    found = 0
+    for _ in range(12):
+        n = int(rng.integers(2, 6))
+        bodies = [body(rng.uniform(-0.04, 0.04, 3), ("tet4", "tet10")[int(rng.integers(2))]) for _ in range(n)]
+        pairs = [(a, b) for a in range(n) for b in range(a + 1, n)] + [(a, a) for a in range(n) if rng.random() < 0.3]
+        hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
+        for explained in (None, hits):
+            out = {}
+            for compiled in (True, False):
+                monkeypatch.setattr(kernels, "ENABLED", compiled)
+                out[compiled] = edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, explained)
+            found += len(out[False])
+            for f in ("a", "b", "nodes", "key"):
+                np.testing.assert_array_equal(getattr(out[True], f), getattr(out[False], f), err_msg=f)
+            for f in ("weights", "normal", "distance"):
+                np.testing.assert_allclose(getattr(out[True], f), getattr(out[False], f), rtol=0, atol=1e-13,
+                                           err_msg=f)
+    assert found > 50  # crossings were found: the comparison is not between two empty sets
