@@ -31,9 +31,10 @@ import numpy as np
 from softbody import compilation
 from softbody.kernels import AVAILABLE, _inline, _jit
 
-__all__ = ["ENABLED", "centre_grid", "contact_finish", "contact_start", "edge_narrow", "edges_near_partners", "face_contacts_possible", "face_eligible",
-           "friction_update", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
-           "primitive_node_contacts", "round_face_prefilter", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
+__all__ = ["ENABLED", "centre_grid", "contact_finish", "contact_start", "edge_narrow", "edges_near_partners",
+           "face_contacts_possible", "face_eligible", "friction_update", "law_slopes", "node_normals_at",
+           "part_arrays", "primitive_distances", "primitive_link_contacts", "primitive_node_contacts",
+           "round_face_prefilter", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -1042,7 +1043,8 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
                         continue
                     ta = travel_a[i] + between[p, q]
                     v = math.sqrt((x0 - centre[t, 0]) ** 2 + (x1 - centre[t, 1]) ** 2 + (x2 - centre[t, 2]) ** 2)
-                    if v <= margin + depth + radius[t] + ta + travel_b[t] and v <= (margin + ta + tb_max[q]) + 1.1 * radius[t]:
+                    if (v <= margin + depth + radius[t] + ta + travel_b[t]
+                            and v <= (margin + ta + tb_max[q]) + 1.1 * radius[t]):
                         if n_out == out_i.shape[0]:
                             out_i = np.concatenate((out_i, np.empty(n_out, dtype=np.int64)))
                             out_t = np.concatenate((out_t, np.empty(n_out, dtype=np.int64)))

@@ -309,3 +309,39 @@ def test_a_motor_alone_reaches_its_target_or_pushes_with_its_limit():
         assert sol.converged
         assert abs(0.1 + sol.du[0] - expect) < 1e-3 * expect
         assert abs(sol.joint_gamma[0] - m * sol.du[0]) < 1e-9 * abs(sol.joint_gamma[0])  # the impulse is the momentum
+
+
+def test_widened_pattern_holds_a_contact_sliding_over_the_patch_it_touches():
+    """convex.widened: the extra blocks (i, j) between two bodies and, for every pair, (i, l) and (l, j) with l an
+    element neighbour of j (of i) among the nodes in contact; nothing else (no interior node, no pair within a
+    body), so that a node sliding from j onto its neighbour l keeps the pattern."""
+    a = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4")
+    b = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4", center=(0.0, 0.0, 0.1))
+    pa, pb = (sb.FemBody(m, sb.LinearElastic(1e5, 0.3, 1000.0)).pattern for m in (a, b))
+    na = len(a.nodes)
+    top = np.flatnonzero(np.isclose(a.nodes[:, 2], 0.05))  # a's top face touches b's bottom face
+    bottom = np.flatnonzero(np.isclose(b.nodes[:, 2], 0.05))
+    # each node of a's top face against the node of b's bottom face above it
+    above = [bottom[np.argmin(np.linalg.norm(b.nodes[bottom, :2] - a.nodes[i, :2], axis=1))] for i in top]
+    extra = np.column_stack([top, np.asarray(above) + na]).astype(np.int64)
+    wide = convex.widened([pa, pb], extra)
+    got = set(map(tuple, wide.tolist()))
+    assert set(map(tuple, extra.tolist())) <= got
+    contact = set(top.tolist()) | {int(j) + na for j in above}
+    assert all(i < na <= j and i in contact and j in contact for i, j in got)  # across, between contact nodes only
+
+    def neighbours(p, node):
+        return set(p.indices[p.indptr[node]:p.indptr[node + 1]].tolist())
+
+    want = set(map(tuple, extra.tolist()))
+    for i, j in extra.tolist():
+        want |= {(i, l + na) for l in neighbours(pb, j - na) if l + na in contact}
+        want |= {(l, j) for l in neighbours(pa, i) if l in contact}
+    assert got == want
+    assert len(got) > 3 * len(extra)  # the patch's neighbours came in
+    # a pattern made on the widened blocks holds a node of a's top face sliding onto a neighbour of its node above
+    group = convex.GroupPattern.of([pa, pb], wide, "auto")
+    i, j = extra[0]
+    slid = next(l for l in neighbours(pb, j - na) if l + na in contact and l + na != j)
+    assert group.holds(np.array([[i, slid + na]])) and not convex.GroupPattern.of([pa, pb], extra, "auto").holds(
+        np.array([[i, slid + na]]))
