@@ -622,6 +622,15 @@ def _edge_parts(rigid: RigidLink) -> list:
     return rigid._edge_parts
 
 
+def _edge_part_frames(rigid: RigidLink, parts: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotations (P, 3, 3), origins (P, 3) in the link's frame and half extents (P, 3) of the link's ``parts``
+    (_edge_parts), made once per link."""
+    if "_edge_part_frames" not in rigid.__dict__:
+        rigid._edge_part_frames = (np.array([R for _, (_, R, _) in parts]), np.array([p for _, (_, _, p) in parts]),
+                                   np.array([s.extent() for _, (s, _, _) in parts]))
+    return rigid._edge_part_frames
+
+
 def node_gaps(found: Contacts, n_nodes: int) -> np.ndarray:
     """(N,) the gaps [m] the node contacts ``found`` (of one link) hold, inf at nodes without one."""
     gap = np.full(n_nodes, np.inf)
@@ -674,8 +683,17 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
     a, b = x0[cand], x1[cand]
     c, q = rigid.pose()
     Rl = quat_matrix(q)
+    # the parts an edge's box may meet, all parts at once (their frames' boxes grown by the reach and a hair, so that
+    # this only skips what the test part by part below would: a tray's walls are far from most edges inside it)
+    Rs, origins, ext = _edge_part_frames(rigid, parts)
+    ext = ext + bound + 1e-9 * (1.0 + np.abs(ext + bound))
+    W, O = Rl @ Rs, (c + origins @ Rl.T)[:, None, :]  # (P, 3, 3), (P, 1, 3): the parts' frames in the world
+    la, lb = (a - O) @ W, (b - O) @ W  # (P, m, 3): the edges in each part's frame
+    meets = ((np.maximum(la, lb) >= -ext[:, None]) & (np.minimum(la, lb) <= ext[:, None])).all(axis=2).any(axis=1)
     out = []
-    for k, (shape, R, pos) in parts:
+    for (k, (shape, R, pos)), meet in zip(parts, meets.tolist()):
+        if not meet:
+            continue
         Rw, origin = Rl @ R, c + Rl @ pos
         la, lb = (a - origin) @ Rw, (b - origin) @ Rw  # the edges in the part's frame
         # only edges whose box in the part's frame meets the part's, grown by the reach (a tray's wall is no
