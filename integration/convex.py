@@ -331,13 +331,6 @@ def box_law(y: np.ndarray, R: np.ndarray, target: np.ndarray, lo: np.ndarray, hi
 # ------------------------------------------------------------------ the sparse Newton system
 
 
-def _pattern_of_pairs(rows: np.ndarray, cols: np.ndarray, n_nodes: int) -> BlockPattern:
-    """The symmetric block pattern holding the blocks (rows, cols) (and their mirrors) and every diagonal block."""
-    E = np.column_stack([rows, cols])
-    pattern = BlockPattern.from_elements(np.concatenate([E, E[:, ::-1]]), n_nodes)
-    return pattern
-
-
 @dataclass
 class Factor:
     """The last factorisation made on a group pattern: the values factorised (upper data) and the components they
@@ -369,78 +362,50 @@ class GroupPattern:
     solver: SpdSolver
     keys: np.ndarray  # the pattern's blocks as sorted row * N + col
     factor: Factor = field(default_factory=Factor)
-    needed: np.ndarray | None = None  # the extra blocks the rows asked for, before widening (GroupPatterns.get)
 
     @classmethod
     def of(cls, patterns: list[BlockPattern], extra: np.ndarray, backend: str) -> "GroupPattern":
         offsets = np.concatenate([[0], np.cumsum([p.n_nodes for p in patterns])]).astype(np.int64)
         N = int(offsets[-1])
-        rows = np.concatenate([p.block_row + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 0], extra[:, 1]])
-        cols = np.concatenate([p.indices + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 1], extra[:, 0]])
-        pattern = _pattern_of_pairs(rows, cols, N)
-        keys = pattern.block_row * N + pattern.indices
-        maps = [np.searchsorted(keys, (p.block_row + o) * N + (p.indices + o)) for p, o in zip(patterns, offsets[:-1])]
+        # the parts' blocks side by side are sorted already (block CSR, parts in order): the extra blocks and their
+        # mirrors merge into them by a stable sort of one long sorted run and a short one
+        own = [(p.block_row + o) * N + (p.indices + o) for p, o in zip(patterns, offsets[:-1])]
+        extra = np.asarray(extra, dtype=np.int64).reshape(-1, 2)
+        keys = np.sort(np.concatenate(own + [extra[:, 0] * N + extra[:, 1], extra[:, 1] * N + extra[:, 0]]),
+                       kind="stable")
+        keys = keys[np.r_[True, keys[1:] != keys[:-1]]]
+        pattern = BlockPattern.from_keys(keys, N)
+        maps = [np.searchsorted(keys, k) for k in own]
         solver = SpdSolver(pattern.up_indptr, pattern.up_indices, 3 * N, backend)
-        return cls(pattern, offsets, extra, maps, solver, keys, needed=extra)
+        return cls(pattern, offsets, extra, maps, solver, keys)
 
     def holds(self, pairs: np.ndarray) -> bool:
         """Whether the block pairs (k, 2) (global nodes) all lie in this pattern."""
+        return bool(np.all(self.contains(pairs)))
+
+    def contains(self, pairs: np.ndarray) -> np.ndarray:
+        """(k,) whether each block pair of ``pairs`` (k, 2) (global nodes) lies in this pattern."""
         if not len(pairs):
-            return True
+            return np.zeros(0, dtype=bool)
         N = self.pattern.n_nodes
         key = pairs[:, 0] * N + pairs[:, 1]
         at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
-        return bool(np.all(self.keys[at] == key))
+        return self.keys[at] == key
 
     def blocks(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The block indices of (rows, cols) (global nodes, every pair in the pattern)."""
         return np.searchsorted(self.keys, rows * self.pattern.n_nodes + cols)
 
-    def full(self, up: np.ndarray) -> sp.csr_matrix:
-        """The whole symmetric matrix (3N, 3N) of the upper values ``up`` (the solver's layout): its CSR structure and
-        where each entry comes from in ``up`` made once per pattern."""
-        if getattr(self, "_full", None) is None:
-            pat = self.pattern
-            off = np.flatnonzero(pat.up_row != pat.up_col)
-            r = np.concatenate([pat.up_row, pat.up_col[off]])
-            c = np.concatenate([pat.up_col, pat.up_row[off]])
-            src = np.concatenate([np.arange(len(pat.up_row)), off])
-            order = np.lexsort((c, r))
-            n3 = 3 * pat.n_nodes
-            indptr = np.zeros(n3 + 1, dtype=np.int64)
-            np.add.at(indptr, r + 1, 1)
-            self._full = (src[order], c[order].astype(np.int32), np.cumsum(indptr).astype(np.int32), n3)
-        src, indices, indptr, n3 = self._full
-        return sp.csr_matrix((up[src], indices, indptr), shape=(n3, n3))
-
-
-def widened(patterns: list[BlockPattern], extra: np.ndarray) -> np.ndarray:
-    """The extra blocks (k, 2) (global nodes i < j of the parts with block ``patterns`` side by side) and, for each
-    (i, j), the pairs (i, l) and (l, j) with l an element neighbour of j (of i) that is itself in some extra block:
-    a contact sliding from node to node over the patch of the other body it touches stays within the pattern (a
-    settling pile of 30 cubes analysed its pattern anew every fifth step, 30 analyses in 150 steps; 4 with this),
-    where neighbours of all nodes would add the bodies' interior nodes too (13x the blocks, dearer factors)."""
-    if not len(extra):
-        return extra
-    sizes = [p.n_nodes for p in patterns]
-    N = int(sum(sizes))
-    inside = np.zeros(N)
-    inside[np.unique(extra)] = 1.0  # the nodes in contact with another part, or with a distant node of their own
-    adjacency = sp.block_diag([sp.csr_matrix((np.ones(p.nnzb), p.indices, p.indptr), shape=(p.n_nodes, p.n_nodes))
-                               for p in patterns], format="csr")
-    adjacency = sp.diags(inside) @ adjacency @ sp.diags(inside)
-    E = sp.csr_matrix((np.ones(len(extra)), (extra[:, 0], extra[:, 1])), shape=(N, N))
-    D = (E @ adjacency + adjacency @ E).tocoo()
-    i, j = np.minimum(D.row, D.col).astype(np.int64), np.maximum(D.row, D.col).astype(np.int64)
-    keys = np.unique(np.concatenate([i[i != j] * N + j[i != j], extra[:, 0] * N + extra[:, 1]]))
-    return np.column_stack([keys // N, keys % N])
-
 
 class GroupPatterns:
     """The group patterns kept from step to step, keyed by the parts' bodies: a pattern is reused while a step's extra
-    blocks lie within it, else made anew with the union of the extra blocks it was made for and the new ones (so that
-    contacts coming and going settle on one pattern), unless that union has grown to more than GROW times what the
-    step needs, :func:`widened` by the neighbours within the patches in contact."""
+    blocks lie within it, else made anew with the union of its extra blocks and the new ones (so that contacts coming
+    and going settle on one pattern), unless that union has grown to more than GROW times what the step needs. A
+    pattern made anew for the same bodies is nearly the old one: it is analysed with the ordering the old one's
+    analysis chose (one analysis, not one per ordering tried: a pile of 30 cubes settling in a tray makes its pattern
+    anew every fourth step or so, at 128 ms each, 30 ms now). (Widening a pattern by the neighbours within the patches
+    in contact, so that sliding contacts stay within it, made 30 analyses in 150 steps 4 but the factors and products
+    dearer: a resting stack 11-15% a step.)"""
 
     GROW = 4
 
@@ -454,41 +419,48 @@ class GroupPatterns:
         held = self._held.get(key)
         if held is not None and held.holds(extra):
             return held
-        needed = extra
-        if held is not None and len(held.needed) + len(extra) <= self.GROW * max(len(extra), 16):
-            needed = np.unique(np.concatenate([held.needed, extra]), axis=0)
-        patterns = [b.pattern for b in bodies]
-        made = GroupPattern.of(patterns, widened(patterns, needed), self.backend)
-        made.needed = needed
-        made.bodies = bodies  # kept alive with its key
+        ordering = None
+        if held is not None:
+            if len(held.extra) + len(extra) <= self.GROW * max(len(extra), 16):
+                extra = np.unique(np.concatenate([held.extra, extra]), axis=0)
+            ordering = held.solver.ordering
+        made = self._make(bodies, extra, ordering)
         self._held = {k: v for k, v in self._held.items() if k != key}
         self._held[key] = made
         self.analyses += 1
         return made
 
-    def save_state(self, handle) -> dict[tuple, np.ndarray]:
-        """The extra blocks of every kept pattern, keyed by its bodies' handles (``handle(body)``, None: not saved):
-        a pattern depends on the contacts of earlier steps, and its factorisation's round-off on the pattern."""
+    def _make(self, bodies: tuple[FemBody, ...], extra: np.ndarray, ordering: str | None) -> GroupPattern:
+        """The pattern of ``bodies`` with the ``extra`` blocks, analysed with the fill-reducing ``ordering`` (its name;
+        None: the solver's choice among those it tries)."""
+        made = GroupPattern.of([b.pattern for b in bodies], extra, self.backend)
+        made.bodies = bodies  # kept alive with its key
+        chosen = {k: v for k, v in made.solver.ORDERINGS.items() if v == ordering}
+        if chosen:
+            made.solver.ORDERINGS = chosen
+        return made
+
+    def save_state(self, handle) -> dict[tuple, tuple]:
+        """The extra blocks of every kept pattern, its factorisation and its ordering, keyed by its bodies' handles
+        (``handle(body)``, None: not saved): a pattern depends on the contacts of earlier steps, and its
+        factorisation's round-off on the pattern and its ordering."""
         out = {}
         for held in self._held.values():
             key = tuple(handle(b) for b in held.bodies)
             if None not in key:
                 f = held.factor
                 out[key] = (held.extra.copy(), None if f.values is None else (f.values.copy(), f.held.copy()),
-                            held.needed.copy())
+                            held.solver.ordering)
         return out
 
-    def load_state(self, state: dict[tuple, np.ndarray], body) -> None:
+    def load_state(self, state: dict[tuple, tuple], body) -> None:
         """Make the patterns of :meth:`save_state` again (``body(handle)``: the body of a handle) in place of the kept
         ones."""
         self._held = {}
-        for key, (extra, kept, *needed) in state.items():
+        for key, (extra, kept, *ordering) in state.items():  # (a state saved before orderings were kept: none)
             bodies = tuple(body(k) for k in key)
-            made = GroupPattern.of([b.pattern for b in bodies], np.asarray(extra, dtype=np.int64).reshape(-1, 2),
-                                   self.backend)
-            if needed:  # (a state saved before the patterns were widened has only the extra blocks)
-                made.needed = np.asarray(needed[0], dtype=np.int64).reshape(-1, 2)
-            made.bodies = bodies
+            extra = np.asarray(extra, dtype=np.int64).reshape(-1, 2)
+            made = self._make(bodies, extra, ordering[0] if ordering else None)
             if kept is not None:  # the same factor again, from the same values
                 made.solver.factorize(kept[0].copy())
                 made.factor = Factor(kept[0].copy(), kept[1].copy())
@@ -652,9 +624,10 @@ class _Newton:
             inside[sel] = keys[at] == want
         return np.column_stack([i[~inside], j[~inside]])
 
-    def _system(self, group: GroupPattern, G: np.ndarray) -> tuple[np.ndarray, float]:
+    def _system(self, group: GroupPattern, G: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
         """The upper values of A + J_s^T G J_s on the group pattern with the held components eliminated (their rows and
-        columns zeroed, ``scale`` on the diagonal), and the scale."""
+        columns zeroed, ``scale`` on the diagonal), the scale, and the whole matrix's block data (nnzb, 9) (the held
+        components not eliminated)."""
         pat = group.pattern
         if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
             base = np.zeros((pat.nnzb, 9))
@@ -676,7 +649,7 @@ class _Newton:
             up = up.copy()
             up[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
             up[pat.up_diag[mflat]] = scale
-        return up, scale
+        return up, scale, data
 
     def _frame_hessians(self, G: np.ndarray) -> np.ndarray:
         """F G F^T (m, 3, 3): the rows' Hessians in world axes (F: the rows' frames), once per G."""
@@ -716,11 +689,11 @@ class _Newton:
                 return np.zeros((0, 3)), np.linalg.solve(Hrr, -gu)
             except np.linalg.LinAlgError:
                 return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0]
-        up, _ = self._system(group, G)
+        up, _, blocks = self._system(group, G)
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
         if 3 * self.N >= self.owner.reuse_min and factor.usable(self.held):
-            z = self._reuse(group, up, Hsr, Hrr, rhs)
+            z = self._reuse(group, blocks, Hsr, Hrr, rhs)
             if z is not None:
                 factor.reused += 1
                 return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
@@ -755,18 +728,20 @@ class _Newton:
             du = np.linalg.lstsq(S, r, rcond=None)[0]
         return np.concatenate([y - Y @ du, du])
 
-    def _reuse(self, group: GroupPattern, up: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
+    def _reuse(self, group: GroupPattern, blocks: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
                ) -> np.ndarray | None:
         """The Newton system H z = rhs solved by conjugate gradients preconditioned by the kept factorisation (with the
-        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL."""
+        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL. ``blocks``
+        (nnzb, 9): the soft part's whole matrix on the group pattern (its held components' rows are dropped from
+        each product and its iterates vanish there, so their columns add nothing)."""
         pat, n3 = group.pattern, 3 * self.N
-        full = group.full(up)  # the whole symmetric matrix: one product per iteration
+        blocks = blocks.reshape(-1, 3, 3)
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):
             x = z[:n3]
             out = np.empty_like(z)
-            out[:n3] = full @ x
+            out[:n3] = pat.product(blocks, x.reshape(-1, 3)).reshape(-1)
             if self.n:
                 out[:n3] += Hsr @ z[n3:]
                 out[n3:] = Hsr.T @ x + Hrr @ z[n3:]

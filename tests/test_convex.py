@@ -311,37 +311,61 @@ def test_a_motor_alone_reaches_its_target_or_pushes_with_its_limit():
         assert abs(sol.joint_gamma[0] - m * sol.du[0]) < 1e-9 * abs(sol.joint_gamma[0])  # the impulse is the momentum
 
 
-def test_widened_pattern_holds_a_contact_sliding_over_the_patch_it_touches():
-    """convex.widened: the extra blocks (i, j) between two bodies and, for every pair, (i, l) and (l, j) with l an
-    element neighbour of j (of i) among the nodes in contact; nothing else (no interior node, no pair within a
-    body), so that a node sliding from j onto its neighbour l keeps the pattern."""
-    a = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4")
-    b = sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4", center=(0.0, 0.0, 0.1))
-    pa, pb = (sb.FemBody(m, sb.LinearElastic(1e5, 0.3, 1000.0)).pattern for m in (a, b))
-    na = len(a.nodes)
-    top = np.flatnonzero(np.isclose(a.nodes[:, 2], 0.05))  # a's top face touches b's bottom face
-    bottom = np.flatnonzero(np.isclose(b.nodes[:, 2], 0.05))
-    # each node of a's top face against the node of b's bottom face above it
-    above = [bottom[np.argmin(np.linalg.norm(b.nodes[bottom, :2] - a.nodes[i, :2], axis=1))] for i in top]
-    extra = np.column_stack([top, np.asarray(above) + na]).astype(np.int64)
-    wide = convex.widened([pa, pb], extra)
-    got = set(map(tuple, wide.tolist()))
-    assert set(map(tuple, extra.tolist())) <= got
-    contact = set(top.tolist()) | {int(j) + na for j in above}
-    assert all(i < na <= j and i in contact and j in contact for i, j in got)  # across, between contact nodes only
+def test_group_pattern_equals_the_pattern_of_all_its_blocks_as_elements():
+    """GroupPattern.of merges the extra blocks into its parts' sorted patterns (BlockPattern.from_keys): the same
+    pattern as BlockPattern.from_elements of every block (and its mirror) as a 2-node element, field by field, and
+    each part's blocks mapped onto it."""
+    from softbody.assembly import BlockPattern
 
-    def neighbours(p, node):
-        return set(p.indices[p.indptr[node]:p.indptr[node + 1]].tolist())
+    rng = np.random.default_rng(3)
+    meshes = [sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), kind) for kind in ("tet4", "tet10", "hex8")]
+    patterns = [sb.FemBody(m, sb.LinearElastic(1e5, 0.3, 1000.0)).pattern for m in meshes]
+    offsets = np.concatenate([[0], np.cumsum([p.n_nodes for p in patterns])])
+    N = int(offsets[-1])
+    i, j = rng.integers(0, N, 40), rng.integers(0, N, 40)
+    extra = np.unique(np.column_stack([np.minimum(i, j), np.maximum(i, j)])[i != j], axis=0)
+    group = convex.GroupPattern.of(patterns, extra, "auto")
+    rows = np.concatenate([p.block_row + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 0], extra[:, 1]])
+    cols = np.concatenate([p.indices + o for p, o in zip(patterns, offsets[:-1])] + [extra[:, 1], extra[:, 0]])
+    pairs = np.column_stack([rows, cols])
+    want = BlockPattern.from_elements(np.concatenate([pairs, pairs[:, ::-1]]), N)
+    for name in ("indptr", "indices", "diag", "mirror", "block_row", "up_indptr", "up_indices", "up_gather", "up_row",
+                 "up_col", "up_diag"):
+        np.testing.assert_array_equal(getattr(group.pattern, name), getattr(want, name), err_msg=name)
+    for p, o, where in zip(patterns, offsets[:-1], group.maps):
+        np.testing.assert_array_equal(group.pattern.block_row[where], p.block_row + o)
+        np.testing.assert_array_equal(group.pattern.indices[where], p.indices + o)
+    assert group.holds(extra) and group.holds(extra[:, ::-1])
 
-    want = set(map(tuple, extra.tolist()))
-    for i, j in extra.tolist():
-        want |= {(i, l + na) for l in neighbours(pb, j - na) if l + na in contact}
-        want |= {(l, j) for l in neighbours(pa, i) if l in contact}
-    assert got == want
-    assert len(got) > 3 * len(extra)  # the patch's neighbours came in
-    # a pattern made on the widened blocks holds a node of a's top face sliding onto a neighbour of its node above
-    group = convex.GroupPattern.of([pa, pb], wide, "auto")
-    i, j = extra[0]
-    slid = next(l for l in neighbours(pb, j - na) if l + na in contact and l + na != j)
-    assert group.holds(np.array([[i, slid + na]])) and not convex.GroupPattern.of([pa, pb], extra, "auto").holds(
-        np.array([[i, slid + na]]))
+
+def test_a_pattern_made_anew_keeps_its_ordering_and_a_saved_one_comes_back_alike():
+    """GroupPatterns: a pattern made anew for the same bodies (contacts beyond the kept one) is analysed with the
+    ordering the kept one's analysis chose, the one ordering; a saved pattern comes back with its blocks, its
+    ordering and its factorisation (the same values again)."""
+    patterns = convex.GroupPatterns("pardiso")
+    meshes = [sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet4", center=(0.0, 0.0, 0.1 * k)) for k in range(2)]
+    bodies = tuple(sb.FemBody(m, sb.LinearElastic(1e5, 0.3, 1000.0)) for m in meshes)
+    n0 = bodies[0].n_nodes
+    first = patterns.get(bodies, np.array([[0, n0]]))
+    solver = first.solver
+    K = first.pattern
+    values = np.where(K.up_row == K.up_col, 10.0, 0.0) + 1e-3 * (K.up_row != K.up_col)  # diagonally dominant: SPD
+    solver.factorize(values)
+    first.factor = convex.Factor(values, np.zeros((K.n_nodes, 3), bool))
+    chosen = solver.ordering
+    assert chosen is not None and patterns.get(bodies, np.array([[0, n0]])) is first  # within it: kept
+    second = patterns.get(bodies, np.array([[1, n0 + 1]]))  # beyond it: made anew, with both pairs
+    assert second is not first and second.holds(np.array([[0, n0], [1, n0 + 1]]))
+    assert list(second.solver.ORDERINGS.values()) == [chosen]
+    # the first pattern saved (a set holding only it) and made again
+    again = convex.GroupPatterns("pardiso")
+    again._held = {bodies: first}
+    state = again.save_state({b: k for k, b in enumerate(bodies)}.get)
+    loaded = convex.GroupPatterns("pardiso")
+    loaded.load_state(state, lambda k: bodies[k])
+    back = loaded._held[bodies]
+    np.testing.assert_array_equal(back.extra, first.extra)
+    assert list(back.solver.ORDERINGS.values()) == [chosen] and back.solver.ordering == chosen
+    np.testing.assert_array_equal(back.factor.values, values)
+    b = np.arange(3.0 * K.n_nodes)
+    np.testing.assert_array_equal(back.solver.solve(b), first.solver.solve(b))
