@@ -624,10 +624,9 @@ class _Newton:
             inside[sel] = keys[at] == want
         return np.column_stack([i[~inside], j[~inside]])
 
-    def _system(self, group: GroupPattern, G: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    def _system(self, group: GroupPattern, G: np.ndarray) -> tuple[np.ndarray, float]:
         """The upper values of A + J_s^T G J_s on the group pattern with the held components eliminated (their rows and
-        columns zeroed, ``scale`` on the diagonal), the scale, and the whole matrix's block data (nnzb, 9) (the held
-        components not eliminated)."""
+        columns zeroed, ``scale`` on the diagonal), and the scale."""
         pat = group.pattern
         if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
             base = np.zeros((pat.nnzb, 9))
@@ -649,7 +648,7 @@ class _Newton:
             up = up.copy()
             up[mflat[pat.up_row] | mflat[pat.up_col]] = 0.0
             up[pat.up_diag[mflat]] = scale
-        return up, scale, data
+        return up, scale
 
     def _frame_hessians(self, G: np.ndarray) -> np.ndarray:
         """F G F^T (m, 3, 3): the rows' Hessians in world axes (F: the rows' frames), once per G."""
@@ -689,14 +688,14 @@ class _Newton:
                 return np.zeros((0, 3)), np.linalg.solve(Hrr, -gu)
             except np.linalg.LinAlgError:
                 return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0]
-        up, _, blocks = self._system(group, G)
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
         if 3 * self.N >= self.owner.reuse_min and factor.usable(self.held):
-            z = self._reuse(group, blocks, Hsr, Hrr, rhs)
+            z = self._reuse(group, G, Hsr, Hrr, rhs)
             if z is not None:
                 factor.reused += 1
                 return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+        up, _ = self._system(group, G)
         group.solver.factorize(up)
         factor.values, factor.held = up, self.held.copy()
         factor.made += 1
@@ -728,20 +727,21 @@ class _Newton:
             du = np.linalg.lstsq(S, r, rcond=None)[0]
         return np.concatenate([y - Y @ du, du])
 
-    def _reuse(self, group: GroupPattern, blocks: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
+    def _reuse(self, group: GroupPattern, G: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
                ) -> np.ndarray | None:
         """The Newton system H z = rhs solved by conjugate gradients preconditioned by the kept factorisation (with the
-        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL. ``blocks``
-        (nnzb, 9): the soft part's whole matrix on the group pattern (its held components' rows are dropped from
-        each product and its iterates vanish there, so their columns add nothing)."""
-        pat, n3 = group.pattern, 3 * self.N
-        blocks = blocks.reshape(-1, 3, 3)
+        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL. The soft part
+        of H is applied without assembling it, A x + J_s^T G J_s x (its held components' rows are dropped from each
+        product and its iterates vanish there, so their columns add nothing)."""
+        n3 = 3 * self.N
+        FGF, scatter, gather = self._frame_hessians(G), self.scatter, self.scatter.T.tocsr()
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):
             x = z[:n3]
+            X = x.reshape(-1, 3)
             out = np.empty_like(z)
-            out[:n3] = pat.product(blocks, x.reshape(-1, 3)).reshape(-1)
+            out[:n3] = (self._A_products(X) + scatter @ np.einsum("mij,mj->mi", FGF, gather @ X)).reshape(-1)
             if self.n:
                 out[:n3] += Hsr @ z[n3:]
                 out[n3:] = Hsr.T @ x + Hrr @ z[n3:]
