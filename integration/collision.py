@@ -685,11 +685,12 @@ def edge_contacts(body_index: int, positions: np.ndarray, triangles: np.ndarray,
     Rl = quat_matrix(q)
     # the parts an edge's box may meet, all parts at once (their frames' boxes grown by the reach and a hair, so that
     # this only skips what the test part by part below would: a tray's walls are far from most edges inside it)
-    Rs, origins, ext = _edge_part_frames(rigid, parts)
-    ext = ext + bound + 1e-9 * (1.0 + np.abs(ext + bound))
+    Rs, origins, extents = _edge_part_frames(rigid, parts)
+    grown = extents + bound + 1e-9 * (1.0 + np.abs(extents + bound))
     W, O = Rl @ Rs, (c + origins @ Rl.T)[:, None, :]  # (P, 3, 3), (P, 1, 3): the parts' frames in the world
-    la, lb = (a - O) @ W, (b - O) @ W  # (P, m, 3): the edges in each part's frame
-    meets = ((np.maximum(la, lb) >= -ext[:, None]) & (np.minimum(la, lb) <= ext[:, None])).all(axis=2).any(axis=1)
+    ends_a, ends_b = (a - O) @ W, (b - O) @ W  # (P, m, 3): the edges in each part's frame
+    meets = ((np.maximum(ends_a, ends_b) >= -grown[:, None])
+             & (np.minimum(ends_a, ends_b) <= grown[:, None])).all(axis=2).any(axis=1)
     out = []
     for (k, (shape, R, pos)), meet in zip(parts, meets.tolist()):
         if not meet:

@@ -381,16 +381,12 @@ class GroupPattern:
 
     def holds(self, pairs: np.ndarray) -> bool:
         """Whether the block pairs (k, 2) (global nodes) all lie in this pattern."""
-        return bool(np.all(self.contains(pairs)))
-
-    def contains(self, pairs: np.ndarray) -> np.ndarray:
-        """(k,) whether each block pair of ``pairs`` (k, 2) (global nodes) lies in this pattern."""
         if not len(pairs):
-            return np.zeros(0, dtype=bool)
+            return True
         N = self.pattern.n_nodes
         key = pairs[:, 0] * N + pairs[:, 1]
         at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
-        return self.keys[at] == key
+        return bool(np.all(self.keys[at] == key))
 
     def blocks(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The block indices of (rows, cols) (global nodes, every pair in the pattern)."""
@@ -420,10 +416,9 @@ class GroupPatterns:
         if held is not None and held.holds(extra):
             return held
         ordering = None
-        if held is not None:
-            if len(held.extra) + len(extra) <= self.GROW * max(len(extra), 16):
-                extra = np.unique(np.concatenate([held.extra, extra]), axis=0)
-            ordering = held.solver.ordering
+        if held is not None and len(held.extra) + len(extra) <= self.GROW * max(len(extra), 16):
+            extra = np.unique(np.concatenate([held.extra, extra]), axis=0)
+            ordering = held.solver.ordering  # (a pattern made from the step's blocks alone chooses again)
         made = self._make(bodies, extra, ordering)
         self._held = {k: v for k, v in self._held.items() if k != key}
         self._held[key] = made
@@ -457,10 +452,12 @@ class GroupPatterns:
         """Make the patterns of :meth:`save_state` again (``body(handle)``: the body of a handle) in place of the kept
         ones."""
         self._held = {}
-        for key, (extra, kept, *ordering) in state.items():  # (a state saved before orderings were kept: none)
+        for key, (extra, kept, *more) in state.items():
             bodies = tuple(body(k) for k in key)
             extra = np.asarray(extra, dtype=np.int64).reshape(-1, 2)
-            made = self._make(bodies, extra, ordering[0] if ordering else None)
+            # the ordering: the last entry if a name (older states hold none, or the blocks a pattern was made for)
+            ordering = more[-1] if more and isinstance(more[-1], str) else None
+            made = self._make(bodies, extra, ordering)
             if kept is not None:  # the same factor again, from the same values
                 made.solver.factorize(kept[0].copy())
                 made.factor = Factor(kept[0].copy(), kept[1].copy())
@@ -734,7 +731,9 @@ class _Newton:
         of H is applied without assembling it, A x + J_s^T G J_s x (its held components' rows are dropped from each
         product and its iterates vanish there, so their columns add nothing)."""
         n3 = 3 * self.N
-        FGF, scatter, gather = self._frame_hessians(G), self.scatter, self.scatter.T.tocsr()
+        if getattr(self, "_gather", None) is None:  # the rows' point values from the nodes', fixed within the solve
+            self._gather = self.scatter.T.tocsr()
+        FGF, scatter, gather = self._frame_hessians(G), self.scatter, self._gather
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):

@@ -20,7 +20,8 @@ for the contact search, where numpy would spread a little arithmetic over dozens
 - ``edges_near_partners``, ``edge_narrow``: the edge search's broad phase, which of a body's edges may meet a
   partner, and its narrow phase, candidate pair by pair (softcontact.edge_contacts).
 
-Each is compared with its numpy reference in tests/test_kernels.py."""
+Each is compared with its numpy reference in tests/test_kernels.py (the soft search's in
+tests/test_soft_search.py)."""
 from __future__ import annotations
 
 import math
@@ -942,31 +943,34 @@ def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: n
 
 @_jit
 def centre_grid(centre: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A uniform grid of cell size ``cell`` [m] over points ``centre`` (T, 3): (the lowest cell (3,), the points'
-    cell keys sorted (T,), the points in that order (T,)); a cell's points are a run of equal keys (21 bits per
-    axis)."""
+    """A uniform grid of cell size ``cell`` [m] over points ``centre`` (T, 3): (the lowest cell and the highest
+    relative to it (2, 3), the points' cell keys sorted (T,), the points in that order (T,)); a cell's points are a
+    run of equal keys (21 bits per axis: the caller's cell spans the points' extent in fewer than 2^21 cells)."""
     T = centre.shape[0]
-    base = np.zeros(3, dtype=np.int64)
+    bounds = np.zeros((2, 3), dtype=np.int64)
     for j in range(3):
-        lo = np.inf
+        lo, hi = np.inf, -np.inf
         for t in range(T):
             lo = min(lo, centre[t, j])
-        base[j] = int(math.floor(lo / cell)) if T else 0
+            hi = max(hi, centre[t, j])
+        if T:
+            bounds[0, j] = int(math.floor(lo / cell))
+            bounds[1, j] = int(math.floor(hi / cell)) - bounds[0, j]
     keys = np.empty(T, dtype=np.int64)
     for t in range(T):
-        c0 = int(math.floor(centre[t, 0] / cell)) - base[0]
-        c1 = int(math.floor(centre[t, 1] / cell)) - base[1]
-        c2 = int(math.floor(centre[t, 2] / cell)) - base[2]
+        c0 = int(math.floor(centre[t, 0] / cell)) - bounds[0, 0]
+        c1 = int(math.floor(centre[t, 1] / cell)) - bounds[0, 1]
+        c2 = int(math.floor(centre[t, 2] / cell)) - bounds[0, 2]
         keys[t] = (c0 << 42) | (c1 << 21) | c2
     order = np.argsort(keys, kind="mergesort")
-    return base, keys[order], order
+    return bounds, keys[order], order
 
 
 @_inline
-def _grid_range(x: float, r: float, cell: float, base: int) -> tuple[int, int]:
-    """The cells along one axis (relative to base, clipped to [0, 2^21)) within r of x."""
-    lo = max(int(math.floor((x - r) / cell)) - base, 0)
-    hi = min(int(math.floor((x + r) / cell)) - base, (1 << 21) - 1)
+def _grid_range(x: float, r: float, cell: float, bounds: np.ndarray, j: int) -> tuple[int, int]:
+    """The occupied cells along axis j (relative to the lowest, centre_grid's bounds) within r of x."""
+    lo = max(int(math.floor((x - r) / cell)) - bounds[0, j], 0)
+    hi = min(int(math.floor((x + r) / cell)) - bounds[0, j], bounds[1, j])
     return lo, hi
 
 
@@ -1028,9 +1032,9 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
         if n_q == 0:
             continue
         reach = min(margin + depth + r_max + ta_max + tb_all, margin + ta_max + tb_all + 1.1 * r_max)
-        a0, b0 = _grid_range(x0, reach, cell, base[0])
-        a1, b1 = _grid_range(x1, reach, cell, base[1])
-        a2, b2 = _grid_range(x2, reach, cell, base[2])
+        a0, b0 = _grid_range(x0, reach, cell, base, 0)
+        a1, b1 = _grid_range(x1, reach, cell, base, 1)
+        a2, b2 = _grid_range(x2, reach, cell, base, 2)
         for c0 in range(a0, b0 + 1):
             for c1 in range(a1, b1 + 1):
                 k0 = (c0 << 42) | (c1 << 21)
@@ -1081,9 +1085,9 @@ def soft_deep_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarra
         x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
         ta = travel_a[i] + between[p, q]
         reach = margin + depth + r_max + ta + tb_all
-        a0, b0 = _grid_range(x0, reach, cell, base[0])
-        a1, b1 = _grid_range(x1, reach, cell, base[1])
-        a2, b2 = _grid_range(x2, reach, cell, base[2])
+        a0, b0 = _grid_range(x0, reach, cell, base, 0)
+        a1, b1 = _grid_range(x1, reach, cell, base, 1)
+        a2, b2 = _grid_range(x2, reach, cell, base, 2)
         for c0 in range(a0, b0 + 1):
             for c1 in range(a1, b1 + 1):
                 k0 = (c0 << 42) | (c1 << 21)

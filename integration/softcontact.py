@@ -21,7 +21,9 @@ Broad phase: the bodies' boxes against each other's grown by their reach (one ve
 the bodies that meet a box against that box, then per body a k-d tree (scipy's cKDTree) over its triangles'
 centres, queried with the nodes of the other bodies in its box; narrow phase vectorised over the candidate pairs
 of all bodies at once (a pile of small bodies costs one query per body in reach of another, not one per pair and
-direction).
+direction). With the compiled kernels (integration.kernels), the same pairs from one uniform grid over all bodies'
+triangle centres, node by node, and the narrow phases candidate by candidate; the numpy code is their reference
+(tests/test_soft_search.py).
 """
 from __future__ import annotations
 
@@ -227,7 +229,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
     positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
     distinct bodies, in one pass over all of them (one query per body that other nodes reach, one narrow phase
-    for all). The same contacts, in the same order, as
+    for all; compiled: one grid over all triangles, see the module doc). The same contacts, in the same order, as
     :func:`pair_contacts_reference` (a search per pair and direction, kept for the tests). ``layout``:
     SoftLayout.of their surfaces and pairs, if kept from an earlier step (the caller's to renew when they change)."""
     if not pairs:
@@ -485,7 +487,8 @@ def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: n
     """(E,) whether an edge of ``edges`` (E, 2) of body ``body`` at positions x (N, 3) has its box meet the box
     (lo, hi) (P, 3) of some partner (``partners`` (P,), body indices) grown by slack (P,) [m], with neither end in
     a node contact with that partner (``keys``: the node contacts' keys sorted, _gap_table's; empty: none):
-    edge_contacts' broad phase for one body (integration.kernels.edges_near_partners, edge by edge)."""
+    edge_contacts' broad phase for one body (integration.kernels.edges_near_partners, edge by edge; ``node_bits``:
+    the keys' layout, NODE_BITS, which this numpy twin takes as given)."""
     e0, e1 = x[edges[:, 0]], x[edges[:, 1]]
     elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
     near = np.zeros(len(edges), dtype=bool)
@@ -513,7 +516,8 @@ def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0
     keys sorted): within reach, not the edge's own surroundings (self-contact), no end in a node contact with the
     other body, not nearly parallel, closest points between the ends of both, facing, within reach and less than
     depth crossed. Returns (the kept candidates (k,), s (k,), t (k,), normal (k, 3) from b's edge towards a's,
-    distance (k,) signed [m]) (integration.kernels.edge_narrow, pair by pair)."""
+    distance (k,) signed [m]) (integration.kernels.edge_narrow, pair by pair; ``node_bits``: the keys' layout,
+    NODE_BITS, which this numpy twin takes as given)."""
     explained = (keys, np.zeros(len(keys))) if len(keys) else None
     idx = np.arange(len(i))
     mid, mean_v_of = 0.5 * (P0 + P1), mean_v.__getitem__
@@ -578,7 +582,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     kept), then each body's edges whose boxes meet a partner's and whose ends have no node contact with that
     partner, a k-d tree over their midpoints per body, queried pair by pair (one tree over all bodies' edges
     listed each body's own neighbouring edges first: a stack of twelve cubes paid 3x as much); narrow phase
-    vectorised over the candidate pairs."""
+    vectorised over the candidate pairs (:func:`edge_narrow`). With the compiled kernels, the per-body broad phase
+    and the narrow phase edge by edge and pair by pair (kernels.edges_near_partners, kernels.edge_narrow)."""
     if not pairs:
         return EdgeHits.empty()
     layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout

@@ -4,9 +4,12 @@ a first run, ``softbody compile`` in the foreground).
 
 The scenes: softbody.warmup's bars; a sheet of each element type dropped on a sphere (node contacts, the
 active set body by body); soft cubes on a plane, one under a dynamic box (the coupled solve of a movable body), one
-under a dynamic convex mesh (the mesh links of a user's robot), a third stacked on the first (soft-soft contacts)."""
+under a dynamic convex mesh (the mesh links of a user's robot), a third stacked on the first (soft-soft contacts);
+two soft cubes overlapping, turned, through the soft search (every pass and kind of its kernels, which a settled
+stack need not reach)."""
 from __future__ import annotations
 
+import numpy as np
 import trimesh
 
 from softbody import FemBody, LinearElastic, box_mesh, compilation
@@ -45,11 +48,28 @@ def cubes(steps: int = 12) -> None:
         world.step()
 
 
+def soft_search() -> None:
+    """Two soft cubes overlapping (3 mm, one turned, the other moving) and each with self-contact, through the soft
+    search (softcontact.soft_contacts and edge_contacts: both passes of the node-face search, the edge search)."""
+    from .softcontact import SoftSurface, edge_contacts, soft_contacts
+
+    bodies = []
+    for k, kind in enumerate(("tet4", "tet10")):
+        m = box_mesh((0.04, 0.04, 0.04), (2, 2, 2), kind)
+        c, s = np.cos(0.5 * k), np.sin(0.5 * k)
+        x = m.nodes @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + (0.0, 0.0, 0.037 * k)
+        bodies.append((x, np.full(x.shape, 0.1 * k), SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes))
+    pairs = [(0, 1), (0, 0), (1, 1)]
+    hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
+    edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, hits)
+
+
 def run() -> None:
     """Every warm-up scene: the FEM core's, then the World's."""
     fem_warmup.run()
     sheets()
     cubes()
+    soft_search()
 
 
 if __name__ == "__main__":

@@ -73,16 +73,23 @@ class BlockPattern:
     @classmethod
     def from_keys(cls, keys: np.ndarray, n_nodes: int) -> "BlockPattern":
         """The pattern of the blocks with sorted unique keys row * n_nodes + col (k,), symmetric (each block's mirror
-        among them) and holding every diagonal block: no elements (``scatter`` empty). The same pattern as
-        :meth:`from_elements` of those blocks as 2-node elements, without sorting them again (a coupled problem's
-        pattern: its bodies' own patterns side by side, already sorted, and the few blocks contacts add)."""
+        among them) and holding every diagonal block (else a ValueError): no elements (``scatter`` empty: not for
+        :meth:`assemble`). The same pattern as :meth:`from_elements` of those blocks as 2-node elements, without
+        sorting them again (a coupled problem's pattern: its bodies' own patterns side by side, already sorted, and
+        the few blocks contacts add)."""
         keys = np.asarray(keys, dtype=np.int64)
         brow, bcol = keys // n_nodes, keys % n_nodes
         itype = np.int32 if 9 * len(keys) < 2**31 else np.int64
         indptr = np.zeros(n_nodes + 1, dtype=np.int64)
         np.cumsum(np.bincount(brow, minlength=n_nodes), out=indptr[1:])
-        diag = np.searchsorted(keys, np.arange(n_nodes, dtype=np.int64) * (n_nodes + 1))
+        diagonal = np.arange(n_nodes, dtype=np.int64) * (n_nodes + 1)
+        diag = np.searchsorted(keys, diagonal)
         mirror = np.searchsorted(keys, bcol * n_nodes + brow)
+        if (len(keys) > 1 and not np.all(keys[1:] > keys[:-1])) or not (
+                np.array_equal(keys[np.minimum(diag, len(keys) - 1)], diagonal)
+                and np.array_equal(keys[np.minimum(mirror, len(keys) - 1)], bcol * n_nodes + brow)):
+            raise ValueError(f"block keys for a pattern of {n_nodes} nodes must be sorted, unique, symmetric and hold "
+                             "every diagonal block")
         up_indptr, up_col, up_gather, up_row, up_diag = _upper_scalars(indptr, brow, bcol, n_nodes, itype)
         return cls(n_nodes, indptr, bcol, np.zeros((0, 2, 2), dtype=itype), diag, mirror, brow,
                    up_indptr, up_col, up_gather, up_row, up_col, up_diag)
