@@ -400,8 +400,8 @@ class GroupPatterns:
     pattern made anew for the same bodies is nearly the old one: it is analysed with the ordering the old one's
     analysis chose (one analysis, not one per ordering tried: a pile of 30 cubes settling in a tray makes its pattern
     anew every fourth step or so, at 128 ms each, 30 ms now). (Widening a pattern by the neighbours within the patches
-    in contact, so that sliding contacts stay within it, made 30 analyses in 150 steps 4 but the factors and products
-    dearer: a resting stack 11-15% a step.)"""
+    in contact, so that sliding contacts stay within it, cut the tray's 30 analyses in 150 steps to 4 but made the
+    factors and products dearer: a resting stack 11-15% a step.)"""
 
     GROW = 4
 

@@ -520,9 +520,9 @@ def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0
     NODE_BITS, which this numpy twin takes as given)."""
     explained = (keys, np.zeros(len(keys))) if len(keys) else None
     idx = np.arange(len(i))
-    mid, mean_v_of = 0.5 * (P0 + P1), mean_v.__getitem__
+    mid = 0.5 * (P0 + P1)
     gap = mid[i] - mid[j]
-    means = mean_v_of(body_of[i]) - mean_v_of(body_of[j])  # the bodies' mean velocities' difference, per pair
+    means = mean_v[body_of[i]] - mean_v[body_of[j]]  # the bodies' mean velocities' difference, per pair
     ok = (np.sqrt(np.einsum("ij,ij->i", gap, gap)) <= half[i] + half[j] + reach + travel[i] + travel[j]
           + slack_h * np.sqrt(np.einsum("ij,ij->i", means, means)))
     i, j, idx = i[ok], j[ok], idx[ok]
@@ -557,7 +557,7 @@ def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0
     n *= np.where(np.einsum("ij,ij->i", n, N[j]) < 0.0, -1.0, 1.0)[:, None]  # out of b's edge
     d = np.einsum("ij,ij->i", n, (P0[i] + s[:, None] * da) - (P0[j] + t[:, None] * db))
     v_rel = (((1 - s)[:, None] * V0[i] + s[:, None] * V1[i]) - ((1 - t)[:, None] * V0[j] + t[:, None] * V1[j])
-             + mean_v_of(body_of[i]) - mean_v_of(body_of[j]))
+             + mean_v[body_of[i]] - mean_v[body_of[j]])
     closing = np.maximum(-np.einsum("ij,ij->i", v_rel, n), 0.0)
     facing = (np.einsum("ij,ij->i", n, N[j]) > 0.05) & (np.einsum("ij,ij->i", n, N[i]) < -0.05)
     deepest = np.where(body_of[i] == body_of[j], -margin, -depth)  # within one body: never pulled through
