@@ -98,7 +98,8 @@ def test_world_stacks_cubes_on_a_plane_with_the_same_answer():
 
 @pytest.mark.parametrize("mu", [0.0, 0.3])
 def test_world_stack_keeps_soft_contact_and_attachments(mu):
-    """A cube dropped onto another (soft-soft contact: stacked with the others until they touch, then each alone)
+    """A cube dropped onto another (soft-soft contact: stacked with the others until they touch, then the two a stack
+    of their own)
     and a third held to a fixed box by an attachment: the same motion as the bodies stepped alone, the held one to round-off, the two in contact to what
     the contact solver's stated tolerances leave open.
 
@@ -130,8 +131,10 @@ def test_world_stack_keeps_soft_contact_and_attachments(mu):
         # one decision per step tipped the other way, at the fastest slide of either run
         bound += cs.velocity_tol * ws.dt + ws.dt * max(float(np.hypot(*b.velocities[:, :2].T).max())
                                                          for b in (*bs[:2], *ba[:2]))
-    # the two in soft contact step alone (each its own dense part), the held one too (its own key: attached)
-    assert not any(isinstance(s, BodyStack) for s in ws.sim.bodies) and all(b in ws.sim.bodies for b in bs)
+    # the two in soft contact step as one stack of their own (their coupled group), the held one alone (its own
+    # key: attached)
+    stacks = [s for s in ws.sim.bodies if isinstance(s, BodyStack)]
+    assert len(stacks) == 1 and list(stacks[0].members) == bs[:2] and bs[2] in ws.sim.bodies
     assert any(r.active.any() for _, r in ws.pair_results)  # the falling cube rests on the lower one
     assert np.abs(ba[2].positions - bs[2].positions).max() < 1e-12  # no contact: the same arithmetic
     for a, b in zip(ba[:2], bs[:2]):
@@ -169,9 +172,9 @@ def test_divergence_in_a_stack_names_the_member():
 
 
 def test_bodies_in_soft_contact_are_stacked_apart_from_the_others():
-    """Four cubes on a plane, a fifth dropped on the first: once they touch, the two step alone (their soft contact
-    needs the dense contact solve, which would otherwise cover every stacked cube's contacts, and solves each stepped
-    body's responses to its rows) and the three others in a stack; the motion is that of the cubes stepped alone."""
+    """Four cubes on a plane, a fifth dropped on the first: once they touch, the two step as a stack of their own
+    (their soft contact needs the coupled contact solve, which would otherwise cover every stacked cube's contacts)
+    and the three others in a stack; the motion is that of the cubes stepped alone."""
     def build(stack):
         world = World(dt=0.01, stack=stack)
         world.add_plane()
@@ -182,7 +185,7 @@ def test_bodies_in_soft_contact_are_stacked_apart_from_the_others():
     (ws, bs), (wa, ba) = _run(True, 30, build), _run(False, 30, build)
     groups = sorted(sorted(next(k for k, b in enumerate(bs) if b is m) for m in getattr(s, "members", [s]))
                     for s in ws.sim.bodies)
-    assert groups == [[0], [1, 2, 3], [4]]
+    assert groups == [[0, 4], [1, 2, 3]]
     assert any(r.active.any() for _, r in ws.pair_results)
     for a, b in zip(ba, bs):
         assert np.abs(a.positions - b.positions).max() < 1e-4
