@@ -907,6 +907,17 @@ def soft_nearest(xs: np.ndarray, X: np.ndarray, tris: np.ndarray, nodes: np.ndar
     return chosen[:count]
 
 
+@_inline
+def _explained(keys: np.ndarray, node: int, tag: int) -> bool:
+    """Whether node ``node`` has a node contact keyed node | tag among the sorted ``keys``."""
+    nk = keys.shape[0]
+    if not nk:
+        return False
+    want = node | tag
+    at = min(np.searchsorted(keys, want), nk - 1)
+    return keys[at] == want
+
+
 @_jit
 def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: np.ndarray, lo: np.ndarray,
                         hi: np.ndarray, slack: np.ndarray, keys: np.ndarray, node_bits: int) -> np.ndarray:
@@ -916,7 +927,6 @@ def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: n
     softcontact._gap_table; empty: none)."""
     E = edges.shape[0]
     near = np.zeros(E, dtype=np.bool_)
-    nk = keys.shape[0]
     for e in range(E):
         a, b = edges[e, 0], edges[e, 1]
         for r in range(partners.shape[0]):
@@ -929,13 +939,9 @@ def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: n
                     break
             if not meets:
                 continue
-            if nk:
-                tag = (body * 1024 + partners[r]) << node_bits
-                ka, kb = a | tag, b | tag
-                ia = min(np.searchsorted(keys, ka), nk - 1)
-                ib = min(np.searchsorted(keys, kb), nk - 1)
-                if keys[ia] == ka or keys[ib] == kb:
-                    continue
+            tag = (body * 1024 + partners[r]) << node_bits
+            if _explained(keys, a, tag) or _explained(keys, b, tag):
+                continue
             near[e] = True
             break
     return near
@@ -974,6 +980,29 @@ def _grid_range(x: float, r: float, cell: float, bounds: np.ndarray, j: int) -> 
     return lo, hi
 
 
+@_inline
+def _grid_box(x0: float, x1: float, x2: float, r: float, cell: float, bounds: np.ndarray
+              ) -> tuple[int, int, int, int, int, int]:
+    """The occupied cells (first and last along each axis) within r of the point (x0, x1, x2)."""
+    a0, b0 = _grid_range(x0, r, cell, bounds, 0)
+    a1, b1 = _grid_range(x1, r, cell, bounds, 1)
+    a2, b2 = _grid_range(x2, r, cell, bounds, 2)
+    return a0, b0, a1, b1, a2, b2
+
+
+@_inline
+def _column(keys: np.ndarray, c0: int, c1: int, a2: int, b2: int) -> tuple[int, int]:
+    """The run [begin, end) of centre_grid's sorted keys in the cells (c0, c1, a2..b2)."""
+    k0 = (c0 << 42) | (c1 << 21)
+    return np.searchsorted(keys, k0 | a2), np.searchsorted(keys, k0 | b2, side="right")
+
+
+@_inline
+def _room(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` with room for an entry at index n: twice as long if full."""
+    return np.concatenate((a, np.empty(n, dtype=a.dtype))) if n == a.shape[0] else a
+
+
 @_jit
 def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, between: np.ndarray,
                     meet: np.ndarray, grow: np.ndarray, plo: np.ndarray, phi: np.ndarray, centre: np.ndarray,
@@ -1004,7 +1033,6 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
     n_deep = 0
     searched = np.zeros(B, dtype=np.bool_)
     qs = np.empty(B, dtype=np.int64)
-    nk = keys.shape[0]
     for i in range(S):
         p = node_b[i]
         x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
@@ -1023,25 +1051,19 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
                 if q != p and (x0 >= plo[q, 0] - margin and x1 >= plo[q, 1] - margin and x2 >= plo[q, 2] - margin
                                and x0 <= phi[q, 0] + margin and x1 <= phi[q, 1] + margin
                                and x2 <= phi[q, 2] + margin):
-                    if n_deep == deep_i.shape[0]:
-                        deep_i = np.concatenate((deep_i, np.empty(n_deep, dtype=np.int64)))
-                        deep_q = np.concatenate((deep_q, np.empty(n_deep, dtype=np.int64)))
+                    deep_i, deep_q = _room(deep_i, n_deep), _room(deep_q, n_deep)
                     deep_i[n_deep] = i
                     deep_q[n_deep] = q
                     n_deep += 1
         if n_q == 0:
             continue
         reach = min(margin + depth + r_max + ta_max + tb_all, margin + ta_max + tb_all + 1.1 * r_max)
-        a0, b0 = _grid_range(x0, reach, cell, base, 0)
-        a1, b1 = _grid_range(x1, reach, cell, base, 1)
-        a2, b2 = _grid_range(x2, reach, cell, base, 2)
+        a0, b0, a1, b1, a2, b2 = _grid_box(x0, x1, x2, reach, cell, base)
         for c0 in range(a0, b0 + 1):
             for c1 in range(a1, b1 + 1):
-                k0 = (c0 << 42) | (c1 << 21)
-                at = np.searchsorted(keys, k0 | a2)
-                while at < nk and keys[at] <= (k0 | b2):
+                begin, end = _column(keys, c0, c1, a2, b2)
+                for at in range(begin, end):
                     t = order[at]
-                    at += 1
                     q = tri_b[t]
                     if not searched[q]:
                         continue
@@ -1049,9 +1071,7 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
                     v = math.sqrt((x0 - centre[t, 0]) ** 2 + (x1 - centre[t, 1]) ** 2 + (x2 - centre[t, 2]) ** 2)
                     if (v <= margin + depth + radius[t] + ta + travel_b[t]
                             and v <= (margin + ta + tb_max[q]) + 1.1 * radius[t]):
-                        if n_out == out_i.shape[0]:
-                            out_i = np.concatenate((out_i, np.empty(n_out, dtype=np.int64)))
-                            out_t = np.concatenate((out_t, np.empty(n_out, dtype=np.int64)))
+                        out_i, out_t = _room(out_i, n_out), _room(out_t, n_out)
                         out_i[n_out] = i
                         out_t[n_out] = t
                         n_out += 1
@@ -1078,30 +1098,23 @@ def soft_deep_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarra
     out_i = np.empty(cap, dtype=np.int64)
     out_t = np.empty(cap, dtype=np.int64)
     n_out = 0
-    nk = keys.shape[0]
     for r in range(n):
         i, q = nodes[r], bodies[r]
         p = node_b[i]
         x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
         ta = travel_a[i] + between[p, q]
         reach = margin + depth + r_max + ta + tb_all
-        a0, b0 = _grid_range(x0, reach, cell, base, 0)
-        a1, b1 = _grid_range(x1, reach, cell, base, 1)
-        a2, b2 = _grid_range(x2, reach, cell, base, 2)
+        a0, b0, a1, b1, a2, b2 = _grid_box(x0, x1, x2, reach, cell, base)
         for c0 in range(a0, b0 + 1):
             for c1 in range(a1, b1 + 1):
-                k0 = (c0 << 42) | (c1 << 21)
-                at = np.searchsorted(keys, k0 | a2)
-                while at < nk and keys[at] <= (k0 | b2):
+                begin, end = _column(keys, c0, c1, a2, b2)
+                for at in range(begin, end):
                     t = order[at]
-                    at += 1
                     if tri_b[t] != q:
                         continue
                     v = math.sqrt((x0 - centre[t, 0]) ** 2 + (x1 - centre[t, 1]) ** 2 + (x2 - centre[t, 2]) ** 2)
                     if v <= margin + depth + radius[t] + ta + travel_b[t]:
-                        if n_out == out_i.shape[0]:
-                            out_i = np.concatenate((out_i, np.empty(n_out, dtype=np.int64)))
-                            out_t = np.concatenate((out_t, np.empty(n_out, dtype=np.int64)))
+                        out_i, out_t = _room(out_i, n_out), _room(out_t, n_out)
                         out_i[n_out] = i
                         out_t[n_out] = t
                         n_out += 1
@@ -1128,17 +1141,6 @@ def _segment_params(p0, p1, p2, e0, e1, e2, q0, q1, q2, f0, f1, f2) -> tuple[flo
     elif t > 1.0:
         s = min(max((b - c) / a, 0.0), 1.0)
     return s, min(max(t, 0.0), 1.0)
-
-
-@_inline
-def _explained(keys: np.ndarray, node: int, tag: int) -> bool:
-    """Whether node ``node`` has a node contact keyed node | tag among the sorted ``keys``."""
-    nk = keys.shape[0]
-    if not nk:
-        return False
-    want = node | tag
-    at = min(np.searchsorted(keys, want), nk - 1)
-    return keys[at] == want
 
 
 @_jit

@@ -10,24 +10,35 @@ from integration import kernels
 from integration.softcontact import SoftSurface, pair_contacts_reference, soft_contacts
 
 
+def _pile(rng, spread: float, most: int, turned: bool = False):
+    """(bodies, pairs): 2 to most - 1 tet4 or tet10 cubes (4 cm), a little deformed and moving, centred within
+    +-spread [m] of the origin (``turned``: each turned at random, so that edges cross at all angles), all pairs and
+    some self-contact."""
+    def body(center, kind):
+        m = box_mesh((0.04, 0.04, 0.04), (2, 2, 2), kind, center=center)
+        x = m.nodes
+        if turned:
+            R = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+            x = (m.nodes - center) @ R.T + center
+        x = x + 0.002 * rng.standard_normal(m.nodes.shape)  # a little deformed
+        v = 0.3 * rng.standard_normal(m.nodes.shape)
+        return x, v, SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes.copy()
+
+    n = int(rng.integers(2, most))
+    bodies = [body(rng.uniform(-spread, spread, 3), ("tet4", "tet10")[int(rng.integers(2))]) for _ in range(n)]
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)] + [(a, a) for a in range(n) if rng.random() < 0.3]
+    return bodies, pairs
+
+
 @pytest.mark.parametrize("compiled", [True, False])
 def test_one_pass_search_finds_what_the_pairwise_search_finds(compiled, monkeypatch):
     if compiled and not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
     monkeypatch.setattr(kernels, "ENABLED", compiled)
     rng = np.random.default_rng(5)
-
-    def body(center, kind):
-        m = box_mesh((0.04, 0.04, 0.04), (2, 2, 2), kind, center=center)
-        x = m.nodes + 0.002 * rng.standard_normal(m.nodes.shape)  # a little deformed
-        v = 0.3 * rng.standard_normal(m.nodes.shape)
-        return x, v, SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes.copy()
-
     found = 0
     for _ in range(20):
-        n = int(rng.integers(2, 7))
-        bodies = [body(rng.uniform(-0.05, 0.05, 3), ("tet4", "tet10")[int(rng.integers(2))]) for _ in range(n)]
-        pairs = [(a, b) for a in range(n) for b in range(a + 1, n)] + [(a, a) for a in range(n) if rng.random() < 0.3]
+        bodies, pairs = _pile(rng, 0.05, 7)
         order = rng.permutation(len(pairs))
         pairs = [pairs[k] for k in order]
         fast = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
@@ -69,19 +80,9 @@ def test_compiled_edge_search_finds_what_numpys_finds(monkeypatch):
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
     rng = np.random.default_rng(11)
-
-    def body(center, kind):
-        m = box_mesh((0.04, 0.04, 0.04), (2, 2, 2), kind, center=center)
-        R = np.linalg.qr(rng.standard_normal((3, 3)))[0]  # turned: edges cross at all angles
-        x = (m.nodes - center) @ R.T + center + 0.002 * rng.standard_normal(m.nodes.shape)
-        v = 0.3 * rng.standard_normal(m.nodes.shape)
-        return x, v, SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes.copy()
-
     found = 0
     for _ in range(12):
-        n = int(rng.integers(2, 6))
-        bodies = [body(rng.uniform(-0.04, 0.04, 3), ("tet4", "tet10")[int(rng.integers(2))]) for _ in range(n)]
-        pairs = [(a, b) for a in range(n) for b in range(a + 1, n)] + [(a, a) for a in range(n) if rng.random() < 0.3]
+        bodies, pairs = _pile(rng, 0.04, 6, turned=True)
         hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
         for explained in (None, hits):
             out = {}
