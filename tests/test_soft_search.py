@@ -96,3 +96,22 @@ def test_compiled_edge_search_finds_what_numpys_finds(monkeypatch):
                 np.testing.assert_allclose(getattr(out[True], f), getattr(out[False], f), rtol=0, atol=1e-13,
                                            err_msg=f)
     assert found > 50  # crossings were found: the comparison is not between two empty sets
+
+
+def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
+    """integration.warmup.soft_search reaches every compiled kernel of the soft search (the background warm-up
+    compiles what it runs; a kernel it missed would compile during a user's step)."""
+    from integration import warmup
+
+    if not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    names = ("centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near_partners",
+             "edge_narrow")
+    called = set()
+    for name in names:
+        def wrapped(*args, _f=getattr(kernels, name), _name=name):
+            called.add(_name)
+            return _f(*args)
+        monkeypatch.setattr(kernels, name, wrapped)
+    warmup.soft_search()
+    assert called == set(names)
