@@ -33,18 +33,25 @@ from .linsolve import SpdSolver
 class ConstraintCorrection:
     """The Schur-complement correction for constrained directions at M nodes.
 
-    rows (3M,): the nodes' dofs; Y (n_dof, 3M): P^-1 of the nodes' unit vectors; G (3M, 3M):
-    B S^-1 B^T, with B (3M, m) the m constrained unit directions at those dofs in P's frames and
-    S = B^T Y[rows] B, so that P^-1 E S^-1 E^T P^-1 g = Y G (P^-1 g)[rows].
+    rows (3M,): the nodes' dofs; Y (n_dof, K): cached columns of P^-1, among them those of the nodes' unit vectors,
+    columns ``cols`` (3M,) of Y (None: Y holds exactly those, in order); G (3M, 3M): B S^-1 B^T, with B (3M, m) the
+    m constrained unit directions at those dofs in P's frames and S = B^T Y[rows, cols] B, so that
+    P^-1 E S^-1 E^T P^-1 g = Y[:, cols] G (P^-1 g)[rows].
     """
 
     rows: np.ndarray
     Y: np.ndarray
     G: np.ndarray
+    cols: np.ndarray | None = None
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """u = P^-1 g (n_dof,) -> (P restricted to the complement of E)^-1 g, in place."""
-        u -= self.Y @ (self.G @ u[self.rows]).astype(self.Y.dtype, copy=False)
+        c = (self.G @ u[self.rows]).astype(self.Y.dtype, copy=False)
+        if self.cols is not None:  # the product over all cached columns, the others' coefficients zero (no copy)
+            z = np.zeros(self.Y.shape[1], dtype=self.Y.dtype)
+            z[self.cols] = c
+            c = z
+        u -= self.Y @ c
         return u
 
 
@@ -60,6 +67,12 @@ REFACTOR_HORIZON = 4.0
 #: nodes, 4 x 64 nodes' columns took 0.66 GB, 9 kB per node; the columns of the nodes in use are gathered once
 #: more for the products)
 COLUMN_BYTES_PER_NODE = 2304
+
+#: the columns of the nodes a correction uses are gathered into a copy of their own (one product over them alone) only
+#: where they are fewer than half the cached ones and the copy is at most this many bytes; else the product runs over
+#: every cached column (at most twice the work, or a fraction of a PCG iteration on a large body) and nothing is copied
+#: (at 72k nodes the copy of 61 nodes' columns took 150 MB, 2.1 kB per node, beside the cache's 158 MB)
+GATHER_BYTES = 16 * 2**20
 
 #: new columns are solved for this many nodes at a time (the solve's right-hand sides and answers, in double, are
 #: the transient memory: 3 x 8 nodes' columns of a 72k-node body take 41 MB)
@@ -93,7 +106,7 @@ class Preconditioner:
     _slot: np.ndarray | None = None  # (N,) first column of each node's P^-1 columns in _Y, -1: none yet
     _Y: np.ndarray | None = None  # (n_dof, 3 * cached nodes), P^-1 of the cached nodes' unit vectors (a view of _store)
     _store: np.ndarray | None = None  # (n_dof, 3 * column_cap): room for the columns, taken as they fill
-    _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call
+    _last: tuple = (None, None)  # (the columns' slots, their gathered copy) of the last call that gathered
 
     @property
     def cached_nodes(self) -> int:
@@ -144,9 +157,10 @@ class Preconditioner:
         self.factorizations += 1
         self._slot, self._Y, self._store, self._last = np.full(len(eliminated), -1), None, None, (None, None)
 
-    def columns(self, nodes: np.ndarray, cap: int = 0) -> np.ndarray:
-        """P^-1 of the unit vectors of ``nodes`` (M,), (n_dof, 3M); solves for the nodes not cached yet (room is
-        made for ``cap`` nodes' columns at once)."""
+    def columns(self, nodes: np.ndarray, cap: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
+        """P^-1 of the unit vectors of ``nodes`` (M,): (Y, cols), Y (n_dof, K) cached columns and cols (3M,) the nodes'
+        among them, or cols None where Y is a copy of exactly the nodes' columns (GATHER_BYTES); solves for the
+        nodes not cached yet (room is made for ``cap`` nodes' columns at once)."""
         new = nodes[self._slot[nodes] < 0]
         if len(new):
             n_dof = self.solver.n
@@ -167,9 +181,14 @@ class Preconditioner:
             self._slot[new] = start + 3 * np.arange(len(new))
             self.column_nodes += len(new)
         slots = self._slot[nodes]
+        cols = (slots[:, None] + np.arange(3)).ravel()
+        K = self._Y.shape[1]
+        if 2 * len(cols) >= K or self._Y.shape[0] * len(cols) * self._Y.itemsize > GATHER_BYTES:
+            self._last = (None, None)
+            return self._Y, cols
         if self._last[0] is None or not np.array_equal(self._last[0], slots):  # else the same gather as last time
-            self._last = (slots, self._Y[:, (slots[:, None] + np.arange(3)).ravel()])
-        return self._last[1]
+            self._last = (slots, self._Y[:, cols])
+        return self._last[1], None
 
     def column_cap(self, limit: int) -> int:
         """The most nodes whose columns are cached at once: 4 x ``limit`` (IterativeSettings.max_corrected_nodes), and
@@ -192,12 +211,12 @@ class Preconditioner:
         Raises numpy.linalg.LinAlgError if S is not positive definite (P is then no preconditioner for
         this constraint set)."""
         M = len(nodes)
-        Y = self.columns(nodes, cap)
+        Y, cols = self.columns(nodes, cap)
         rows = (3 * nodes[:, None] + np.arange(3)).ravel()
         j, i = np.nonzero(mask)  # constraint c: node j[c], local axis i[c]
         B = np.zeros((3 * M, len(j)))
         B[3 * j[:, None] + np.arange(3), np.arange(len(j))[:, None]] = frames[j, :, i]
-        S = B.T @ (Y[rows].astype(float) @ B)
+        S = B.T @ ((Y[rows] if cols is None else Y[np.ix_(rows, cols)]).astype(float) @ B)
         L = np.linalg.cholesky(0.5 * (S + S.T))  # LinAlgError unless positive definite
         X = np.linalg.solve(L, B.T)  # G = B S^-1 B^T = X^T X
-        return ConstraintCorrection(rows, Y, X.T @ X)
+        return ConstraintCorrection(rows, Y, X.T @ X, cols)

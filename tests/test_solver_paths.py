@@ -548,3 +548,34 @@ def _counting(solve):
         return solve(self, *args, loose=loose, **kwargs)
     _counting.loose = 0
     return counted
+
+
+@pytest.mark.parametrize("gather", [True, False])
+def test_the_correction_is_the_inverse_restricted_to_the_free_directions(gather, monkeypatch):
+    """Preconditioner.correction applied to P^-1 g gives (P restricted to the complement of the constrained
+    directions)^-1 g, against the dense inverse of that restriction: from a copy of the nodes' own columns (gather) or
+    from the product over every cached column (more cached than used: the others' coefficients zero)."""
+    from softbody import preconditioner
+
+    body, K, pre, rng = _small_system(5)
+    n3 = body.n_dofs
+    P = (body.M_blocks + 1e-3 * K)
+    up = body.pattern.upper_data(P)
+    pre.solver.factorize(up)
+    pre.factorized(None, None, np.zeros(body.n_nodes, bool))
+    Pd = body.pattern.to_bsr(P).toarray()
+    monkeypatch.setattr(preconditioner, "GATHER_BYTES", 2**40 if gather else 0)
+    pre.columns(np.arange(body.n_nodes)[::3], cap=body.n_nodes)  # more nodes cached than the correction uses
+    nodes = np.array([1, 4, 7, 9])
+    mask = np.array([[True, False, False], [True, True, True], [False, True, True], [True, False, True]])
+    Q, _ = np.linalg.qr(rng.standard_normal((len(nodes), 3, 3)))  # each node's axes, orthonormal columns
+    fix = pre.correction(nodes, mask, Q)
+    assert (fix.cols is None) == gather
+    E = np.zeros((n3, int(mask.sum())))  # the constrained unit directions, in columns
+    for c, (j, i) in enumerate(zip(*np.nonzero(mask))):
+        E[3 * nodes[j]:3 * nodes[j] + 3, c] = Q[j, :, i]
+    Z = np.linalg.svd(E, full_matrices=True)[0][:, E.shape[1]:]  # an orthonormal basis of their complement
+    g = rng.standard_normal(n3)
+    expected = Z @ np.linalg.solve(Z.T @ Pd @ Z, Z.T @ g)
+    got = fix.apply(pre.solver.solve(g.copy()))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
