@@ -62,7 +62,7 @@ class BlockPattern:
         np.add.at(indptr, brow + 1, 1)
         indptr = np.cumsum(indptr)
         scatter = inv[: E * k * k].reshape(E, k, k).astype(itype)
-        diag = inv[E * k * k:]
+        diag = inv[E * k * k:].copy()  # (a view would hold all of inv: 40 MB at 72k nodes)
         del inv
         mirror = np.searchsorted(ukey, bcol * n_nodes + brow)
         del ukey
@@ -116,9 +116,9 @@ class BlockPattern:
     def to_bsr(self, block_data: np.ndarray) -> sp.bsr_matrix:
         """The BSR matrix of block data (nnzb, 3, 3) on this pattern (sharing the data, no copy): a shallow copy
         of one checked matrix with its data swapped, 6 us against scipy's 85 us of format checks."""
-        template = self.__dict__.get("_bsr_template")
+        kept = self.__dict__.get("_bsr_template")  # (the template, the data's shape and dtype it was checked with)
         data = np.asarray(block_data)
-        if template is None or data.shape != template.data.shape or data.dtype != template.data.dtype:
+        if kept is None or data.shape != kept[1] or data.dtype != kept[2]:
             n = 3 * self.n_nodes
             template = sp.bsr_matrix((np.zeros_like(data), self.indices.copy(), self.indptr.copy()), shape=(n, n))
             if data.shape != (self.nnzb, 3, 3):
@@ -127,7 +127,9 @@ class BlockPattern:
             # (eliminate_zeros, sort_indices) fails loudly instead of corrupting the next ones
             template.indices.flags.writeable = False
             template.indptr.flags.writeable = False
-            self._bsr_template = template
+            template.data = np.empty((0, 3, 3), dtype=data.dtype)  # each copy takes its own: the template holds none (72k nodes: 62 MB)
+            kept = self._bsr_template = (template, data.shape, data.dtype)
+        template = kept[0]
         matrix = copy.copy(template)
         matrix.data = data
         return matrix
@@ -208,14 +210,15 @@ class UpperAssembly:
     pattern: BlockPattern
     layout: str
     pairs: np.ndarray  # (P, 2) local nodes a < b ("pairs") or a <= b ("matrices")
-    scatter: np.ndarray | None  # target in (n_upper, 9).ravel() of each pair's block entries (P, 3, 3, E); None once
-    # element_scatter holds it (pair_scatter)
+    scatter: np.ndarray | None  # target in (n_upper, 9).ravel() of each pair's block entries (P 3 3 E,); made at first
+    # use (pair_scatter: numpy's paths)
     summation: sp.csr_matrix | None  # "matrices": (9 n_upper, E (3k)^2), made at first use (_summation)
     n_upper: int
     upper: np.ndarray  # (nnzb,) bool: block (A, B) with A <= B
     diag: np.ndarray  # (N,) upper-block number of each node's diagonal block
     row_col_sums: sp.csr_matrix | None  # "pairs": (2N, n_upper) 0/1, sums of the upper blocks per block row / column
-    full_from_upper: np.ndarray  # (9 nnzb,) entry of (n_upper, 9).ravel() that each block entry copies
+    sources: tuple[np.ndarray, np.ndarray]  # (nnzb,) the upper block each block copies, and (nnzb,) bool: transposed
+    blocks: np.ndarray  # (E, P) each pair's block offset 9 * block in (n_upper, 9).ravel(), -offset - 1 if transposed
 
     @classmethod
     def from_elements(cls, pattern: BlockPattern, elements: np.ndarray, layout: str) -> "UpperAssembly":
@@ -231,23 +234,20 @@ class UpperAssembly:
         swap = a > b
         key = np.where(swap, b, a).astype(np.int64) * N + np.where(swap, a, b)
         blk = ub[np.searchsorted(pattern.block_row * N + pattern.indices, key)]  # (P, E)
-        i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
-        # target entry in (n_upper, 9).ravel() of each contribution (p, i, j, e); a swapped pair transposed
         itype = np.int32 if 9 * max(n_upper, k * k * E) < 2**31 else np.int64
-        target = (9 * blk.astype(itype))[:, None, None, :] + (3 * i + j).astype(itype)[None, :, :, None]
-        target += np.where(swap[:, None, None, :], (2 * (j - i)).astype(itype)[None, :, :, None], itype(0))  # 3j+i
+        # each pair's block offset 9 * block in (n_upper, 9).ravel(), element-major (E, P); a swapped pair (its
+        # global nodes the other way: the block transposed) as -(offset) - 1 (pair_scatter expands it entry by entry)
+        blocks = 9 * blk.astype(itype)
+        blocks = np.ascontiguousarray(np.where(swap, -blocks - 1, blocks).T)
         del blk, swap, key, a, b
-        scatter = target.reshape(-1)  # both layouts ("matrices": for the compiled pass and the summation matrix)
-        del target
         sums = None
         if layout == "pairs":
             rows, cols = pattern.block_row[upper], pattern.indices[upper]
             sums = sp.csr_matrix((np.ones(2 * n_upper), (np.r_[rows, N + cols], np.tile(np.arange(n_upper), 2))),
                                  shape=(2 * N, n_upper))
-        src = np.where(upper, np.arange(pattern.nnzb), pattern.mirror)
-        entry = np.where(upper[:, None, None], (3 * i + j)[None], (3 * j + i)[None])
-        full_from_upper = (9 * ub[src][:, None, None] + entry).reshape(-1).astype(itype)
-        return cls(pattern, layout, pairs, scatter, None, n_upper, upper, ub[pattern.diag], sums, full_from_upper)
+        # each block's upper block (its mirror's for a lower one, read transposed)
+        sources = (ub[np.where(upper, np.arange(pattern.nnzb), pattern.mirror)].astype(itype), ~upper)
+        return cls(pattern, layout, pairs, None, None, n_upper, upper, ub[pattern.diag], sums, sources, blocks)
 
     def assemble(self, contributions: np.ndarray) -> np.ndarray:
         """Upper block data (n_upper, 9) from pair blocks (P, 3, 3, E) ("pairs") or element matrices
@@ -289,29 +289,33 @@ class UpperAssembly:
         return U
 
     def element_scatter(self) -> np.ndarray:
-        """The scatter as (E, P, 3, 3), element-major (made at first use; for a pass over the elements,
-        softbody.kernels.warped_pairs or warped_gram, whose reads of it then run along memory). The pair-major copy
-        is let go then: the compiled passes read only this one (``pair_scatter`` makes it again for numpy's)."""
-        if "_element_scatter" not in self.__dict__:
-            P = len(self.pairs)
-            self._element_scatter = np.ascontiguousarray(self.scatter.reshape(P, 3, 3, -1).transpose(3, 0, 1, 2))
-            self.scatter = None
-        return self._element_scatter
+        """Each element pair's block (E, P), element-major: its offset 9 * block in (n_upper, 9).ravel(), or
+        -offset - 1 where the pair's global nodes run the other way (its 3x3 block added transposed): for a pass over
+        the elements (softbody.kernels.warped_pairs, warped_gram), one integer a pair (9 entries' targets took 9x
+        the memory: 67 MB at 330k tet4 elements)."""
+        return self.blocks
 
     def pair_scatter(self) -> np.ndarray:
-        """The scatter pair-major (P 3 3 E,): the target in (n_upper, 9).ravel() of each contribution (p, i, j, e)."""
-        if self.scatter is None:  # the numpy path after the compiled one (kernels switched off): kept from now on
-            self.scatter = np.ascontiguousarray(self._element_scatter.transpose(1, 2, 3, 0)).reshape(-1)
+        """The scatter pair-major (P 3 3 E,): the target in (n_upper, 9).ravel() of each contribution (p, i, j, e)
+        (numpy's paths; made at first use from ``blocks`` and kept)."""
+        if self.scatter is None:
+            b = self.blocks.T  # (P, E)
+            swap = b < 0
+            base = np.where(swap, -b - 1, b)
+            i, j = np.meshgrid(np.arange(3), np.arange(3), indexing="ij")
+            target = base[:, None, None, :] + (3 * i + j).astype(b.dtype)[None, :, :, None]
+            target += np.where(swap[:, None, None, :], (2 * (j - i)).astype(b.dtype)[None, :, :, None], b.dtype.type(0))
+            self.scatter = target.reshape(-1)  # 3j+i where transposed
         return self.scatter
 
     def full_sources(self) -> tuple[np.ndarray, np.ndarray]:
         """What ``full`` copies block by block: the upper block (nnzb,) of each block, and whether transposed (nnzb,)
-        (for softbody.kernels.system_blocks; made at first use)."""
-        if "_full_sources" not in self.__dict__:
-            entries = self.full_from_upper.reshape(-1, 9)
-            self._full_sources = (entries[:, 0] // 9, entries[:, 1] % 9 == 3)
-        return self._full_sources
+        (for softbody.kernels.system_blocks)."""
+        return self.sources
 
     def full(self, upper: np.ndarray) -> np.ndarray:
         """Block data (nnzb, 3, 3) of the symmetric matrix with upper block data ``upper`` (n_upper, 9)."""
-        return upper.reshape(-1)[self.full_from_upper].reshape(-1, 3, 3)
+        source, transposed = self.sources
+        out = upper.reshape(-1, 3, 3)[source]
+        out[transposed] = out[transposed].transpose(0, 2, 1)
+        return out

@@ -300,19 +300,8 @@ class FemBody:
                 self._mean_divergence = g_mean.reshape(E, 3 * k)
         self._elements_c = np.ascontiguousarray(mesh.elements, dtype=np.int64)  # for kernels.warped_product
 
-        # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3
-        xim, wm = et.mass_rule
-        detJm = np.linalg.det(jacobians(et, X, xim))  # (E, q): the mass needs no gradients
-        N = et.shape(xim)
-        density = np.broadcast_to(material.density, (E,))
-        Me = density[:, None, None] * np.einsum("eq,qa,qb->eab", detJm * wm, N, N, optimize=True)
-        self.volumes = detJm @ wm
-        if mass == "lumped":  # HRZ: diagonal scaled to the element mass; positive for every element type
-            d = np.einsum("eaa->ea", Me)
-            d *= (density * self.volumes / d.sum(axis=1))[:, None]
-            Me = np.einsum("ea,ab->eab", d, np.eye(k))
-        self.Me = Me
-
+        # mass: scalar element matrices (E, k, k), the 3x3 blocks are multiples of I3 (not kept: Me makes them again)
+        Me = self._element_masses()
         # characteristic tetrahedra for the warping rotation: the operator of their deformation gradients
         ct = et.char_tets if (et.name != "hex8" or hex_rotation == "average") else et.char_tets[:1]
         self.char_tets = ct
@@ -328,6 +317,8 @@ class FemBody:
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
         self._Gc = Gc[:, 0]  # (E, k, 3); the strain from them directly (no (E, 6, 3k) B matrices kept)
+        if self._Gc.shape == self._char_grads.shape and np.array_equal(self._Gc, self._char_grads):
+            self._Gc = self._char_grads  # (tet4: the element is its characteristic tetrahedron; one copy, not two)
         # the elasticity matrix (6, 6), or per element (E, 6, 6) for regions, for stress output
         self.D = (np.array([isotropic_elasticity(*m.lame) for m in material.materials])[material.labels] if regions
                   else material.elasticity_matrix())
@@ -351,6 +342,29 @@ class FemBody:
         self._used = mesh.used_nodes()
         self.fixed[~self._used] = True  # unused nodes carry no mass: hold them at rest
         self.prescribed: list[tuple[np.ndarray, Motion]] = []
+
+    def _element_masses(self) -> np.ndarray:
+        """The scalar element mass matrices (E, k, k) [kg] (consistent, or HRZ-lumped), and ``volumes`` (E,) [m^3]."""
+        et, mesh = self.element_type, self.mesh
+        X = mesh.nodes[mesh.elements]  # (E, k, 3)
+        E, k = mesh.elements.shape
+        xim, wm = et.mass_rule
+        detJm = np.linalg.det(jacobians(et, X, xim))  # (E, q): the mass needs no gradients
+        N = et.shape(xim)
+        density = np.broadcast_to(self.material.density, (E,))
+        Me = density[:, None, None] * np.einsum("eq,qa,qb->eab", detJm * wm, N, N, optimize=True)
+        self.volumes = detJm @ wm
+        if self.mass_kind == "lumped":  # HRZ: diagonal scaled to the element mass; positive for every element type
+            d = np.einsum("eaa->ea", Me)
+            d *= (density * self.volumes / d.sum(axis=1))[:, None]
+            Me = np.einsum("ea,ab->eab", d, np.eye(k))
+        return Me
+
+    @property
+    def Me(self) -> np.ndarray:
+        """The scalar element mass matrices (E, k, k) [kg], each 3x3 block a multiple of I3 (made on each call: the
+        step reads the assembled M_data; 40 MB at 330k tet4 elements)."""
+        return self._element_masses()
 
     @property
     def M_blocks(self) -> np.ndarray:

@@ -92,8 +92,9 @@ def polar_newton(F9: np.ndarray, tol: float, max_iter: int, R9: np.ndarray, ok: 
 def warped_pairs(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndarray, pairs: np.ndarray,
                  target: np.ndarray, out: np.ndarray, loads: np.ndarray) -> None:
     """One pass over the elements of a one-point mesh (tet4): the rotated gradients g_a = R_e G_ea (R component-major
-    (9, E), G (E, k, 3)), their pair blocks g_a g_b^T for the node pairs (P, 2) added into out[target[e, p, i, j]]
-    (out flat, target (E, P, 3, 3): UpperAssembly.element_scatter), and the warped rest loads R_e P_ea (P (E, k, 3))
+    (9, E), G (E, k, 3)), their pair blocks g_a g_b^T for the node pairs (P, 2) added into out at the pair's block
+    (out flat, target (E, P): UpperAssembly.element_scatter, the block's offset, or -offset - 1 for the block
+    transposed), and the warped rest loads R_e P_ea (P (E, k, 3))
     added into loads (N, 3) at the element's nodes (E, k). The sums of FemBody.warped_stiffness_upper's numpy path
     (a sparse product, a bincount and another sparse product), element by element: equal to round-off."""
     E, k = elements.shape
@@ -112,9 +113,16 @@ def warped_pairs(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndar
                 loads[node, i] += t
         for p in range(pairs.shape[0]):
             a, b = pairs[p, 0], pairs[p, 1]
-            for i in range(3):
-                for j in range(3):
-                    out[target[e, p, i, j]] += g[a, i] * g[b, j]
+            t = target[e, p]
+            if t >= 0:
+                for i in range(3):
+                    for j in range(3):
+                        out[t + 3 * i + j] += g[a, i] * g[b, j]
+            else:
+                t = -t - 1
+                for i in range(3):
+                    for j in range(3):
+                        out[t + 3 * j + i] += g[a, i] * g[b, j]
 
 
 @_jit
@@ -122,7 +130,7 @@ def warped_gram(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndarr
                 target: np.ndarray, out: np.ndarray, loads: np.ndarray) -> None:
     """warped_pairs for elements with q quadrature points (tet10, hex8): the rotated weighted gradients
     g_qa = R_e G_eqa (G (E, q, k, 3)), the Gram blocks sum_q g_qa g_qb^T of the node pairs a <= b (P, 2) added into
-    out[target[e, p, i, j]] (UpperAssembly.element_scatter of the "matrices" layout), and the warped rest loads
+    out at the pair's block (UpperAssembly.element_scatter of the "matrices" layout), and the warped rest loads
     R_e P_ea (P (E, k, 3)) into loads (N, 3). FemBody.warped_stiffness_upper's batched Gram matrices, their
     summation product and the rest loads' sparse product, element by element: equal to round-off."""
     E, q, k = G.shape[0], G.shape[1], G.shape[2]
@@ -143,12 +151,16 @@ def warped_gram(R9: np.ndarray, G: np.ndarray, P: np.ndarray, elements: np.ndarr
             loads[node, 2] += r6 * x0 + r7 * x1 + r8 * x2
         for p in range(pairs.shape[0]):
             a, b = pairs[p, 0], pairs[p, 1]
+            t = target[e, p]
+            ti, tj = 3, 1  # the entry (i, j) of the pair's block at t + 3 i + j, or transposed at t + 3 j + i
+            if t < 0:
+                t, ti, tj = -t - 1, 1, 3
             for i in range(3):
                 for j in range(3):
                     s = 0.0
                     for p_ in range(q):
                         s += g[a, i, p_] * g[b, j, p_]
-                    out[target[e, p, i, j]] += s
+                    out[t + ti * i + tj * j] += s
 
 
 @_jit

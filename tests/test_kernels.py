@@ -675,25 +675,37 @@ def test_line_search_slopes_equal_the_laws_impulses_and_hessians(cone):
 
 
 @pytest.mark.parametrize("layout, kind", [("pairs", "tet4"), ("matrices", "hex8")])
-def test_the_pair_scatter_comes_back_from_the_element_scatter(layout, kind, monkeypatch):
-    """UpperAssembly lets its pair-major scatter go once the element-major one is made (the compiled passes read only
-    that); numpy's assembly after that gives the same upper blocks as before it."""
+def test_the_upper_assembly_sums_what_a_dense_assembly_sums(layout, kind, monkeypatch):
+    """UpperAssembly keeps one signed block offset per element pair (element_scatter: a pair whose global nodes run the
+    other way goes in transposed); numpy's assembly through the scatter it expands from them, mirrored by ``full``,
+    equals element blocks summed into a dense matrix: each pair's block at (a, b) and its transpose at (b, a), the
+    "pairs" layout's diagonal blocks minus the rest of their block row."""
     from softbody import box_mesh
     from softbody.assembly import BlockPattern, UpperAssembly
 
     mesh = box_mesh((0.3, 0.2, 0.2), (3, 2, 2), kind)
     pattern = BlockPattern.from_elements(mesh.elements, mesh.n_nodes)
     ua = UpperAssembly.from_elements(pattern, mesh.elements, layout)
+    assert ua.element_scatter().shape == (len(mesh.elements), len(ua.pairs))
     rng = np.random.default_rng(9)
     E, k = mesh.elements.shape
+    n = mesh.n_nodes
+    dense = np.zeros((n, 3, n, 3))
     if layout == "pairs":
         c = rng.standard_normal((len(ua.pairs), 3, 3, E))
+        for e in range(E):
+            for p, (a, b) in enumerate(ua.pairs):
+                A, B = mesh.elements[e, a], mesh.elements[e, b]
+                dense[A, :, B] += c[p, :, :, e]
+                dense[B, :, A] += c[p, :, :, e].T
+        for A in range(n):  # block rows sum to zero
+            dense[A, :, A] = -dense[A].sum(axis=1)
     else:
         c = rng.standard_normal((E, 3 * k, 3 * k))
         c = c + np.swapaxes(c, 1, 2)
+        for e in range(E):
+            nodes = mesh.elements[e]
+            dense[nodes[:, None], :, nodes[None, :], :] += c[e].reshape(k, 3, k, 3).transpose(0, 2, 1, 3)
     monkeypatch.setattr(kernels, "ENABLED", False)
-    before = ua.assemble(c.copy())
-    ua.summation = None
-    ua.element_scatter()
-    assert ua.scatter is None
-    np.testing.assert_array_equal(ua.assemble(c.copy()), before)
+    got = pattern.to_bsr(ua.full(ua.assemble(c.copy()))).toarray()
+    np.testing.assert_allclose(got, dense.reshape(3 * n, 3 * n), rtol=0, atol=1e-12 * np.abs(dense).max())
