@@ -514,6 +514,7 @@ class IterativeSystem:
             if self.matrix_free:  # A exists now: its sparse product is the cheaper one for the rest of the step
                 self._product = _product_of(self.body.pattern.to_bsr(A))
         keep = mask if everything else mask & self.body.supported()[:, None]
+        self.pre.drop_columns()
         factorize_constrained(self.body, A, T, keep, self.pre.solver, self.timings)
         self.pre.factorized(T, self.Q, _any_component(keep))
         self.stats["factorizations"] += 1

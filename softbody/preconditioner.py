@@ -149,6 +149,13 @@ class Preconditioner:
             return None
         return max(1.0, costs[0] / costs[1] / REFACTOR_HORIZON)
 
+    def drop_columns(self) -> None:
+        """Let the cached columns go (before a refactorisation, which makes them stale: its peak then holds the new
+        factor without the old columns beside it, 158 MB at 72k tet4 nodes)."""
+        if self._slot is not None:
+            self._slot = np.full(len(self._slot), -1)
+        self._Y, self._store, self._last = None, None, (None, None)
+
     def factorized(self, T, Q: np.ndarray | None, eliminated: np.ndarray) -> None:
         """Record a new factorisation: its frames, node rotations and eliminated nodes; drop cached columns."""
         self.T, self.Q, self.eliminated = T, Q, eliminated
