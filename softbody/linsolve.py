@@ -339,6 +339,9 @@ class AMGFactorization(_HeldFactor):
     SETUP_CYCLES = 20.0
     #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve)
     MAX_COARSE = 1000
+    #: what pyamg's levels keep of the set-up (the strength of connection C, as large as A on the finest level, the
+    #: aggregates, the tentative prolongator T, the near null space): let go once it is built
+    SETUP_ONLY = ("C", "AggOp", "T", "Cnodes", "B", "BH")
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
         self.n, self.indptr, self.indices = n, indptr, indices
@@ -368,6 +371,9 @@ class AMGFactorization(_HeldFactor):
                                                           postsmoother=smoother, max_coarse=self.MAX_COARSE)
         finally:
             np.random.set_state(state)
+        for level in hierarchy.levels:  # what the set-up kept for inspection; a V-cycle reads A, P, R and smoothers
+            for name in self.SETUP_ONLY:
+                level.__dict__.pop(name, None)
         self._factor = hierarchy.aspreconditioner(cycle="V")
 
     def solve(self, b: np.ndarray) -> np.ndarray:
