@@ -312,7 +312,9 @@ class FemBody:
         # gradients g_a (rows of Dm^-1, and minus their sum for the first node) divided by c
         gc = np.concatenate([-Dm_inv.sum(axis=2, keepdims=True), Dm_inv], axis=2) / len(ct)
         self._char_grads = gc.reshape(E, -1, 3)  # (E, 4c, 3), on the element's local nodes ct.reshape(-1)
-        self._char_nodes = np.ascontiguousarray(mesh.elements[:, ct.reshape(-1)], dtype=np.int64)  # (E, 4c) global
+        local = ct.reshape(-1)
+        self._char_nodes = (self._elements_c if np.array_equal(local, np.arange(mesh.elements.shape[1]))  # (tet4)
+                            else np.ascontiguousarray(mesh.elements[:, local], dtype=np.int64))  # (E, 4c) global
 
         # gradients at the element centre for strain and stress output
         Gc, _ = shape_gradients(et, X, et.centroid[None])
@@ -327,8 +329,7 @@ class FemBody:
         self._mass_upper = self.M_data[self._upper.upper]  # (n_upper,) on the upper blocks
         n = mesh.n_nodes
         self._mass_csr = sp.csr_matrix((self.M_data, self.pattern.indices, self.pattern.indptr), shape=(n, n))
-        Ek = mesh.elements.size  # (N, E*k) 0/1 matrix summing element-node entries into nodes
-        self._scatter = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.arange(Ek))), shape=(n, Ek))
+        Ek = mesh.elements.size
         # sums per-element rows (E, m) into nodes (N, m)
         self._incidence = sp.csr_matrix((np.ones(Ek), (mesh.elements.ravel(), np.repeat(np.arange(E), k))),
                                         shape=(n, E))
@@ -761,6 +762,13 @@ class FemBody:
             return -((self.Ke @ u[:, :, None]).reshape(E, k, 3) @ np.swapaxes(R, 1, 2))
 
         return self.pattern.assemble(-_element_differences(forces, xe, rel_step))
+
+    @cached_property
+    def _scatter(self) -> sp.csr_matrix:
+        """The (N, E*k) 0/1 matrix summing element-node rows into nodes (made at first use: the warped step's compiled
+        kernels sum in place)."""
+        Ek = self.mesh.elements.size
+        return sp.csr_matrix((np.ones(Ek), (self.mesh.elements.ravel(), np.arange(Ek))), shape=(self.n_nodes, Ek))
 
     def scatter_nodal(self, fe: np.ndarray) -> np.ndarray:
         """Sum per-element nodal vectors (E, k, 3) into (N, 3)."""

@@ -84,10 +84,11 @@ def new_solver(body: FemBody, backend: str = "auto", precision: str = "double") 
 #: "auto" sets up algebraic multigrid instead of a factor when the single-precision factorisation would take more
 #: than this many bytes per node (PARDISO's own count from the analysis, iparm 17: about 4 bytes per nonzero of the
 #: factor): the factor of a 3-D body grows as N^4/3 and beyond, multigrid's hierarchy stays a few times A. On the tet4
-#: sheet-on-sphere the factor takes 4.6 kB per node at 31k nodes and 7.5 kB at 72k; multigrid's V-cycle costs 1.5-2
-#: of the factor's solves and needs more iterations, so through the impact a step takes 1.5-2x as long, for 0.5 GB
-#: less peak memory at 72k nodes (2.1 against 2.7 GB): the factor is kept while moderate
-MULTIGRID_FACTOR_BYTES = 8192
+#: sheet-on-sphere the factor takes 4.6 kB per node at 31k nodes and 7.7 kB at 72k. Steps 9-15 into the impact
+#: (2026-11-29, multigrid aggregating nodes, softbody.linsolve.AMGFactorization): at 31k nodes 9.3 s with multigrid
+#: against 7.8 s with the factor, at 72k nodes 39.2 s against 39.1 s, for a peak of 15.2 against 23.2 kB per node:
+#: multigrid from about 62k tet4 nodes on
+MULTIGRID_FACTOR_BYTES = 7168
 
 #: bodies below this many unknowns keep a factor without asking (their factor is small; no analysis up front)
 MULTIGRID_MIN_DOFS = 60_000
