@@ -23,11 +23,12 @@ from softbody.meshing import grid_mesh_size
 
 #: element -> (a [MB], p, b [ms], q), fitted by benchmarks/memory_model.py over runs of 4000-106000 nodes
 MODEL = {"tet4": (44.0, 1.014, 1.46, 1.93), "hex8": (48.7, 1.040, 1.61, 1.94), "tet10": (56.0, 0.976, 2.80, 1.84)}
-#: element -> (nodes, MB per 1000 nodes): from this many nodes on, "auto" preconditions with multigrid instead of a
-#: factor (softbody.solvers.MULTIGRID_FACTOR_BYTES: the tet4 sheet's factor passes 8 kB per node near 80k nodes),
-#: and memory grows linearly: measured peak 10.9 GB above the imports for the 549k-node tet4 sheet into the impact
-#: (docs/benchmarks.md, "Large bodies"). Other elements: no measurement yet, the factor's model above stands
-MULTIGRID = {"tet4": (80_000, 19.8)}
+#: element -> (nodes, MB, MB per 1000 nodes): from this many nodes on, "auto" preconditions with multigrid instead of a
+#: factor (softbody.solvers.MULTIGRID_FACTOR_BYTES: the tet4 sheet's factor passes 7 kB per node near 62k nodes),
+#: and memory grows linearly: the peaks above the imports of the tet4 sheets of 72k, 235k and 549k nodes into the
+#: impact, 0.94, 2.68 and 6.16 GB (docs/benchmarks.md, "Large bodies", 2026-11-29), fitted within 4%. Other
+#: elements: no measurement yet, the factor's model above stands
+MULTIGRID = {"tet4": (62_000, 156.0, 10.93)}
 BASE_MB, BASE_MS = 40.0, 2.0
 WARN_MB = 2000.0  # warn above this estimate [MB]
 REFUSE_FRACTION = 0.9  # refuse above this fraction of the available memory (the model's error is about 10%)
@@ -55,7 +56,7 @@ def estimate(element: str, cells: Sequence[int], periodic_first: bool = False) -
     k = nodes / 1000.0
     memory = BASE_MB + a * k**p
     if element in MULTIGRID and nodes >= MULTIGRID[element][0]:
-        memory = BASE_MB + MULTIGRID[element][1] * k
+        memory = MULTIGRID[element][1] + MULTIGRID[element][2] * k
     return SizeEstimate(element, tuple(int(c) for c in cells), nodes, elements, memory, BASE_MS + b * k**q)
 
 
