@@ -203,7 +203,7 @@ class UpperAssembly:
       picked and summed by one product with a 0/1 summation matrix (CSR, a row per upper entry): its
       gathers run along the element matrices' rows, measured 1.5-2x faster than a gather and a bincount.
       Their diagonal pairs are computed anyway, so they are summed rather than rebuilt from the rows. (With
-      numba, softbody.kernels.warped_gram adds each pair's blocks through ``scatter`` element by element instead,
+      numba, softbody.kernels.warped_gram adds each pair's blocks through ``blocks`` element by element instead,
       and the summation matrix is never made.)
     """
 
@@ -259,7 +259,7 @@ class UpperAssembly:
 
     def _summation(self) -> sp.csr_matrix:
         """"matrices" layout: the 0/1 summation matrix (9 n_upper, E (3k)^2), a row per upper entry, made at first
-        use (the compiled pass, kernels.warped_gram, sums through the scatter instead): entry (e, 3 a + i, 3 b + j) of
+        use (the compiled pass, kernels.warped_gram, sums through ``blocks`` instead): entry (e, 3 a + i, 3 b + j) of
         the element matrices, the CSR built directly, rows sorted."""
         if self.summation is None:
             scatter = self.pair_scatter()

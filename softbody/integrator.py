@@ -619,6 +619,7 @@ class IterativeSystem:
         self.pre.products += 1 + its  # the initial residual and one per iteration
         if not ok:  # the preconditioner is too far off: refactorise now and finish from y
             self.pre.stale = True
+            fix = None  # (it holds the cached columns, which the refactorisation lets go)
             C, fix = self._prepared(T, mask)
             with timed(self.timings, "solve"):
                 y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)

@@ -229,7 +229,8 @@ class PardisoFactorization:
             try:
                 self._call(-1, np.zeros(1), np.zeros(self.n))
                 # MKL keeps what PARDISO let go in its own pool: back to the system (a large body's analysis made only
-                # to count its factor, multigrid chosen instead: 89 MB at 72k tet4 nodes)
+                # to count its factor, multigrid chosen instead: 89 MB at 72k tet4 nodes; buffers in use stay, and
+                # the library solves from one thread)
                 self._ps.libmkl.mkl_free_buffers()
             except Exception:
                 pass
@@ -341,7 +342,8 @@ class AMGFactorization(_HeldFactor):
     #: a set-up costs about this many V-cycles (measured on the tet4 sheets: 0.92 s against 24 ms at 31k nodes, 1.58 s
     #: against 52 ms at 72k)
     SETUP_CYCLES = 30.0
-    #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve)
+    #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve); pyamg counts
+    #: the block matrix's nodes, a third of them
     MAX_COARSE = 1000
     #: what pyamg's levels keep of the set-up (the strength of connection C, as large as A on the finest level, the
     #: aggregates, the tentative prolongator T, the near null space): let go once it is built
@@ -380,7 +382,7 @@ class AMGFactorization(_HeldFactor):
             # iterations; Gauss-Seidel on the block matrices cost 3x the scalar one)
             hierarchy = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric",
                                                           strength=("symmetric", {"theta": 0.0}), presmoother=smoother,
-                                                          postsmoother=smoother, max_coarse=self.MAX_COARSE)
+                                                          postsmoother=smoother, max_coarse=self.MAX_COARSE // 3)
             del A
             for level in hierarchy.levels:
                 level.A = level.A.tocsr()

@@ -64,8 +64,7 @@ REFACTOR_HORIZON = 4.0
 
 #: the correction's cached columns hold at most this many bytes per node of the body (Preconditioner.column_cap):
 #: 64 nodes' columns in single precision (IterativeSettings.max_corrected_nodes), whatever the body's size (at 72k
-#: nodes, 4 x 64 nodes' columns took 0.66 GB, 9 kB per node; the columns of the nodes in use are gathered once
-#: more for the products)
+#: nodes, 4 x 64 nodes' columns took 0.66 GB, 9 kB per node; the products read them in place, GATHER_BYTES)
 COLUMN_BYTES_PER_NODE = 2304
 
 #: the columns of the nodes a correction uses are gathered into a copy of their own (one product over them alone) only

@@ -86,7 +86,7 @@ def new_solver(body: FemBody, backend: str = "auto", precision: str = "double") 
 #: factor): the factor of a 3-D body grows as N^4/3 and beyond, multigrid's hierarchy stays a few times A. On the tet4
 #: sheet-on-sphere the factor takes 4.6 kB per node at 31k nodes and 7.7 kB at 72k. Steps 9-15 into the impact
 #: (2026-11-29, multigrid aggregating nodes, softbody.linsolve.AMGFactorization): at 31k nodes 9.3 s with multigrid
-#: against 7.8 s with the factor, at 72k nodes 39.2 s against 39.1 s, for a peak of 15.2 against 23.2 kB per node:
+#: against 7.8 s with the factor, at 72k nodes 39.2 s against 39.1 s, for a peak of 13.4 against 23.2 kB per node (softbody bench --large):
 #: multigrid from about 62k tet4 nodes on
 MULTIGRID_FACTOR_BYTES = 7168
 
