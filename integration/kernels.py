@@ -261,17 +261,17 @@ def tangent_frames(normals: np.ndarray, F: np.ndarray) -> None:
 
 @_jit
 def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float, active: np.ndarray,
-                    stick: np.ndarray, released: np.ndarray, friction: np.ndarray, mu: np.ndarray,
+                    stick: np.ndarray, released: np.ndarray, restuck: np.ndarray, friction: np.ndarray, mu: np.ndarray,
                     slip_force: np.ndarray, eligible: np.ndarray, it: int, lock_after: int, switches: int,
                     velocity_tol: float, cone_tol: float, slip_tol: float, gap_rate: np.ndarray, mag: np.ndarray,
                     d_stick: np.ndarray, new_slip: np.ndarray, want_slip: np.ndarray, want_stick: np.ndarray,
                     new_active: np.ndarray, new_stick: np.ndarray) -> bool:
     """One read of the active-set loop (contact._ContactSet.update, the same rules and arithmetic, contact by
     contact): forces rl (m, 3) [N] and relative velocities vrel (m, 3) in the contact frames, gaps (m,) [m],
-    the state active, stick, released, friction (m,) bool, mu (m,), slip_force (m, 3) and the contacts
-    ``eligible`` to be added. Fills gap_rate, mag (m,), d_stick, new_slip (m, 2), want_slip, want_stick (m,);
-    ``released`` in place; returns whether the set changed, and then the new state in new_active, new_stick
-    and slip_force (in place)."""
+    the state active, stick, released, restuck (stopped sliding in this step: it does not slip again in it),
+    friction (m,) bool, mu (m,), slip_force (m, 3) and the contacts ``eligible`` to be added. Fills gap_rate, mag
+    (m,), d_stick, new_slip (m, 2), want_slip, want_stick (m,); ``released`` and ``restuck`` in place; returns
+    whether the set changed, and then the new state in new_active, new_stick and slip_force (in place)."""
     m = rl.shape[0]
     switching = it <= switches
     changed = False
@@ -291,13 +291,15 @@ def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float,
         ftn = math.sqrt(f1 * f1 + f2 * f2)
         lam_pos = max(lam, 0.0)
         want_slip[k] = active[k] and stick[k] and ftn > mu[k] * lam_pos * (1 + cone_tol)
-        to_slip = switching and want_slip[k]
+        to_slip = switching and want_slip[k] and not restuck[k]
         v1, v2 = vrel[k, 1], vrel[k, 2]
         vtn = math.sqrt(v1 * v1 + v2 * v2)
         o1, o2 = slip_force[k, 1], slip_force[k, 2]
         reversed_ = v1 * o1 + v2 * o2 > 0
         want_stick[k] = active[k] and not stick[k] and friction[k] and (reversed_ or vtn < velocity_tol)
         to_stick = switching and want_stick[k]
+        if to_stick:
+            restuck[k] = True
         if ftn > 0:
             d_stick[k, 0], d_stick[k, 1] = f1 / ftn, f2 / ftn
         else:
@@ -326,7 +328,7 @@ def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float,
     if changed:  # the sliding forces of the new state (the loop above left slip_force as it was)
         for k in range(m):
             cont = active[k] and not stick[k] and friction[k] and not (switching and want_stick[k])
-            to_slip = switching and want_slip[k]
+            to_slip = switching and want_slip[k] and not restuck[k]
             if new_active[k] and (to_slip or cont):
                 slip_force[k, 1], slip_force[k, 2] = new_slip[k, 0], new_slip[k, 1]
             else:

@@ -315,3 +315,37 @@ def test_node_contacts_alone_step_as_the_coupled_active_set(monkeypatch):
         for a, b in zip(x1, x2):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
         np.testing.assert_allclose(f1, f2, rtol=0, atol=1e-9 * np.abs(f2).max())
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_contact_that_stopped_sliding_does_not_slip_again_in_the_step(compiled, monkeypatch):
+    """The active set's friction rules, on one node contact read by hand (contact._NodeSet, compiled and numpy): the
+    force its stick needs leaves the cone (it slips, the friction along that force), its velocity then runs along the
+    friction (it stopped: it sticks), and the stick again needs more than the cone. It stays sticking for the rest of
+    the step, the set standing (near the cone's edge stick and slip took turns until the switch cap), with its wish to
+    slip carried to the next step. A second contact slides on throughout."""
+    from integration import contact, kernels
+
+    monkeypatch.setattr(kernels, "ENABLED", compiled and kernels.AVAILABLE)
+    h, mu = 0.01, 0.5
+    c = contact.NodeContacts(np.array([0, 1]), np.tile([0.0, 0.0, 1.0], (2, 1)), np.zeros(2), np.zeros((2, 3)),
+                             np.full(2, mu), np.zeros(2, np.int64), np.zeros((2, 3)))
+    keys = set(c.node.tolist())
+    s = contact._NodeSet(contact.ContactSolver(), c, (keys, keys, {}), h, 2)  # both active and sticking
+    F = s.frames  # (2, 3, 3): columns normal, tangent 1, tangent 2
+
+    def read(v_local, force_local, it):
+        v = np.einsum("mij,mj->mi", F, np.asarray(v_local, float))
+        return s.read(v, h * np.asarray(force_local, float), np.zeros(0), it)
+
+    beyond = [[1.0, 0.8, 0.0], [1.0, 0.8, 0.0]]  # 0.8 N needed, the cone 0.5 N
+    assert read([[0.0, 0.0, 0.0]] * 2, beyond, 1)
+    assert not s.stick.any() and np.allclose(s.slip_force[:, 1:], [[mu, 0.0]] * 2)
+    # node 0 runs along its friction (stopped: sticks); node 1 slides against it
+    assert read([[0.0, 0.01, 0.0], [0.0, -0.01, 0.0]], [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]], 2)
+    assert s.stick.tolist() == [True, False]
+    # node 0's stick needs more than the cone again: it stays sticking in this step and wants to slip in the next
+    changed = read([[0.0, 0.0, 0.0], [0.0, -0.01, 0.0]], [[1.0, 0.8, 0.0], [1.0, 0.0, 0.0]], 3)
+    assert not changed and s.stick.tolist() == [True, False] and s.want_slip.tolist() == [True, False]
+    _, (active, stick, slip) = s.result(3)
+    assert active == {0, 1} and stick == set() and set(slip) == {0, 1}
