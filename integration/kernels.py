@@ -263,13 +263,15 @@ def tangent_frames(normals: np.ndarray, F: np.ndarray) -> None:
 def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float, active: np.ndarray,
                     stick: np.ndarray, released: np.ndarray, restuck: np.ndarray, friction: np.ndarray, mu: np.ndarray,
                     slip_force: np.ndarray, eligible: np.ndarray, it: int, lock_after: int, switches: int,
+                    last_slip: np.ndarray,
                     velocity_tol: float, cone_tol: float, slip_tol: float, gap_rate: np.ndarray, mag: np.ndarray,
                     d_stick: np.ndarray, new_slip: np.ndarray, want_slip: np.ndarray, want_stick: np.ndarray,
                     new_active: np.ndarray, new_stick: np.ndarray) -> bool:
     """One read of the active-set loop (contact._ContactSet.update, the same rules and arithmetic, contact by
     contact): forces rl (m, 3) [N] and relative velocities vrel (m, 3) in the contact frames, gaps (m,) [m],
     the state active, stick, released, restuck (stopped sliding in this step: it does not slip again in it),
-    friction (m,) bool, mu (m,), slip_force (m, 3) and the contacts ``eligible`` to be added. Fills gap_rate, mag
+    friction (m,) bool, mu (m,), slip_force (m, 3) and the contacts ``eligible`` to be added; last_slip (1,): the
+    sliding forces' change at the last read that changed nothing else (inf: none), in place. Fills gap_rate, mag
     (m,), d_stick, new_slip (m, 2), want_slip, want_stick (m,); ``released`` and ``restuck`` in place; returns
     whether the set changed, and then the new state in new_active, new_stick and slip_force (in place)."""
     m = rl.shape[0]
@@ -323,8 +325,11 @@ def friction_update(rl: np.ndarray, vrel: np.ndarray, gap: np.ndarray, h: float,
             changed = True
         new_active[k] = (active[k] and not release) or add
         new_stick[k] = (stick[k] and not to_slip) or to_stick
-    if (it <= switches + 1) and slip_change > slip_tol * max(1e-12, top_mag) and any_cont:
+    structural = changed
+    if (it <= switches + 1) and slip_change > slip_tol * max(1e-12, top_mag) and any_cont and (
+            structural or slip_change < last_slip[0]):
         changed = True
+    last_slip[0] = math.inf if structural else slip_change
     if changed:  # the sliding forces of the new state (the loop above left slip_force as it was)
         for k in range(m):
             cont = active[k] and not stick[k] and friction[k] and not (switching and want_stick[k])

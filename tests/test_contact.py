@@ -349,3 +349,32 @@ def test_a_contact_that_stopped_sliding_does_not_slip_again_in_the_step(compiled
     assert not changed and s.stick.tolist() == [True, False] and s.want_slip.tolist() == [True, False]
     _, (active, stick, slip) = s.result(3)
     assert active == {0, 1} and stick == set() and set(slip) == {0, 1}
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_sliding_forces_fixed_point_stops_where_its_change_grows(compiled, monkeypatch):
+    """The sliding friction of a node contact follows its velocity from solve to solve (a fixed point, contact._NodeSet,
+    compiled and numpy): while the forces' change shrinks the set is read again; where it grows (the velocities'
+    round-off turning it round near the tolerance) the set stands with the forces it had."""
+    from integration import contact, kernels
+
+    monkeypatch.setattr(kernels, "ENABLED", compiled and kernels.AVAILABLE)
+    h, mu = 0.01, 0.5
+    c = contact.NodeContacts(np.array([0]), np.array([[0.0, 0.0, 1.0]]), np.zeros(1), np.zeros((1, 3)),
+                             np.full(1, mu), np.zeros(1, np.int64), np.zeros((1, 3)))
+    s = contact._NodeSet(contact.ContactSolver(), c, ({0}, {0}, {}), h, 1)
+    F = s.frames
+
+    def read(angle, it, force=(1.0, 0.0, 0.0)):  # sliding at 1 m/s against the direction (cos, sin)
+        v = np.einsum("mij,mj->mi", F, np.array([[0.0, -math.cos(angle), -math.sin(angle)]]))
+        return s.read(v, h * np.array([force]), np.zeros(0), it)
+
+    assert read(0.0, 1, force=(1.0, 0.8, 0.0))  # the stick leaves the cone: it slips (the set changed)
+    directions = []
+    for it, angle in enumerate((0.3, 0.2, 0.15), start=2):  # changes 0.15, 0.05, 0.025 of the force: read on
+        assert read(angle, it)
+        directions.append(s.slip_force[0, 1:] / mu)
+    np.testing.assert_allclose(directions[-1], [math.cos(0.15), math.sin(0.15)], atol=1e-12)
+    kept = s.slip_force.copy()
+    assert not read(0.5, 5)  # a change of 0.17 after 0.025: the set stands, its forces as they were
+    np.testing.assert_array_equal(s.slip_force, kept)
