@@ -255,7 +255,7 @@ class _ContactSet:
         # the sliding forces' fixed point goes on while their change shrinks: the change at the last read that changed
         # nothing else (inf: none; near the tolerance the velocities' round-off can turn it round, and it then grew
         # to the cap: a 72k-node sheet's impact step, 1e-3 of the forces at the 6th solve, 0.7 at the 12th)
-        self.last_slip = np.full(1, np.inf)
+        self.last_slip = np.array([np.inf])  # (not np.full: a Python frame, tests/test_step_cost.py)
         self.switches = solver.friction_switches  # iterations in which stick/slip may change (see ContactSolver)
         self.lock_after = 0  # iterations after which a released contact stays released
         self.factorizations = 0
