@@ -375,8 +375,8 @@ class _ContactSet:
         changed = kernels.friction_update(
             rl, vrel, self.gap, self.h, self.active, self.stick, self.released, self.restuck, self.friction, self.c.mu,
             self.slip_force, np.ones(m, dtype=bool) if eligible is None else eligible, it, self.lock_after,
-            self.switches, self.last_slip, s.velocity_tol, s.cone_tol, s.slip_tol, gap_rate, mag, d_stick, new_slip, want_slip,
-            want_stick, new_active, new_stick)
+            self.switches, self.last_slip, s.velocity_tol, s.cone_tol, s.slip_tol, gap_rate, mag, d_stick, new_slip,
+            want_slip, want_stick, new_active, new_stick)
         self.rl, self.gap_rate, self.mag, self.d_stick, self.new_slip = rl, gap_rate, mag[:, None], d_stick, new_slip
         self.want_slip, self.want_stick = want_slip, want_stick
         if changed:

@@ -127,7 +127,7 @@ class BlockPattern:
             # (eliminate_zeros, sort_indices) fails loudly instead of corrupting the next ones
             template.indices.flags.writeable = False
             template.indptr.flags.writeable = False
-            template.data = np.empty((0, 3, 3), dtype=data.dtype)  # each copy takes its own: the template holds none (72k nodes: 62 MB)
+            template.data = np.empty((0, 3, 3), dtype=data.dtype)  # each copy takes its own (72k nodes: 62 MB)
             kept = self._bsr_template = (template, data.shape, data.dtype)
         template = kept[0]
         matrix = copy.copy(template)
