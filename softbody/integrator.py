@@ -107,6 +107,10 @@ def merge(first: Constraints, second: Constraints) -> Constraints:
 #: 41 x 4 x 4-node tet4 bar, six random loads: 65-69 iterations): counts within it are what a fresh set-up needs too,
 #: not work that buys one (softbody.preconditioner's rent-or-buy rule)
 MULTIGRID_SPREAD = 0.1
+#: the trial solves' default tolerance with multigrid (IterativeSettings.loose_tol): the 72k-node tet4 sheet through the
+#: impact (steps 11-22, the same active sets) took 20-25 iterations a step with 5e-2, 25-34 with 1e-2, 33-45 with 1e-3
+#: (a confirmation from 5e-2 costs 11-19 iterations, the trials 4-8 together)
+LOOSE_MULTIGRID = 5e-2
 
 
 class Timings(dict):
@@ -409,7 +413,8 @@ class IterativeSettings:
     refactorisation), as it does when the cache is full. Multigrid corrects none.
 
     ``loose_tol``: the tolerance of an active set's trial solves (IterativeSystem.trials_pay; default
-    max(1e-3, tol)), each set confirmed by a solve to ``tol``.
+    max(1e-3, tol) with a factor, max(LOOSE_MULTIGRID, tol) with multigrid, whose every digit costs 4-5 iterations),
+    each set confirmed by a solve to ``tol``.
 
     ``operator``: how the PCG applies A. "assembled": K' is assembled every step (its upper blocks
     into A's BSR data) and each product is one sparse product; "matrix-free": K' y comes element by
@@ -442,9 +447,8 @@ class IterativeSettings:
                                     f"got {self.operator!r}")
         if not (isinstance(self.tol, (int, float)) and 0 < self.tol < 1):
             raise InvalidInputError(f"IterativeSettings.tol must be a number in (0, 1), got {self.tol!r}")
-        if self.loose_tol is None:
-            self.loose_tol = max(1e-3, float(self.tol))
-        if not (isinstance(self.loose_tol, (int, float)) and self.tol <= self.loose_tol < 1):
+        if self.loose_tol is not None and not (isinstance(self.loose_tol, (int, float))
+                                               and self.tol <= self.loose_tol < 1):
             raise InvalidInputError(f"IterativeSettings.loose_tol must be None or a number in [tol, 1), got "
                                     f"{self.loose_tol!r}")
         for name, least in (("max_iter", 1), ("refactor_after", 0), ("max_corrected_nodes", 0),
@@ -452,6 +456,13 @@ class IterativeSettings:
             value = getattr(self, name)
             if not (isinstance(value, (int, np.integer)) and value >= least):
                 raise InvalidInputError(f"IterativeSettings.{name} must be an integer >= {least}, got {value!r}")
+
+
+    def loose(self, exact: bool) -> float:
+        """The trial solves' tolerance with an exact (factor) or inexact (multigrid) preconditioner."""
+        if self.loose_tol is not None:
+            return float(self.loose_tol)
+        return max(1e-3 if exact else LOOSE_MULTIGRID, float(self.tol))
 
 
 def _product_of(matrix: sp.spmatrix) -> Callable[[np.ndarray], np.ndarray]:
@@ -467,10 +478,13 @@ class IterativeSystem:
 
     @property
     def trials_pay(self) -> bool:
-        """Whether an active set's trial solves should be loose (then confirmed by a full one): when the body's last
-        full solve needed more than ``refactor_after`` iterations. Where a solve takes one or two, a confirmation
-        costs as much as the iterations a loose tolerance saves (tet10 9x9x2 sheet: 423 solves and 673 iterations
-        over 150 steps with trials, 250 and 640 without)."""
+        """Whether an active set's trial solves should be loose (then confirmed by a full one): with multigrid always
+        (a changed set costs it 10-20 iterations to the full tolerance), with a factor when the body's last full solve
+        needed more than ``refactor_after`` iterations. Where a solve takes one or two, a confirmation costs as much
+        as the iterations a loose tolerance saves (tet10 9x9x2 sheet: 423 solves and 673 iterations over 150 steps
+        with trials, 250 and 640 without)."""
+        if not self.pre.solver.exact:
+            return True
         last = self.pre.last_iterations
         return last is not None and last > self.settings.refactor_after
 
@@ -613,7 +627,7 @@ class IterativeSystem:
             # (prescribed motion alone is a load), to the initial residual (see IterativeSettings)
             terms = (() if homogeneous else self.terms) + (() if extra_rhs is None else (extra_rhs,))
             scale = max(np.linalg.norm(b[free]), sum(np.linalg.norm(to_local(T, t)[free]) for t in terms))
-            tol = self.settings.loose_tol if loose else self.settings.tol
+            tol = self.settings.loose(self.pre.solver.exact) if loose else self.settings.tol
             atol = tol * (scale if scale > 0 else max(np.linalg.norm(r_full[free]), 1e-300))
             y, r_full, its, ok = self._pcg(A, y, r_full, free, C, fix, atol)
         self.pre.products += 1 + its  # the initial residual and one per iteration

@@ -331,23 +331,20 @@ class SuperLUFactorization(_HeldFactor):
 
 
 class AMGFactorization(_HeldFactor):
-    """Algebraic multigrid (pyamg's smoothed aggregation) as the iterative path's preconditioner: no factor, so its
-    memory stays a few times A's (a factor of a large 3-D body grows as N^4/3 and beyond); ``solve`` applies one
-    V-cycle, a fixed symmetric positive definite approximation of A^-1 (symmetric Gauss-Seidel smoothing), as PCG
-    needs. The near null space is the three translations per node (pattern only; the rotations as well cut the
-    iterations from 8 to 6 on the 31k-node sheet but double the hierarchy's size and set-up)."""
+    """Algebraic multigrid (softbody.multigrid: pyamg's smoothed aggregation, our V-cycle in single precision) as the
+    iterative path's preconditioner: no factor, so its memory stays a few times A's (a factor of a large 3-D body grows
+    as N^4/3 and beyond); ``solve`` applies one V-cycle, a fixed symmetric positive definite approximation of A^-1
+    (a forward Gauss-Seidel sweep down, a backward one up), as PCG needs. The near null space is the three translations
+    per node (pattern only; the rotations as well cut the iterations from 18 to 14 on the 72k-node sheet but double
+    the hierarchy's size and the cycle's cost)."""
 
     name = "amg"
     exact = False
-    #: a set-up costs about this many V-cycles (measured on the tet4 sheets: 0.92 s against 24 ms at 31k nodes, 1.58 s
-    #: against 52 ms at 72k)
-    SETUP_CYCLES = 30.0
-    #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve); pyamg counts
-    #: the block matrix's nodes, a third of them
+    #: a set-up costs about this many V-cycles (measured on the tet4 sheets with the energy-smoothed prolongator and our
+    #: single-precision cycle: 2.3-2.8 s against 29 ms at 72k nodes)
+    SETUP_CYCLES = 80.0
+    #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve)
     MAX_COARSE = 1000
-    #: what pyamg's levels keep of the set-up (the strength of connection C, as large as A on the finest level, the
-    #: aggregates, the tentative prolongator T, the near null space): let go once it is built
-    SETUP_ONLY = ("C", "AggOp", "T", "Cnodes", "B", "BH")
 
     def __init__(self, indptr: np.ndarray, indices: np.ndarray, n: int, dtype, symbolic=None):
         self.n, self.indptr, self.indices = n, indptr, indices
@@ -360,46 +357,16 @@ class AMGFactorization(_HeldFactor):
         return self.SETUP_CYCLES, 1.0
 
     def factorize(self, data: np.ndarray) -> None:
-        import pyamg
-        from pyamg.relaxation.smoothing import change_smoothers
+        from . import multigrid
 
         self._factor = None
-        U = sp.csr_matrix((np.asarray(data, dtype=float), self.indices, self.indptr), shape=(self.n, self.n))
-        A = U + U.T.tocsr()  # the whole matrix (the lower triangle's CSR is the upper's CSC), its diagonal twice
-        A.setdiag(U.diagonal())  # (in place: every diagonal entry is there)
-        del U
-        A = A.tobsr(blocksize=(3, 3))  # (the set-up holds only this copy: 72k tet4 nodes, 96 MB less at its peak)
-        B = np.tile(np.eye(3), (self.n // 3, 1))  # the translations, node by node
-        smoother = ("gauss_seidel", {"sweep": "symmetric"})
-        # pyamg estimates spectral radii from numpy's global random numbers: seeded here (the same set-up from the
-        # same values, as a restored state needs), the caller's random state put back
-        state = np.random.get_state()
-        np.random.seed(0)
-        try:
-            # aggregated node by node (3x3 blocks: a node's three components in one aggregate), then smoothed on the
-            # scalar matrices (the point-wise aggregation of the scalar matrix made a denser hierarchy: 72k tet4
-            # nodes, set-up 5.0 -> 1.6 s, its peak 8.4 -> 4.0 kB per node, a V-cycle 242 -> 52 ms, PCG 12 -> 13
-            # iterations; Gauss-Seidel on the block matrices cost 3x the scalar one)
-            hierarchy = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="symmetric",
-                                                          strength=("symmetric", {"theta": 0.0}), presmoother=smoother,
-                                                          postsmoother=smoother, max_coarse=self.MAX_COARSE // 3)
-            del A
-            for level in hierarchy.levels:
-                level.A = level.A.tocsr()
-            change_smoothers(hierarchy, smoother, smoother)
-        finally:
-            np.random.set_state(state)
-        for level in hierarchy.levels:  # what the set-up kept for inspection; a V-cycle reads A, P, R and smoothers
-            for name in self.SETUP_ONLY:
-                level.__dict__.pop(name, None)
-        self._factor = hierarchy.aspreconditioner(cycle="V")
+        upper = sp.csr_matrix((np.asarray(data, dtype=float), self.indices, self.indptr), shape=(self.n, self.n))
+        self._factor = multigrid.hierarchy(upper, self.MAX_COARSE)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         if self._factor is None:
             raise SolverError("solve before a successful multigrid set-up")
-        if b.ndim == 1:
-            return self._factor @ b
-        return np.column_stack([self._factor @ b[:, j] for j in range(b.shape[1])])
+        return self._factor @ b
 
 
 #: the backends by name (BACKENDS less "auto"): a new one is a Factorization class added here

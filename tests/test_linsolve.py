@@ -194,8 +194,8 @@ def test_every_backend_is_a_factorization_chosen_in_one_place(monkeypatch):
             np.testing.assert_allclose(s.solve(b), ref, rtol=0, atol=1e-10 * np.abs(ref).max())
             np.testing.assert_allclose(s.solve(b[:, 0]), ref[:, 0], rtol=0, atol=1e-10 * np.abs(ref).max())
         else:  # a preconditioner (multigrid): a fixed SPD operator M ~ A^-1 whose iteration x += M (b - A x) converges
-            Mop = s.solve(np.eye(n))
-            np.testing.assert_allclose(Mop, Mop.T, rtol=0, atol=1e-10 * np.abs(Mop).max())
+            Mop = s.solve(np.eye(n))  # (its levels in single precision: symmetric to their round-off)
+            np.testing.assert_allclose(Mop, Mop.T, rtol=0, atol=1e-6 * np.abs(Mop).max())
             assert np.linalg.eigvalsh(0.5 * (Mop + Mop.T)).min() > 0
             assert np.abs(np.linalg.eigvals(np.eye(n) - Mop @ dense)).max() < 1
             np.testing.assert_allclose(s.solve(b)[:, 0], s.solve(b[:, 0]), rtol=0, atol=1e-12 * np.abs(ref).max())

@@ -416,13 +416,16 @@ def test_multigrid_preconditioner_gives_the_direct_trajectory(monkeypatch):
 
 
 def test_a_coarse_tolerance_is_taken():
-    """Simulation(tol) above the trial solves' default 1e-3: the trials take the tolerance itself."""
+    """Simulation(tol) above the trial solves' defaults (1e-3 with a factor, 5e-2 with multigrid): the trials take the
+    tolerance itself."""
     from softbody import Simulation
 
     scene = sheet_on_sphere("tet4", (4, 4, 2))
     try:
         sim = Simulation(scene.body, 0.01, tol=0.01)
-        assert sim.settings.loose_tol == 0.01
+        assert sim.settings.loose(True) == 0.01 and sim.settings.loose(False) == 0.05
+        assert Simulation(scene.body, 0.01, tol=0.1).settings.loose(False) == 0.1
+        assert Simulation(scene.body, 0.01).settings.loose(True) == 1e-3
     finally:
         scene.world.close()
 
