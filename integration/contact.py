@@ -288,6 +288,12 @@ class _ContactSet:
         self.friction = c.mu > 0
         self.stick = self.friction & (in_stick | ~was_active)
 
+    def end_switching(self, it: int) -> None:
+        """From the read of iteration ``it`` on, stick and slip no longer switch and the sliding forces no longer
+        refine in this step: what they would do is carried to the next step, as past ``friction_switches``. Contacts
+        are still added and released (non-penetration stays exact)."""
+        self.switches = min(self.switches, it - 2)
+
     def tolerate(self, slop: float) -> None:
         """Leave penetrations up to ``slop`` [m] where they are (closing only what lies beyond): a contact
         between two deforming surfaces is linearised at the start of the step (normal and weights), so its
@@ -839,6 +845,8 @@ class ContactSolver:
                 stale[i] = nset.read(out[i][0], out[i][1], no_du, it)
                 if loose[i] and not stale[i]:
                     loose[i] = False
+                    if st.system.confirmation_ends_switching:
+                        nset.end_switching(it)
                     out[i] = st.system.solve(cons, extra, reuse=True)
                     stale[i] = nset.read(out[i][0], out[i][1], no_du, it)
             if not any(stale):

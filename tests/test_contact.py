@@ -352,6 +352,54 @@ def test_a_contact_that_stopped_sliding_does_not_slip_again_in_the_step(compiled
 
 
 @pytest.mark.parametrize("compiled", [True, False])
+def test_after_end_switching_friction_waits_for_the_next_step_and_contacts_do_not(compiled, monkeypatch):
+    """_ContactSet.end_switching (a confirmed set on the multigrid path, compiled and numpy): a stick that needs more
+    than the cone, or a slide that stopped, no longer switches in the step (its wish carried to the next) and sliding
+    forces that changed no longer ask for another solve; a contact that pulls is still released. Before it, the
+    same reads switch."""
+    from integration import contact, kernels
+
+    monkeypatch.setattr(kernels, "ENABLED", compiled and kernels.AVAILABLE)
+    h, mu = 0.01, 0.5
+    c = contact.NodeContacts(np.array([0, 1, 2]), np.tile([0.0, 0.0, 1.0], (3, 1)), np.zeros(3), np.zeros((3, 3)),
+                             np.full(3, mu), np.zeros(3, np.int64), np.zeros((3, 3)))
+    beyond = [[1.0, 0.8, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]  # node 0's stick needs 0.8 N, the cone 0.5 N
+
+    def make():  # nodes 0 and 2 active and sticking, node 1 sliding, its friction mu N along t1 (world y)
+        s = contact._NodeSet(contact.ContactSolver(), c, ({0, 1, 2}, {0, 2}, {1: np.array([0.0, mu, 0.0])}), h, 3)
+        return s, s.frames
+
+    def read(s, F, v_local, force_local, it):
+        v = np.einsum("mij,mj->mi", F, np.asarray(v_local, float))
+        return s.read(v, h * np.asarray(force_local, float), np.zeros(0), it)
+
+    moving = [[0.0, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.0]]  # node 1 runs along its friction: it stopped
+    s, F = make()
+    assert read(s, F, moving, beyond, 2) and s.stick.tolist() == [False, True, True]  # both switch
+    s, F = make()
+    s.end_switching(2)
+    assert not read(s, F, moving, beyond, 2)
+    assert s.stick.tolist() == [True, False, True] and s.want_slip.tolist() == [True, False, False]
+    assert s.want_stick.tolist() == [False, True, False]
+    _, (active, stick, slip) = s.result(2)
+    assert active == {0, 1, 2} and stick == {1, 2} and set(slip) == {0}  # the wishes, for the next step
+    # node 1 slides on, turned by 45 degrees: its force would be refined by another solve, but not after the end
+    turned = [[0.0, 0.0, 0.0], [0.0, -0.01, -0.01], [0.0, 0.0, 0.0]]
+    inside = [[1.0, 0.1, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    s, F = make()
+    assert read(s, F, turned, inside, 2)
+    s, F = make()
+    s.end_switching(2)
+    assert not read(s, F, turned, inside, 2)
+    # a pulling contact is released all the same
+    s, F = make()
+    s.end_switching(2)
+    pulling = [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]
+    assert read(s, F, [[0.0, 0.0, 0.0], [0.0, -0.01, 0.0], [0.0, 0.0, 0.0]], pulling, 2)
+    assert s.active.tolist() == [True, True, False]
+
+
+@pytest.mark.parametrize("compiled", [True, False])
 def test_the_sliding_forces_fixed_point_stops_where_its_change_grows(compiled, monkeypatch):
     """The sliding friction of a node contact follows its velocity from solve to solve (a fixed point, contact._NodeSet,
     compiled and numpy): while the forces' change shrinks the set is read again; where it grows (the velocities'
