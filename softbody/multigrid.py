@@ -97,10 +97,16 @@ def hierarchy(upper: sp.csr_matrix, max_coarse: int, dtype=np.float32) -> VCycle
     n = upper.shape[0]
     if n % 3:
         raise SolverError(f"multigrid aggregates 3x3 node blocks: {n} unknowns is not a multiple of 3")
+    if n // 3 <= max(1, max_coarse // 3):  # within the coarsest level: its dense inverse alone (double precision)
+        return VCycle([], np.linalg.pinv((upper + sp.triu(upper, 1).T).toarray()), dtype)
+    # the set-up in single precision as well: its peak is the energy smoother's temporaries (72k tet4 nodes: 246 MB
+    # above the start instead of 390, the same iterations; the coarsest level inverted in double precision)
+    upper = sp.csr_matrix((upper.data.astype(dtype), upper.indices, upper.indptr), shape=upper.shape)
     A = upper + upper.T.tocsr()  # the whole matrix (the lower triangle's CSR is the upper's CSC), its diagonal twice
     A.setdiag(upper.diagonal())  # (in place: every diagonal entry is there)
+    del upper
     A = A.tobsr(blocksize=(3, 3))  # (the set-up holds only this copy besides the caller's upper triangle)
-    B = np.tile(np.eye(3), (n // 3, 1))  # the translations, node by node
+    B = np.tile(np.eye(3, dtype=dtype), (n // 3, 1))  # the translations, node by node
     levels: list[Level] = []
     state = np.random.get_state()
     np.random.seed(0)
@@ -123,11 +129,11 @@ def hierarchy(upper: sp.csr_matrix, max_coarse: int, dtype=np.float32) -> VCycle
             if len(ml.levels) < 2:  # (no coarser level could be made)
                 break
             fine, coarse = ml.levels
-            P = fine.P.tocsr().astype(dtype)
-            levels.append(Level(A.tocsr().astype(dtype), P, P.T.tocsr()))
+            P = fine.P.tocsr().astype(dtype, copy=False)
+            levels.append(Level(A.tocsr().astype(dtype, copy=False), P, P.T.tocsr()))
             A, B = coarse.A.tobsr(blocksize=(3, 3)), coarse.B
             del ml, fine, coarse, P  # (pyamg's copies go as soon as ours are made: the set-up's peak)
     finally:
         np.random.set_state(state)
     # the coarsest level (a system within max_coarse is only that): its dense pseudo-inverse, as pyamg's "pinv"
-    return VCycle(levels, np.linalg.pinv(A.toarray()), dtype)
+    return VCycle(levels, np.linalg.pinv(A.toarray().astype(float)), dtype)
