@@ -25,10 +25,10 @@ from softbody.meshing import grid_mesh_size
 MODEL = {"tet4": (44.0, 1.014, 1.46, 1.93), "hex8": (48.7, 1.040, 1.61, 1.94), "tet10": (56.0, 0.976, 2.80, 1.84)}
 #: element -> (nodes, MB, MB per 1000 nodes): from this many nodes on, "auto" preconditions with multigrid instead of a
 #: factor (softbody.solvers.MULTIGRID_FACTOR_BYTES: the tet4 sheet's factor passes 7 kB per node near 62k nodes),
-#: and memory grows linearly: the peaks above the imports of the tet4 sheets of 72k, 235k and 549k nodes into the
-#: impact, 0.94, 2.68 and 6.16 GB (docs/benchmarks.md, "Large bodies", 2026-11-29), fitted within 2%. Other
+#: and memory grows linearly: the peaks above the imports of the tet4 sheets of 72k, 235k and 549k nodes through the
+#: impact, 0.94, 2.52 and 5.79 GB (docs/benchmarks.md, "Large bodies", 2026-12-06), fitted within 4%. Other
 #: elements: no measurement yet, the factor's model above stands
-MULTIGRID = {"tet4": (62_000, 156.0, 10.93)}
+MULTIGRID = {"tet4": (62_000, 174.0, 10.20)}
 BASE_MB, BASE_MS = 40.0, 2.0
 WARN_MB = 2000.0  # warn above this estimate [MB]
 REFUSE_FRACTION = 0.9  # refuse above this fraction of the available memory (the model's error is about 10%)

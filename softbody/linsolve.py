@@ -340,8 +340,10 @@ class AMGFactorization(_HeldFactor):
 
     name = "amg"
     exact = False
-    #: a set-up costs about this many V-cycles (measured on the tet4 sheets with the energy-smoothed prolongator and our
-    #: single-precision cycle: 2.3-2.8 s against 29 ms at 72k nodes)
+    #: a set-up's price in V-cycles for the refactorisation rule (Preconditioner.refactor_cost): chosen by the tet4
+    #: sheet through the impact (72k nodes, steps 10-30: 1.36 / 1.31 / 1.99 s a step with 40 / 80 / 160; a set-up
+    #: takes 1.3 s there, 40-45 cycles, but also restores the convergence rate that the bending sheet's changing
+    #: matrix wears down, 0.45 -> 0.62 per iteration over nine steps)
     SETUP_CYCLES = 80.0
     #: unknowns of the coarsest level, solved exactly (a system this small is one level: an exact solve)
     MAX_COARSE = 1000
