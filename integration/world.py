@@ -593,20 +593,21 @@ class World:
 
     def _restack(self) -> None:
         """Group the soft bodies into the stepped ones (sim.bodies): a BodyStack for each two or more of one
-        key, the others alone; unchanged while no body was added and no grouping changed. The members of a coupled
-        contact group (:meth:`_group_dense`) of one key are a stack of their own: the convex problem takes the
-        stack's block pattern as its members' side by side (convex.GroupPattern), and one stepped body costs one
-        step system and one search per link instead of one per member (twelve stacked tet10 cubes 22.4 -> 18.6 ms a
-        step, benchmarks/piles.py). (The former dense solve found each stepped body's responses to every row touching
-        it: its members were stepped alone.)"""
+        key, the others alone; unchanged while no body was added and no grouping changed. The members of the coupled
+        contact groups (:meth:`_group_dense`) of one key are a stack of their own, all groups together: they are
+        solved in one convex problem anyway, which takes the stack's block pattern as its members' side by side
+        (convex.GroupPattern), and one stepped body costs one step system and one search per link instead of one per
+        member or group (twelve stacked tet10 cubes 22.4 -> 18.6 ms a step; thirty in the tray, settling as nine
+        columns, 87 -> 76 ms with one stack instead of one per column; benchmarks/piles.py). (The former dense solve
+        found each stepped body's responses to every row touching it: its members were stepped alone.)"""
         if not self._restack_due:
             return
         self._restack_due = False
         groups: dict = {}
         for k, e in enumerate(self._entries):
             key = self._stack_key(e)
-            if key is not None and e.group is not None:  # a coupled contact group's members: stepped together
-                key = key + (("coupled", e.group),)
+            if key is not None and e.group is not None:  # the coupled contact groups' members: stepped together
+                key = key + ("coupled",)
             groups.setdefault(("alone", k) if key is None else key, []).append(k)
         self._apply_layout(list(groups.values()))
 
@@ -653,7 +654,8 @@ class World:
         """Merge the contact groups of this step's members that need the coupled contact solve (ContactSolver.solve:
         soft contact, a movable rigid body in contact or attached, friction at face contacts): those in soft
         contact with each other or touching one movable body join one group, the others a group of their own;
-        a change restacks from the next step on (the members of a group are stepped alone, :meth:`_stack_key`)."""
+        a member joining the coupled set restacks from the next step on (:meth:`_restack`; groups merging within it
+        change no stack)."""
         if not self._stack or len(self._members) < 2:
             return
         member_pairs, coupling = record.member_pairs, record.coupling
@@ -695,7 +697,7 @@ class World:
                 if own is not None:
                     mu[at.reshape(-1) == j] = own
             links += [(k, k) for k in np.unique(who[mu > 0]).tolist()]
-        changed = False
+        joined = False  # a member new to the coupled set restacks (groups merging within it change no stack)
         entries = self._entries
         for a, b in links:
             ea, eb = entries[a], entries[b]
@@ -708,10 +710,11 @@ class World:
                 for e in entries:
                     if e.group == gb:
                         e.group = ga
+                continue
             else:
                 continue
-            changed = True
-        if changed:
+            joined = True
+        if joined:
             self._restack_due = True
 
     def stepped(self, body: FemBody) -> FemBody:
