@@ -21,10 +21,13 @@ point (bilateral, never released).
 """
 from __future__ import annotations
 
+import dataclasses
 import operator
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from softbody.integrator import Constraints, LinearSystem
 
@@ -138,10 +141,8 @@ class PairContacts(NodeContacts):
     weights: np.ndarray | None = None
 
     def relabel(self, local: np.ndarray) -> "PairContacts":
-        """The same contacts with parts mapped through ``local`` (array: old index -> new)."""
-        out = self.select(np.ones(len(self), dtype=bool))
-        out.parts = local[self.parts]
-        return out
+        """The same contacts with parts mapped through ``local`` (array: old index -> new) (the other fields shared)."""
+        return dataclasses.replace(self, parts=local[self.parts])
 
 
 @dataclass
@@ -577,18 +578,13 @@ def _groups(count: int, pairs: PairContacts | None) -> np.ndarray:
     label = np.arange(count)
     if pairs is None or not len(pairs):
         return label
-    links = np.unique(pairs.parts[:, [0, -1]], axis=0)  # the first slot is body a's, the last body b's (an edge-edge
-    # row's second slot is a's too)
-    changed = True
-    while changed:  # label propagation: as many rounds as the longest chain of touching bodies
-        changed = False
-        for a, b in links.tolist():
-            low = min(label[a], label[b])
-            if label[a] != low or label[b] != low:
-                label[label == label[a]] = low
-                label[label == label[b]] = low
-                changed = True
-    return label
+    ends = pairs.parts[:, [0, -1]]  # the first slot is body a's, the last body b's (an edge-edge row's second slot is
+    # a's too)
+    graph = sp.csr_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(count, count))
+    _, component = connected_components(graph, directed=False)
+    low = np.full(count, count)
+    np.minimum.at(low, component, label)  # each group labelled by its first body
+    return low[component]
 
 
 def _add_extras(extras: list, parts: dict[int, np.ndarray]) -> None:
@@ -678,7 +674,9 @@ class ContactSolver:
             for i, held in enumerate(held_by):
                 on = pairs.parts == i
                 free |= on & (~np.isin(pairs.nodes, held) if len(held) else True)
-            pairs = pairs.select(free.any(axis=1))
+            free = free.any(axis=1)
+            if not free.all():
+                pairs = pairs.select(free)
         if pairs is not None and len(pairs):  # bodies in soft contact go to the convex problem with all they touch
             group = _groups(len(steps), pairs)
             for g in np.unique(group):
@@ -699,7 +697,8 @@ class ContactSolver:
             if pairs is not None and len(pairs):
                 local = np.full(len(steps), -1)
                 local[index] = np.arange(len(index))
-                sub = pairs.select(np.isin(pairs.parts[:, 0], index))
+                mine = local[pairs.parts[:, 0]] >= 0
+                sub = pairs if mine.all() else pairs.select(mine)
                 sub = sub.relabel(local) if len(sub) else None
             out, its, res = solve([steps[i] for i in index], [prepared[i] for i in index], h, index, results, sub,
                                   *(() if solve == self._solve_sparse else (mass_matrix, joints, du_guess)))
@@ -707,7 +706,8 @@ class ContactSolver:
                 du, joint_impulses = out
             iterations = max(iterations, its)
             if res is not None:
-                pair_results.append((pairs.select(np.isin(pairs.parts[:, 0], index)), res))
+                mine = np.isin(pairs.parts[:, 0], index)
+                pair_results.append((pairs if mine.all() else pairs.select(mine), res))
         self.previous[("soft", 0)] = self._pair_previous
         velocities, nodes, faces, attach = [], [], [], []
         for st, (v, r, res_n, res_f) in zip(steps, results):

@@ -231,6 +231,18 @@ def cone_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, mu: np.ndarray, b
     return gamma, G, cost, stick
 
 
+def _compiled_cone_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, mu: np.ndarray, bilateral: np.ndarray,
+                       hessian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """:func:`cone_law` row by row (integration.kernels.cone_law)."""
+    m = len(vc)
+    gamma, cost, stick = np.empty((m, 3)), np.empty(m), np.empty(m, dtype=bool)
+    G = np.empty((m, 3, 3)) if hessian else np.empty((0, 3, 3))
+    kernels.cone_law(np.ascontiguousarray(vc, dtype=float), np.ascontiguousarray(R, dtype=float),
+                     np.ascontiguousarray(v_hat, dtype=float), np.ascontiguousarray(mu, dtype=float),
+                     np.ascontiguousarray(bilateral, dtype=bool), hessian, gamma, G, cost, stick)
+    return gamma, (G if hessian else None), cost, stick
+
+
 def contact_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, bound: np.ndarray, bilateral: np.ndarray,
                 hessian: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
     """The law of rows with relative velocities vc (m, 3) (frames n, t1, t2) [m/s], regularisation R (m, 3) (equal
@@ -510,10 +522,7 @@ class _Newton:
         used = rows.parts >= 0
         self.gnodes = np.where(used, self.offsets[np.maximum(rows.parts, 0)] + rows.nodes, 0)
         self.w = np.where(used, rows.weights, 0.0)
-        # the slots' weights as a sparse (N, m) matrix: a row quantity q (m, k) on the nodes is scatter @ q
-        m, slots = len(rows), self.gnodes.shape[1] if self.gnodes.ndim == 2 else 0
-        self.scatter = sp.csr_matrix((self.w.ravel(), (self.gnodes.ravel(), np.repeat(np.arange(m), slots))),
-                                     shape=(self.N, m))
+        self._scatter = self._gather = None  # numpy's (N, m) and (m, N) matrices of the slots' weights (_to_nodes)
         self.held = np.concatenate([p.held for p in parts]) if parts else np.zeros((0, 3), bool)
         self.Minv = None if not self.n else np.linalg.pinv(M)
         self.R = regularization(self._delassus_diagonal(), rows.bilateral)
@@ -533,6 +542,20 @@ class _Newton:
         out = np.zeros((m, 3))
         if not m:
             return out
+        if kernels.ENABLED:  # the lines below, row by row (integration.kernels)
+            D = np.concatenate([p.A[p.body.pattern.diag] for p in self.parts])
+            kernels.delassus_diagonal(self.gnodes, self.w, np.ascontiguousarray(rows.frames, dtype=float), D,
+                                      np.ascontiguousarray(self.held), out)
+        else:
+            self._delassus_soft(out)
+        if self.n and rows.jacobian is not None:
+            JF = np.einsum("mij,mik->mkj", rows.jacobian, rows.frames)  # (m, 3 directions, n)
+            out += np.einsum("mkj,jl,mkl->mk", JF, self.Minv, JF)
+        return out
+
+    def _delassus_soft(self, out: np.ndarray) -> None:
+        """_delassus_diagonal's soft part, added into out (m, 3) (numpy; integration.kernels.delassus_diagonal)."""
+        rows = self.rows
         # the inverses of the diagonal blocks of the nodes the rows touch, the held components fixed (zero)
         touched = np.unique(self.gnodes[self.w != 0])
         part = np.searchsorted(self.offsets, touched, side="right") - 1
@@ -551,14 +574,39 @@ class _Newton:
         for s in range(self.gnodes.shape[1]):
             BF = inv_blocks[self.gnodes[:, s]] @ F
             out += (self.w[:, s] ** 2)[:, None] * np.einsum("mik,mik->mk", F, BF)
-        if self.n and rows.jacobian is not None:
-            JF = np.einsum("mij,mik->mkj", rows.jacobian, F)  # (m, 3 directions, n)
-            out += np.einsum("mkj,jl,mkl->mk", JF, self.Minv, JF)
-        return out
 
     def _point_velocities(self, V: np.ndarray) -> np.ndarray:
         """sum_s w_s V[node_s] (m, 3) for global soft velocities V (N, 3)."""
+        if kernels.ENABLED:
+            out = np.empty((len(self.w), 3))
+            kernels.gather_rows(self.gnodes, self.w, np.ascontiguousarray(V, dtype=float), out)
+            return out
         return np.einsum("ms,msi->mi", self.w, V[self.gnodes])
+
+    def _to_nodes(self, f: np.ndarray) -> np.ndarray:
+        """sum over the rows' slots of w f[row] on the slot's node (N, k) for row quantities f (m, k)."""
+        if kernels.ENABLED:
+            out = np.empty((self.N, f.shape[1]))
+            kernels.scatter_rows(self.gnodes, self.w, np.ascontiguousarray(f, dtype=float), out)
+            return out
+        return np.asarray(self._matrices()[0] @ f)
+
+    def _at_rows(self, X: np.ndarray) -> np.ndarray:
+        """sum_s w_s X[node_s] (m, k) for node quantities X (N, k)."""
+        if kernels.ENABLED:
+            out = np.empty((len(self.w), X.shape[1]))
+            kernels.gather_rows(self.gnodes, self.w, np.ascontiguousarray(X, dtype=float), out)
+            return out
+        return np.asarray(self._matrices()[1] @ X)
+
+    def _matrices(self) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """The slots' weights as sparse matrices (N, m) and (m, N) (numpy's products), made once a solve."""
+        if self._scatter is None:
+            m, slots = len(self.w), self.gnodes.shape[1] if self.gnodes.ndim == 2 else 0
+            self._scatter = sp.csr_matrix((self.w.ravel(), (self.gnodes.ravel(), np.repeat(np.arange(m), slots))),
+                                          shape=(self.N, m))
+            self._gather = self._scatter.T.tocsr()
+        return self._scatter, self._gather
 
     def velocities(self, V: np.ndarray, du: np.ndarray) -> np.ndarray:
         """vc (m, 3) in the rows' frames for soft velocities V (N, 3) and du (n,)."""
@@ -569,8 +617,7 @@ class _Newton:
 
     def _impulses_on_soft(self, gamma: np.ndarray) -> np.ndarray:
         """J_s^T gamma (N, 3): the rows' impulses on the soft nodes."""
-        f = np.einsum("mij,mj->mi", self.rows.frames, gamma)
-        return np.asarray(self.scatter @ f)
+        return self._to_nodes(np.einsum("mij,mj->mi", self.rows.frames, gamma))
 
     def _impulse_on_rigid(self, gamma: np.ndarray) -> np.ndarray:
         """J_r^T gamma (n,): the impulse the rows exert on the rigid unknowns (minus the soft side's)."""
@@ -602,9 +649,12 @@ class _Newton:
         """The block pairs (k, 2) i < j (global nodes) that rows create beyond the parts' own patterns."""
         if not len(self.rows) or self.gnodes.shape[1] < 2:
             return np.zeros((0, 2), np.int64)
-        _, a, b, _ = self._slot_pairs()
-        keep = a < b
-        pairs = np.unique(a[keep] * self.N + b[keep])
+        if kernels.ENABLED:
+            pairs = np.unique(kernels.slot_pair_keys(self.gnodes, self.w, self.N))
+        else:
+            _, a, b, _ = self._slot_pairs()
+            keep = a < b
+            pairs = np.unique(a[keep] * self.N + b[keep])
         if not len(pairs):
             return np.zeros((0, 2), np.int64)
         i, j = pairs // self.N, pairs % self.N
@@ -666,7 +716,7 @@ class _Newton:
         if len(rows) and rows.jacobian is not None:
             FGF = self._frame_hessians(G)
             C = -(FGF @ rows.jacobian)  # d (J_s^T gamma-gradient) / d du per row, (m, 3, n)
-            Hsr = np.asarray(self.scatter @ C.reshape(len(rows), -1)).reshape(self.N, 3, n)
+            Hsr = self._to_nodes(C.reshape(len(rows), -1)).reshape(self.N, 3, n)
             Hrr = Hrr + np.einsum("min,mik->nk", rows.jacobian, FGF @ rows.jacobian)
         Hsr = Hsr.reshape(3 * self.N, n)
         Hsr[self.held.ravel()] = 0.0
@@ -731,16 +781,15 @@ class _Newton:
         of H is applied without assembling it, A x + J_s^T G J_s x (its held components' rows are dropped from each
         product and its iterates vanish there, so their columns add nothing)."""
         n3 = 3 * self.N
-        if getattr(self, "_gather", None) is None:  # the rows' point values from the nodes', fixed within the solve
-            self._gather = self.scatter.T.tocsr()
-        FGF, scatter, gather = self._frame_hessians(G), self.scatter, self._gather
+        FGF = self._frame_hessians(G)
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
 
         def H(z):
             x = z[:n3]
             X = x.reshape(-1, 3)
             out = np.empty_like(z)
-            out[:n3] = (self._A_products(X) + scatter @ np.einsum("mij,mj->mi", FGF, gather @ X)).reshape(-1)
+            out[:n3] = (self._A_products(X) + self._to_nodes(np.einsum("mij,mj->mi", FGF, self._at_rows(X)))
+                        ).reshape(-1)
             if self.n:
                 out[:n3] += Hsr @ z[n3:]
                 out[n3:] = Hsr.T @ x + Hrr @ z[n3:]
@@ -800,7 +849,8 @@ class _Newton:
         friction = (rows.mu > 0) & ~rows.bilateral
         # first Castro et al.'s cone (Newton converges in a few iterations): where no row slides, its solution is
         # Coulomb's (a sticking row's impulse is the same under both laws)
-        self.law = lambda vc, R, hessian=True: cone_law(vc, R, rows.v_hat, rows.mu, rows.bilateral, hessian)
+        law = _compiled_cone_law if kernels.ENABLED else cone_law
+        self.law = lambda vc, R, hessian=True: law(vc, R, rows.v_hat, rows.mu, rows.bilateral, hessian)
         self.cone = True
         V, du, gamma, vc, stick, its, converged, residual, cost = self._newton(V, du, self.owner.rel_tol,
                                                                               self.owner.max_iter)

@@ -18,7 +18,10 @@ for the contact search, where numpy would spread a little arithmetic over dozens
   over one uniform grid of all bodies' triangle centres (numpy: a k-d tree per body), node by node;
 - ``soft_nearest``: the soft-soft search's narrow phase (softcontact.soft_contacts), candidate pair by pair;
 - ``edges_near_partners``, ``edge_narrow``: the edge search's broad phase, which of a body's edges may meet a
-  partner, and its narrow phase, candidate pair by pair (softcontact.edge_contacts).
+  partner, and its narrow phase, candidate pair by pair (softcontact.edge_contacts);
+- ``delassus_diagonal``, ``cone_law``, ``scatter_rows``, ``gather_rows``, ``slot_pair_keys``: the convex coupled
+  solve's row-by-row arithmetic (convex.py): the rows' Delassus estimates, their contact law, the products of the
+  rows' weights with node and row quantities, and the node pairs the rows join.
 
 Each is compared with its numpy reference in tests/test_kernels.py (the soft search's in
 tests/test_soft_search.py)."""
@@ -32,10 +35,11 @@ import numpy as np
 from softbody import compilation
 from softbody.kernels import AVAILABLE, _inline, _jit
 
-__all__ = ["ENABLED", "centre_grid", "contact_finish", "contact_start", "edge_narrow", "edges_near_partners",
-           "face_contacts_possible", "face_eligible", "friction_update", "law_slopes", "node_normals_at",
-           "part_arrays", "primitive_distances", "primitive_link_contacts", "primitive_node_contacts",
-           "round_face_prefilter", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
+__all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal", "edge_narrow",
+           "edges_near_partners", "face_contacts_possible", "face_eligible", "friction_update", "gather_rows",
+           "law_slopes", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
+           "primitive_node_contacts", "round_face_prefilter", "scatter_rows", "slot_pair_keys", "soft_candidates",
+           "soft_deep_candidates", "soft_nearest", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -1228,6 +1232,186 @@ def edge_narrow(ci: np.ndarray, cj: np.ndarray, P0: np.ndarray, P1: np.ndarray, 
             d_out[count] = d
             count += 1
     return keep[:count], s_out[:count], t_out[:count], n_out[:count], d_out[:count]
+
+
+# ------------------------------------------------------------------ the convex coupled solve (convex.py)
+
+
+@_jit
+def delassus_diagonal(gnodes: np.ndarray, w: np.ndarray, F: np.ndarray, D: np.ndarray, held: np.ndarray,
+                      out: np.ndarray) -> None:
+    """convex._Newton._delassus_diagonal's soft part, row by row: out (m, 3) = sum over the row's slots of w^2 times
+    F_k^T D_n^-1 F_k for each direction k (F (m, 3, 3): the rows' frames, columns n, t1, t2), D_n the diagonal block
+    (N, 3, 3) of the slot's node (gnodes (m, S), weights w (m, S)) inverted on its free components (held (N, 3):
+    those rows and columns left out, their inverse entries zero)."""
+    m, S = gnodes.shape
+    inv = np.empty((3, 3))
+    for r in range(m):
+        o0 = o1 = o2 = 0.0
+        for s in range(S):
+            ws = w[r, s]
+            if ws == 0.0:
+                continue
+            n = gnodes[r, s]
+            f0, f1, f2 = not held[n, 0], not held[n, 1], not held[n, 2]
+            # the block with held rows and columns replaced by the identity's
+            a00 = D[n, 0, 0] if f0 else 1.0
+            a11 = D[n, 1, 1] if f1 else 1.0
+            a22 = D[n, 2, 2] if f2 else 1.0
+            a01 = D[n, 0, 1] if (f0 and f1) else 0.0
+            a10 = D[n, 1, 0] if (f0 and f1) else 0.0
+            a02 = D[n, 0, 2] if (f0 and f2) else 0.0
+            a20 = D[n, 2, 0] if (f0 and f2) else 0.0
+            a12 = D[n, 1, 2] if (f1 and f2) else 0.0
+            a21 = D[n, 2, 1] if (f1 and f2) else 0.0
+            c00 = a11 * a22 - a12 * a21
+            c01 = a02 * a21 - a01 * a22
+            c02 = a01 * a12 - a02 * a11
+            det = a00 * c00 + a10 * c01 + a20 * c02
+            inv[0, 0], inv[0, 1], inv[0, 2] = c00 / det, c01 / det, c02 / det
+            inv[1, 0] = (a12 * a20 - a10 * a22) / det
+            inv[1, 1] = (a00 * a22 - a02 * a20) / det
+            inv[1, 2] = (a02 * a10 - a00 * a12) / det
+            inv[2, 0] = (a10 * a21 - a11 * a20) / det
+            inv[2, 1] = (a01 * a20 - a00 * a21) / det
+            inv[2, 2] = (a00 * a11 - a01 * a10) / det
+            free = (f0, f1, f2)
+            for i in range(3):
+                for j in range(3):
+                    if not (free[i] and free[j]):
+                        inv[i, j] = 0.0
+            w2 = ws * ws
+            for k in range(3):
+                x0, x1, x2 = F[r, 0, k], F[r, 1, k], F[r, 2, k]
+                q = (x0 * (inv[0, 0] * x0 + inv[0, 1] * x1 + inv[0, 2] * x2)
+                     + x1 * (inv[1, 0] * x0 + inv[1, 1] * x1 + inv[1, 2] * x2)
+                     + x2 * (inv[2, 0] * x0 + inv[2, 1] * x1 + inv[2, 2] * x2))
+                if k == 0:
+                    o0 += w2 * q
+                elif k == 1:
+                    o1 += w2 * q
+                else:
+                    o2 += w2 * q
+        out[r, 0], out[r, 1], out[r, 2] = o0, o1, o2
+
+
+@_jit
+def cone_law(vc: np.ndarray, R: np.ndarray, v_hat: np.ndarray, mu: np.ndarray, bilateral: np.ndarray, hessian: bool,
+             gamma: np.ndarray, G: np.ndarray, cost: np.ndarray, stick: np.ndarray) -> None:
+    """convex.cone_law row by row: the impulses gamma (m, 3), the cost's Hessian G (m, 3, 3) (if ``hessian``), the
+    costs (m,) and whether each row sticks (m,) of rows with relative velocities vc (m, 3), regularisation R (m, 3),
+    normal bias v_hat (m,), friction mu (m,), bilateral (m,) (Castro et al.'s projection on the Coulomb cone)."""
+    for r in range(vc.shape[0]):
+        i0, i1, i2 = 1.0 / R[r, 0], 1.0 / R[r, 1], 1.0 / R[r, 2]
+        yn = -vc[r, 0] * i0 + v_hat[r] * i0
+        y1, y2 = -vc[r, 1] * i1, -vc[r, 2] * i2
+        yr = math.sqrt(y1 * y1 + y2 * y2)
+        m_ = mu[r]
+        mh = m_ * R[r, 1] * i0
+        f = 1.0 / (1.0 + m_ * mh)
+        bil = bilateral[r]
+        rough = (not bil) and m_ > 0
+        st = bil or (rough and yr <= m_ * yn)
+        stick[r] = st
+        g0 = g1 = g2 = 0.0
+        sl = False
+        if st:
+            g0, g1, g2 = yn, y1, y2
+        elif rough and yn > -mh * yr:
+            sl = True
+            gn = (yn + mh * yr) * f
+            t1, t2 = (y1 / yr, y2 / yr) if yr > 0 else (0.0, 0.0)
+            g0, g1, g2 = gn, m_ * gn * t1, m_ * gn * t2
+        elif (not bil) and m_ == 0 and yn > 0:
+            g0 = yn
+        gamma[r, 0], gamma[r, 1], gamma[r, 2] = g0, g1, g2
+        cost[r] = 0.5 * (g0 * R[r, 0] * g0 + g1 * R[r, 1] * g1 + g2 * R[r, 2] * g2)
+        if not hessian:
+            continue
+        for i in range(3):
+            for j in range(3):
+                G[r, i, j] = 0.0
+        if st:
+            G[r, 0, 0], G[r, 1, 1], G[r, 2, 2] = i0, i1, i2
+        elif sl:
+            gn = g0
+            t1, t2 = (y1 / yr, y2 / yr) if yr > 0 else (0.0, 0.0)
+            # d gamma / d y (rows and columns n, t1, t2), times R^-1 from the right, symmetrised
+            d00 = f
+            d01, d02 = mh * f * t1, mh * f * t2
+            d10, d20 = m_ * f * t1, m_ * f * t2
+            c = gn / yr
+            e = mh * f
+            d11 = m_ * (c * (1.0 - t1 * t1) + e * t1 * t1)
+            d12 = m_ * (c * (-t1 * t2) + e * t1 * t2)
+            d21 = m_ * (c * (-t2 * t1) + e * t2 * t1)
+            d22 = m_ * (c * (1.0 - t2 * t2) + e * t2 * t2)
+            G[r, 0, 0] = d00 * i0
+            G[r, 1, 1] = d11 * i1
+            G[r, 2, 2] = d22 * i2
+            G[r, 0, 1] = G[r, 1, 0] = 0.5 * (d01 * i1 + d10 * i0)
+            G[r, 0, 2] = G[r, 2, 0] = 0.5 * (d02 * i2 + d20 * i0)
+            G[r, 1, 2] = G[r, 2, 1] = 0.5 * (d12 * i2 + d21 * i1)
+        elif (not bil) and m_ == 0 and yn > 0:
+            G[r, 0, 0] = i0
+
+
+@_jit
+def scatter_rows(gnodes: np.ndarray, w: np.ndarray, f: np.ndarray, out: np.ndarray) -> None:
+    """The rows' quantities f (m, k) onto their slots' nodes: out (N, k) = sum over rows and slots of w f[row] at
+    gnodes (m, S) (zeroed first): convex._Newton's J_s^T products."""
+    out[:] = 0.0
+    m, S = gnodes.shape
+    k = f.shape[1]
+    for r in range(m):
+        for s in range(S):
+            ws = w[r, s]
+            if ws == 0.0:
+                continue
+            n = gnodes[r, s]
+            for j in range(k):
+                out[n, j] += ws * f[r, j]
+
+
+@_jit
+def gather_rows(gnodes: np.ndarray, w: np.ndarray, X: np.ndarray, out: np.ndarray) -> None:
+    """The nodes' values X (N, k) at the rows' points: out (m, k) = sum over the row's slots of w X[gnodes] (convex
+    ._Newton's J_s products, its point velocities)."""
+    m, S = gnodes.shape
+    k = X.shape[1]
+    for r in range(m):
+        for j in range(k):
+            total = 0.0
+            for s in range(S):
+                ws = w[r, s]
+                if ws != 0.0:
+                    total += ws * X[gnodes[r, s], j]
+            out[r, j] = total
+
+
+@_jit
+def slot_pair_keys(gnodes: np.ndarray, w: np.ndarray, N: int) -> np.ndarray:
+    """The node pairs the rows' slots join, as keys i * N + j with i < j (unsorted, repeats kept): the blocks the
+    rows add to the Newton matrix off its diagonal (convex._Newton._extra_pairs)."""
+    m, S = gnodes.shape
+    out = np.empty(m * S * (S - 1) // 2 if S > 1 else 0, dtype=np.int64)
+    n = 0
+    for r in range(m):
+        for s in range(S):
+            if w[r, s] == 0.0:
+                continue
+            a = gnodes[r, s]
+            for t in range(s + 1, S):
+                if w[r, t] == 0.0:
+                    continue
+                b = gnodes[r, t]
+                if a < b:
+                    out[n] = a * N + b
+                    n += 1
+                elif b < a:
+                    out[n] = b * N + a
+                    n += 1
+    return out[:n]
 
 
 ENABLED = compilation.register(sys.modules[__name__], AVAILABLE, warmup="integration.warmup")

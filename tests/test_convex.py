@@ -377,3 +377,36 @@ def test_a_pattern_made_anew_keeps_its_ordering_and_a_saved_one_comes_back_alike
     for old in ((first.extra, None), (first.extra, None, first.extra.copy())):
         loaded.load_state({(0, 1): old}, lambda k: bodies[k])
         assert len(loaded._held[bodies].solver.ORDERINGS) == len(SpdSolver.ORDERINGS)
+
+
+@pytest.mark.skipif(not convex.kernels.ENABLED, reason="numba not installed")
+def test_the_row_kernels_equal_their_numpy_twins(monkeypatch):
+    """integration.kernels' row-by-row arithmetic of the convex solve against convex.py's numpy code on the problem of
+    _problem (held components, slots over two bodies, a rigid side): the Delassus estimates, the cone law in every
+    regime (impulses, Hessians, costs, stiction), the products of the slots' weights with row and node quantities,
+    and the node pairs the rows join."""
+    rng = np.random.default_rng(5)
+    parts, rows, M, h = _problem(rng)
+    newton = convex._Newton(convex.ConvexSolver(), parts, rows, M, h)
+    kernels = convex.kernels
+    f = rng.normal(size=(len(rows), 7))
+    X = rng.normal(size=(newton.N, 5))
+    compiled = (newton._delassus_diagonal(), newton._to_nodes(f), newton._at_rows(X), newton._extra_pairs())
+    monkeypatch.setattr(kernels, "ENABLED", False)
+    reference = (newton._delassus_diagonal(), newton._to_nodes(f), newton._at_rows(X), newton._extra_pairs())
+    np.testing.assert_allclose(compiled[0], reference[0], rtol=1e-12)
+    for a, b in zip(compiled[1:3], reference[1:3]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
+    assert np.array_equal(compiled[3], reference[3]) and len(reference[3])
+    # the cone law on random rows in every regime
+    vc, R, v_hat, bound, bilateral = _random_rows(rng, 4000)
+    mu = np.where(rng.random(4000) < 0.2, 0.0, rng.uniform(0.1, 1.0, 4000))
+    want = convex.cone_law(vc, R, v_hat, mu, bilateral)
+    monkeypatch.setattr(kernels, "ENABLED", True)
+    got = convex._compiled_cone_law(vc, R, v_hat, mu, bilateral)
+    for a, b in zip(got[:3], want[:3]):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
+    assert np.array_equal(got[3], want[3])
+    slide = ~want[3] & (np.abs(want[0][:, 1:]).sum(axis=1) > 0)
+    assert want[3].sum() > 100 and slide.sum() > 100 and (want[0][:, 0] == 0).sum() > 100
+    assert convex._compiled_cone_law(vc, R, v_hat, mu, bilateral, hessian=False)[1] is None
