@@ -35,6 +35,7 @@ from . import kernels
 from .collision import barycentric, closest_on_triangles
 from .convex import ConvexSolver, JointRows, Rows as ConvexRows, SoftPart
 from .coupling import CoupledPart, CoupledSolver, Rows
+from .islands import Islands
 from .distance import cross
 
 
@@ -910,7 +911,7 @@ class ContactSolver:
         if pairs is not None and len(pairs):
             add(None, "soft", pairs, self._contact_rows(pairs, pairs.parts, pairs.nodes, pairs.weights, h, n), None)
         rows = ConvexRows.concat(row_parts, n)
-        sol = self.convex.solve(parts, rows, M, h, joints, du_guess)
+        sol = self._solve_islands(parts, rows, M, h, joints, du_guess)
         F = rows.frames
         force = np.einsum("mij,mj->mi", F, sol.gamma) / h  # on the weighted (soft) point [N]
         gap_end = h * (sol.vc[:, 0] - rows.v_hat)  # the normal gap at the end of the step (of its bounded target)
@@ -945,6 +946,25 @@ class ContactSolver:
         for j, i in zip(index, range(len(steps))):
             results[j] = (sol.velocities[i], reactions[i], *per_body[i])
         return (sol.du, sol.joint_gamma), sol.iterations, pair_result
+
+    def _solve_islands(self, parts: list[SoftPart], rows: ConvexRows, M: np.ndarray | None, h: float,
+                       joints: JointRows | None, du_guess: np.ndarray | None):
+        """The convex problem of ``parts`` and ``rows`` island by island (islands.py: the bodies, a stack's members
+        apart, that rows join directly or through the rigid unknowns M (n, n)); one convex.Solution of the whole."""
+        n = 0 if M is None else len(M)
+        several = len(parts) > 1 or (len(parts) == 1 and hasattr(parts[0].body, "members"))  # bodies or a stack
+        islands = Islands.of(parts, rows, n > 0) if several else None
+        if islands is None or len(islands) == 1:  # one island: solved as it is (a stack whole)
+            sol = self.convex.solve(parts, rows, M, h, joints, du_guess)
+            self.convex.patterns.forget_idle()
+            return sol
+        solutions = []
+        for island in islands.islands:
+            sub_parts, sub_rows = islands.problem(island, rows)
+            solutions.append(self.convex.solve(sub_parts, sub_rows, M if island.rigid else None, h,
+                                               joints if island.rigid else None, du_guess if island.rigid else None))
+        self.convex.patterns.forget_idle()
+        return islands.merge(solutions, len(rows), n, len(joints) if joints is not None and n else 0)
 
     def _contact_rows(self, c: NodeContacts, parts, nodes: np.ndarray, weights: np.ndarray, h: float, n: int,
                       slop: float = 0.0) -> ConvexRows:

@@ -60,9 +60,12 @@ MAX_ITER = 60
 REUSE_ITERATIONS = 8
 #: ... to this residual, relative to the right-hand side's (an inexact Newton direction: the line search follows it)
 REUSE_TOL = 1e-6
-#: ... in systems of at least this many soft unknowns: a smaller one is factorised anew at less cost than the products
-#: and triangular solves of the iterations
+#: ... in systems of at least this many soft unknowns with rigid unknowns (each solve of the iterations then costs
+#: a Schur complement's triangular solves, one per rigid unknown: a smaller system is factorised anew at less cost;
+#: the Panda's grasp of a 117-node cube, 351 unknowns: held 6.9 ms a step factorised, 8.5 reused), and of at least
+#: REUSE_MIN_SOFT without (a settling pile's islands of 1000-1400: 67 ms a step in the tray factorised, 45-50 reused)
 REUSE_MIN = 3000
+REUSE_MIN_SOFT = 300
 #: the line search stops where the cost's slope along the step is this small relative to its slope at the start
 LINE_TOL = 1e-4
 #: ... or when a step no longer lowers the cost by more than this (relative): round-off
@@ -416,14 +419,19 @@ class GroupPatterns:
     factors and products dearer: a resting stack 11-15% a step.)"""
 
     GROW = 4
+    #: a pattern not asked for in this many solves (forget_idle) is let go: its island has merged or split
+    IDLE = 50
 
     def __init__(self, backend: str = "auto"):
         self.backend = backend
         self._held: dict[tuple, GroupPattern] = {}
+        self._asked: dict[tuple, int] = {}  # key -> the solve it was last asked for in
+        self.solves = 0
         self.analyses = 0
 
     def get(self, bodies: tuple[FemBody, ...], extra: np.ndarray) -> GroupPattern:
         key = tuple(bodies)
+        self._asked[key] = self.solves
         held = self._held.get(key)
         if held is not None and held.holds(extra):
             return held
@@ -448,37 +456,44 @@ class GroupPatterns:
         return made
 
     def save_state(self, handle) -> dict[tuple, tuple]:
-        """The extra blocks of every kept pattern, its factorisation and its ordering, keyed by its bodies' handles
-        (``handle(body)``, None: not saved): a pattern depends on the contacts of earlier steps, and its
-        factorisation's round-off on the pattern and its ordering."""
+        """The extra blocks of every kept pattern, its factorisation, its ordering and how many solves ago it was last
+        asked for, keyed by its bodies' handles (``handle(body)``, None: not saved): a pattern depends on the contacts
+        of earlier steps, its factorisation's round-off on the pattern and its ordering, and when it is let go
+        (forget_idle) on when it was asked for."""
         out = {}
-        for held in self._held.values():
+        for k, held in self._held.items():
             key = tuple(handle(b) for b in held.bodies)
             if None not in key:
                 f = held.factor
                 out[key] = (held.extra.copy(), None if f.values is None else (f.values.copy(), f.held.copy()),
-                            held.solver.ordering)
+                            held.solver.ordering, int(self.solves - self._asked.get(k, self.solves)))
         return out
 
     def load_state(self, state: dict[tuple, tuple], body) -> None:
         """Make the patterns of :meth:`save_state` again (``body(handle)``: the body of a handle) in place of the kept
         ones."""
-        self._held = {}
+        self._held, self._asked = {}, {}
         for key, (extra, kept, *more) in state.items():
             bodies = tuple(body(k) for k in key)
             extra = np.asarray(extra, dtype=np.int64).reshape(-1, 2)
-            # the ordering: the last entry if a name (older states hold none, or the blocks a pattern was made for)
-            ordering = more[-1] if more and isinstance(more[-1], str) else None
+            # the ordering: a name among the further entries (older states hold none, or the blocks a pattern was made
+            # for), and the solves since it was asked for (older states: none, now)
+            ordering = next((x for x in more if isinstance(x, str)), None)
+            idle = next((int(x) for x in more if isinstance(x, (int, np.integer)) and not isinstance(x, bool)), 0)
             made = self._make(bodies, extra, ordering)
             if kept is not None:  # the same factor again, from the same values
                 made.solver.factorize(kept[0].copy())
                 made.factor = Factor(kept[0].copy(), kept[1].copy())
             self._held[tuple(bodies)] = made
+            self._asked[tuple(bodies)] = self.solves - idle
 
-    def retain(self, keep: list[tuple[FemBody, ...]]) -> None:
-        """Drop the patterns of every group not in ``keep``."""
-        keys = {tuple(bodies) for bodies in keep}
-        self._held = {k: v for k, v in self._held.items() if k in keys}
+    def forget_idle(self) -> None:
+        """End of a solve (all its islands): let go of the patterns not asked for in the last IDLE solves."""
+        self.solves += 1
+        idle = [k for k, at in self._asked.items() if self.solves - at > self.IDLE]
+        for k in idle:
+            self._held.pop(k, None)
+            del self._asked[k]
 
 
 # ------------------------------------------------------------------ the solver
@@ -492,9 +507,11 @@ class ConvexSolver:
     impulses)."""
 
     def __init__(self, rel_tol: float = REL_TOL, max_iter: int = MAX_ITER, backend: str = "auto",
-                 lag_tol: float = LAG_TOL, lag_rounds: int = LAG_ROUNDS, reuse_min: int = REUSE_MIN):
+                 lag_tol: float = LAG_TOL, lag_rounds: int = LAG_ROUNDS, reuse_min: int = REUSE_MIN,
+                 reuse_min_soft: int = REUSE_MIN_SOFT):
         self.rel_tol = rel_tol
-        self.reuse_min = reuse_min  # the kept factorisation serves systems of at least this many soft unknowns
+        # the kept factorisation serves systems of at least this many soft unknowns, with and without rigid unknowns
+        self.reuse_min, self.reuse_min_soft = reuse_min, reuse_min_soft
         self.max_iter = max_iter
         self.lag_tol = lag_tol
         self.lag_rounds = lag_rounds
@@ -737,7 +754,7 @@ class _Newton:
                 return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0]
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
-        if 3 * self.N >= self.owner.reuse_min and factor.usable(self.held):
+        if 3 * self.N >= (self.owner.reuse_min if self.n else self.owner.reuse_min_soft) and factor.usable(self.held):
             z = self._reuse(group, G, Hsr, Hrr, rhs)
             if z is not None:
                 factor.reused += 1

@@ -1457,6 +1457,7 @@ class World:
         bit as continuing now. ``path``: also write it there (``state.write(path)`` does the same later)."""
         layout = self._layout()
         handle = {e.body: h for e, h in zip(self._stepped, layout)}  # the contact solver's keys -> handles
+        members = {e.body: (k,) for k, e in enumerate(self._entries)}  # the convex islands' bodies (a stack's members)
         previous = {(kind, key if kind == "soft" else handle[key]): copy.deepcopy(value)
                     for (kind, key), value in self.contact_solver.previous.items()
                     if kind == "soft" or key in handle}
@@ -1464,7 +1465,8 @@ class World:
                            {k: e.group for k, e in enumerate(self._entries) if e.group is not None},
                            self._restack_due, [k for k, e in enumerate(self._entries) if e.started],
                            previous, copy.deepcopy(self._lagged), copy.deepcopy(self.report), self.adapter.save_world(),
-                           patterns=self.contact_solver.convex.patterns.save_state(handle.get),
+                           patterns=self.contact_solver.convex.patterns.save_state(
+                               lambda b: handle.get(b, members.get(b))),
                            rigid_warm=copy.deepcopy(self._rigid_warm.kept))
         if path is not None:
             state.write(path)
@@ -1538,7 +1540,8 @@ class World:
         stepped = {h: s for h, s in zip(self._layout(), self.sim.bodies)}
         self.contact_solver.previous = {(kind, key if kind == "soft" else stepped[key]): copy.deepcopy(value)
                                         for (kind, key), value in state.previous.items()}
-        self.contact_solver.convex.patterns.load_state(state.patterns, lambda h: stepped[h])
+        self.contact_solver.convex.patterns.load_state(  # a stepped body, or a stack's member (an island's unit)
+            state.patterns, lambda h: stepped[h] if h in stepped else self._entries[h[0]].body)
         self._rigid_warm.kept = copy.deepcopy(getattr(state, "rigid_warm", {}))  # (none in states saved before it)
         self._lagged = copy.deepcopy(state.lagged)
         self.report = copy.deepcopy(state.results)

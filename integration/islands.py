@@ -1,0 +1,140 @@
+"""The coupled problem split into islands: the soft bodies (a stack's members apart) that its rows join, directly or
+through the movable rigid bodies, each a convex problem of its own.
+
+The coupled step (convex.py) minimises one convex function of all soft velocities and the rigid velocity change, a
+sum of the bodies' own terms and the rows' terms. Bodies that no row joins, directly or through other bodies or the
+rigid unknowns, share no term: the minimum splits into the minima of the islands, each found by its own Newton
+iterations on its own sparse pattern and factorisation. A pile settling as nine columns is nine islands: a column
+whose contacts change state is refactorised alone (1/9 of the work), its Newton iterations and conjugate gradients
+stop when it has converged, not when the slowest column has, and a contact leaving a column's pattern re-analyses that
+column only. (All rows on rigid unknowns, and the rigid bodies' own rows, join one island: the rigid unknowns are
+coupled through their mass matrix and joints.)
+
+The islands are found anew every step (scipy's connected components over the rows' bodies); a BodyStack's members
+are units of their own, their blocks of the stack's system the members' own patterns (a stack's matrices are
+block-diagonal by member, softbody.stack).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .convex import Rows, SoftPart, Solution
+
+
+@dataclass
+class Island:
+    """One island: its ``units`` (indices into Islands.units), its ``rows`` (indices into the problem's rows) and
+    whether it holds the rigid unknowns (``rigid``)."""
+
+    units: np.ndarray
+    rows: np.ndarray
+    rigid: bool
+
+
+@dataclass
+class Islands:
+    """The problem of soft ``parts`` and ``rows`` as islands.
+
+    units: the parts with a stack's members apart (SoftPart views of the stack's system: its block data, load,
+    supports and guess restricted to the member); part_units (P + 1,): part p's units are units[part_units[p]:
+    part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its node in that unit;
+    islands: the islands, those with units or rows, in the order of their first unit (the rigid island last if it
+    has none)."""
+
+    units: list[SoftPart]
+    part_units: np.ndarray
+    unit: np.ndarray
+    node: np.ndarray
+    islands: list[Island]
+
+    @classmethod
+    def of(cls, parts: list[SoftPart], rows: Rows, rigid: bool) -> "Islands":
+        """The islands of soft ``parts`` joined by ``rows``; ``rigid``: there are rigid unknowns (the rows on them,
+        and they themselves, one island)."""
+        units, part_units, starts = [], [0], []
+        for p in parts:
+            members = getattr(p.body, "members", None)
+            if members is None:
+                units.append(p)
+                starts.append(np.array([0, p.body.n_nodes]))
+            else:
+                off, ip = p.body.offsets, p.body.pattern.indptr
+                for k, member in enumerate(members):
+                    a, b = int(off[k]), int(off[k + 1])
+                    units.append(SoftPart(member, p.A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b],
+                                          p.guess[a:b]))
+                starts.append(np.asarray(off))
+            part_units.append(len(units))
+        part_units = np.asarray(part_units)
+        unit = np.full(rows.parts.shape, -1, dtype=np.int64)
+        node = np.zeros(rows.nodes.shape, dtype=np.int64)
+        used = rows.parts >= 0
+        for p, st in enumerate(starts):
+            on = used & (rows.parts == p)
+            if not on.any():
+                continue
+            k = np.searchsorted(st, rows.nodes[on], side="right") - 1
+            unit[on] = part_units[p] + k
+            node[on] = rows.nodes[on] - st[k]
+        U = len(units)
+        # the graph of units (and the rigid unknowns, node U) that rows join; every row's first slot is used
+        first = unit[:, 0]
+        pairs = [np.column_stack([first[unit[:, s] >= 0], unit[unit[:, s] >= 0, s]]) for s in range(1, unit.shape[1])]
+        if rigid and rows.jacobian is not None and len(rows):
+            on = np.abs(rows.jacobian).reshape(len(rows), -1).max(axis=1) > 0
+            pairs.append(np.column_stack([first[on], np.full(int(on.sum()), U)]))
+        pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
+        graph = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(U + 1, U + 1))
+        _, label = connected_components(graph, directed=False)
+        row_label = label[first] if len(rows) else np.zeros(0, np.int64)
+        order = np.argsort(label[:U], kind="stable")
+        islands, seen = [], set()
+        for u in order.tolist():  # in the order of their first unit
+            c = int(label[u])
+            if c in seen:
+                continue
+            seen.add(c)
+            islands.append(Island(np.flatnonzero(label[:U] == c), np.flatnonzero(row_label == c),
+                                  bool(rigid and c == label[U])))
+        if rigid and int(label[U]) not in seen:  # the rigid bodies alone (their joints)
+            islands.append(Island(np.zeros(0, np.int64), np.zeros(0, np.int64), True))
+        return cls(units, part_units, unit, node, islands)
+
+    def __len__(self) -> int:
+        return len(self.islands)
+
+    def problem(self, island: Island, rows: Rows) -> tuple[list[SoftPart], Rows]:
+        """The units and rows of ``island`` (rows: the whole problem's), its rows' slots renumbered to its units."""
+        local = np.full(len(self.units), -1, dtype=np.int64)
+        local[island.units] = np.arange(len(island.units))
+        r = island.rows
+        unit = self.unit[r]
+        sub = Rows(np.where(unit >= 0, local[np.maximum(unit, 0)], -1), self.node[r], rows.weights[r],
+                   rows.frames[r], rows.rigid_velocity[r], None if rows.jacobian is None else rows.jacobian[r],
+                   rows.v_hat[r], rows.mu[r], rows.bilateral[r])
+        return [self.units[u] for u in island.units.tolist()], sub
+
+    def merge(self, solutions: list[Solution], m: int, n: int, joints: int) -> Solution:
+        """One Solution of the whole problem (m rows, n rigid unknowns, ``joints`` joint rows) from the islands'
+        (in the order of ``islands``): velocities per part, each row's impulse, velocity and stiction in place, du
+        and the joint rows' impulses from the rigid island; iterations and rounds the most of any island,
+        factorizations and costs summed, the residual the largest, converged if all are."""
+        velocities: list = [None] * len(self.units)
+        gamma, vc, stick = np.zeros((m, 3)), np.zeros((m, 3)), np.zeros(m, dtype=bool)
+        du, joint_gamma = np.zeros(n), np.zeros(joints)
+        for island, sol in zip(self.islands, solutions):
+            for u, v in zip(island.units.tolist(), sol.velocities):
+                velocities[u] = v
+            gamma[island.rows], vc[island.rows], stick[island.rows] = sol.gamma, sol.vc, sol.stiction
+            if island.rigid:
+                du, joint_gamma = sol.du, sol.joint_gamma
+        per_part = [velocities[a] if b - a == 1 else np.concatenate(velocities[a:b])
+                    for a, b in zip(self.part_units[:-1].tolist(), self.part_units[1:].tolist())]
+        return Solution(per_part, du, gamma, vc, stick, max((s.iterations for s in solutions), default=0),
+                        sum(s.factorizations for s in solutions), float(sum(s.cost for s in solutions)),
+                        max((s.residual for s in solutions), default=0.0), all(s.converged for s in solutions),
+                        max((s.rounds for s in solutions), default=1), joint_gamma)

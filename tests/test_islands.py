@@ -1,0 +1,103 @@
+"""The coupled problem split into islands (integration/islands.py): which bodies an island holds, a stack's members as
+the bodies they are, and the islands' minima together the minimum of the whole problem."""
+from __future__ import annotations
+
+import numpy as np
+
+import softbody as sb
+from integration import convex
+from integration.contact import ContactSolver, tangent_frames
+from integration.islands import Islands
+from softbody.integrator import step_system
+from softbody.solvers import new_solver
+from softbody.stack import BodyStack
+
+H = 0.01
+
+
+def _cube(center):
+    mesh = sb.box_mesh((0.04, 0.04, 0.04), (1, 1, 1), "tet4", center=center)
+    return sb.FemBody(mesh, sb.LinearElastic(2e4, 0.3, 800.0), damping=(0.1, 0.001))
+
+
+def _part(body, rng):
+    body.velocities = 0.05 * rng.normal(size=body.velocities.shape)
+    f = np.tile([0.0, 0.0, -9.81], (body.n_nodes, 1)) * body.node_mass[:, None]
+    system = step_system(body, H, f, new_solver(body), "direct")
+    return convex.SoftPart(body, system.A, system.b, np.zeros((body.n_nodes, 3), bool), np.zeros((body.n_nodes, 3)),
+                           body.velocities.copy())
+
+
+def _problem(rng):
+    """Four cubes stepped as one BodyStack and a free rigid body (6 unknowns): rows join members 0 and 1 (node
+    against face), member 2 and the rigid body, and hold member 3 against a fixed surface; member 0 is held at a
+    node. Three islands: {0, 1}, {2, rigid}, {3}."""
+    members = [_cube((0.1 * k, 0.0, 0.02)) for k in range(4)]
+    stack = BodyStack(members)
+    part = _part(stack, rng)
+    part.held[0] = True
+    off = stack.offsets
+    n = 6
+    specs = []  # (slots [(member, node, weight)], rigid)
+    for _ in range(4):  # member 1's node against a point of member 0's face
+        w = rng.dirichlet(np.ones(3))
+        specs.append(([(1, rng.integers(8), 1.0)] + [(0, k, -wk) for k, wk in zip(rng.choice(8, 3, replace=False), w)],
+                      False))
+    specs += [([(2, rng.integers(8), 1.0)], True) for _ in range(3)]
+    specs += [([(3, rng.integers(8), 1.0)], False) for _ in range(2)]
+    m = len(specs)
+    P, N, W = np.full((m, 4), -1), np.zeros((m, 4), np.int64), np.zeros((m, 4))
+    J = np.zeros((m, 3, n))
+    for r, (slots, rigid) in enumerate(specs):
+        for s, (member, node, w) in enumerate(slots):
+            P[r, s], N[r, s], W[r, s] = 0, off[member] + node, w
+        if rigid:
+            J[r] = rng.normal(size=(3, n))
+    normals = rng.normal(size=(m, 3))
+    normals[:, 2] = np.abs(normals[:, 2]) + 1.0
+    rows = convex.Rows(P, N, W, tangent_frames(normals), 0.1 * rng.normal(size=(m, 3)), J, 0.05 * rng.normal(size=m),
+                       rng.uniform(0.0, 0.8, m), np.zeros(m, bool))
+    L = rng.normal(size=(n, n))
+    return members, [part], rows, L @ L.T + n * np.eye(n)
+
+
+def test_islands_hold_what_rows_join_and_a_members_blocks_are_its_own():
+    rng = np.random.default_rng(2)
+    members, parts, rows, M = _problem(rng)
+    islands = Islands.of(parts, rows, True)
+    held = [(island.units.tolist(), island.rows.tolist(), island.rigid) for island in islands.islands]
+    assert held == [([0, 1], [0, 1, 2, 3], False), ([2], [4, 5, 6], True), ([3], [7, 8], False)]
+    # a member's unit: the stack's rows of its nodes, its block data the member's own system's (stepped alone)
+    for k, (member, unit) in enumerate(zip(members, islands.units)):
+        alone = _part(member, np.random.default_rng(0))
+        member.velocities = parts[0].body.velocities[parts[0].body.rows(k)]
+        alone = step_system(member, H, np.tile([0.0, 0.0, -9.81], (member.n_nodes, 1)) * member.node_mass[:, None],
+                            new_solver(member), "direct")
+        assert unit.body is member
+        np.testing.assert_allclose(unit.A, alone.A, rtol=1e-12, atol=1e-12 * np.abs(alone.A).max())
+        np.testing.assert_allclose(unit.b, alone.b, rtol=1e-12, atol=1e-12 * np.abs(alone.b).max())
+    sub_parts, sub_rows = islands.problem(islands.islands[0], rows)
+    assert [p.body for p in sub_parts] == members[:2]
+    assert np.array_equal(sub_rows.parts[0], [1, 0, 0, 0]) and np.array_equal(sub_rows.nodes, rows.nodes[:4]
+                                                                              - np.where(sub_rows.parts == 1,
+                                                                                         members[0].n_nodes, 0))
+
+
+def test_the_islands_minima_are_the_minimum_of_the_whole_problem():
+    """Solved island by island (ContactSolver._solve_islands) and as one problem (convex.ConvexSolver), to tight
+    tolerances (Newton's, and Coulomb's law between the lagged friction bounds and the impulses): the same velocities,
+    rigid velocity change and impulses; each island converged."""
+    rng = np.random.default_rng(4)
+    _, parts, rows, M = _problem(rng)
+    tight = dict(rel_tol=1e-12, lag_tol=1e-12, lag_rounds=200)
+    whole = convex.ConvexSolver(**tight).solve(parts, rows, M, H)
+    solver = ContactSolver()
+    solver.convex = convex.ConvexSolver(**tight)
+    split = solver._solve_islands(parts, rows, M, H, None, None)
+    assert whole.converged and split.converged
+    assert len(solver.convex.patterns._held) == 3  # each island its own pattern
+    scale = np.abs(whole.velocities[0]).max()
+    assert np.abs(split.velocities[0] - whole.velocities[0]).max() < 1e-7 * scale
+    assert np.abs(split.du - whole.du).max() < 1e-7 * np.abs(whole.du).max()
+    assert np.abs(split.gamma - whole.gamma).max() < 1e-6 * np.abs(whole.gamma).max()
+    assert np.array_equal(split.velocities[0][parts[0].held], parts[0].value[parts[0].held])
