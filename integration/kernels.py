@@ -17,8 +17,9 @@ for the contact search, where numpy would spread a little arithmetic over dozens
 - ``centre_grid``, ``soft_candidates``, ``soft_deep_candidates``: the soft-soft search's broad phase (its two passes)
   over one uniform grid of all bodies' triangle centres (numpy: a k-d tree per body), node by node;
 - ``soft_nearest``: the soft-soft search's narrow phase (softcontact.soft_contacts), candidate pair by pair;
-- ``edges_near_partners``, ``edge_narrow``: the edge search's broad phase, which of a body's edges may meet a
-  partner, and its narrow phase, candidate pair by pair (softcontact.edge_contacts);
+- ``edges_near``, ``edge_candidates``, ``edge_narrow``: the edge search's broad phase, which edges may meet another
+  body and which pairs of them (one grid over all midpoints), and its narrow phase, candidate pair by pair
+  (softcontact.edge_contacts);
 - ``delassus_diagonal``, ``cone_law``, ``scatter_rows``, ``gather_rows``, ``slot_pair_keys``: the convex coupled
   solve's row-by-row arithmetic (convex.py): the rows' Delassus estimates, their contact law, the products of the
   rows' weights with node and row quantities, and the node pairs the rows join.
@@ -35,11 +36,11 @@ import numpy as np
 from softbody import compilation
 from softbody.kernels import AVAILABLE, _inline, _jit
 
-__all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal", "edge_narrow",
-           "edges_near_partners", "face_contacts_possible", "face_eligible", "friction_update", "gather_rows",
-           "law_slopes", "node_normals_at", "part_arrays", "primitive_distances", "primitive_link_contacts",
-           "primitive_node_contacts", "round_face_prefilter", "scatter_rows", "slot_pair_keys", "soft_candidates",
-           "soft_deep_candidates", "soft_nearest", "tangent_frames"]
+__all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal",
+           "edge_candidates", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
+           "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances",
+           "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter", "scatter_rows",
+           "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -930,27 +931,34 @@ def _explained(keys: np.ndarray, node: int, tag: int) -> bool:
 
 
 @_jit
-def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: np.ndarray, lo: np.ndarray,
-                        hi: np.ndarray, slack: np.ndarray, keys: np.ndarray, node_bits: int) -> np.ndarray:
-    """softcontact.edge_contacts' broad phase for one body's ``edges`` (E, 2) at positions x (N, 3): (E,) whether
-    an edge's box meets the box (lo, hi) (P, 3) of some partner (partners (P,), the bodies' indices) grown by
-    slack (P,) [m], with neither end in a node contact with that partner (keys: the node contacts' keys, sorted,
-    softcontact._gap_table; empty: none)."""
+def edges_near(edges: np.ndarray, edge_b: np.ndarray, X: np.ndarray, node_off: np.ndarray, lo: np.ndarray,
+               hi: np.ndarray, meet: np.ndarray, between: np.ndarray, keys: np.ndarray, used: np.ndarray,
+               node_bits: int) -> np.ndarray:
+    """softcontact.edge_contacts' broad phase edge by edge (softcontact.edges_near): (E,) whether an edge of ``edges``
+    (E, 2) of body edge_b (E,) at X (node offsets node_off) has its box meet the box (lo, hi) (B, 3) of a body q it
+    meets (meet (B, B)) grown by between[p, q] [m], with neither end in a node contact with q (keys: the node
+    contacts' keys, sorted, softcontact._gap_table; empty: none; bodies named by ``used`` (B,))."""
     E = edges.shape[0]
+    B = lo.shape[0]
     near = np.zeros(E, dtype=np.bool_)
     for e in range(E):
+        p = edge_b[e]
         a, b = edges[e, 0], edges[e, 1]
-        for r in range(partners.shape[0]):
+        ga, gb = a + node_off[p], b + node_off[p]
+        for q in range(B):
+            if not meet[p, q]:
+                continue
+            g = between[p, q]
             meets = True
             for j in range(3):
-                elo = min(x[a, j], x[b, j])
-                ehi = max(x[a, j], x[b, j])
-                if not (elo <= hi[r, j] + slack[r] and ehi >= lo[r, j] - slack[r]):
+                elo = min(X[ga, j], X[gb, j])
+                ehi = max(X[ga, j], X[gb, j])
+                if not (elo <= hi[q, j] + g and ehi >= lo[q, j] - g):
                     meets = False
                     break
             if not meets:
                 continue
-            tag = (body * 1024 + partners[r]) << node_bits
+            tag = (used[p] * 1024 + used[q]) << node_bits
             if _explained(keys, a, tag) or _explained(keys, b, tag):
                 continue
             near[e] = True
@@ -1130,6 +1138,48 @@ def soft_deep_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarra
                         out_t[n_out] = t
                         n_out += 1
     return out_i[:n_out], out_t[:n_out]
+
+
+@_jit
+def edge_candidates(mid: np.ndarray, body: np.ndarray, rank: np.ndarray, meet: np.ndarray, slack: np.ndarray,
+                    radius: float, cell: float, base: np.ndarray, keys: np.ndarray, order: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """softcontact.edge_candidates over the grid centre_grid(mid, cell) = (base, keys, order) of the midpoints mid
+    (E, 3) of edges of bodies ``body`` (E,): the pairs (i, j), i of p and j of q, for rank[p, q] even (the pair
+    listed as (p, q); p == q: i < j) and meet[p, q], whose midpoints lie within radius + slack[p, q] [m] (unordered:
+    the caller sorts them)."""
+    E = mid.shape[0]
+    B = rank.shape[0]
+    reach = np.zeros(B)
+    for p in range(B):
+        for q in range(B):
+            if meet[p, q] and rank[p, q] >= 0 and rank[p, q] % 2 == 0:
+                reach[p] = max(reach[p], radius + slack[p, q])
+    cap = max(16, 4 * E)
+    out_i = np.empty(cap, dtype=np.int64)
+    out_j = np.empty(cap, dtype=np.int64)
+    n_out = 0
+    for i in range(E):
+        p = body[i]
+        if reach[p] == 0.0:
+            continue
+        x0, x1, x2 = mid[i, 0], mid[i, 1], mid[i, 2]
+        a0, b0, a1, b1, a2, b2 = _grid_box(x0, x1, x2, reach[p], cell, base)
+        for c0 in range(a0, b0 + 1):
+            for c1 in range(a1, b1 + 1):
+                begin, end = _column(keys, c0, c1, a2, b2)
+                for at in range(begin, end):
+                    j = order[at]
+                    q = body[j]
+                    if not meet[p, q] or rank[p, q] < 0 or rank[p, q] % 2 != 0 or (p == q and j <= i):
+                        continue
+                    r = radius + slack[p, q]
+                    if (x0 - mid[j, 0]) ** 2 + (x1 - mid[j, 1]) ** 2 + (x2 - mid[j, 2]) ** 2 <= r * r:
+                        out_i, out_j = _room(out_i, n_out), _room(out_j, n_out)
+                        out_i[n_out] = i
+                        out_j[n_out] = j
+                        n_out += 1
+    return out_i[:n_out], out_j[:n_out]
 
 
 @_inline

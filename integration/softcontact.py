@@ -196,14 +196,25 @@ class SoftLayout:
     """What the soft search needs of its bodies' surfaces and pairs, fixed while they are: the ``used`` bodies (B,)
     (those in some pair, ascending), ``rank`` (B, B) the output order of each searched direction (p's nodes against
     q's triangles; -1: not searched), their surface node counts ``s_of`` (B,), each surface node's body ``node_b``
-    and each body's first surface node ``starts`` (B,) in the concatenation of their surface nodes. No used bodies
-    (``used`` empty) when a body in a pair has no surface."""
+    and each body's first surface node ``starts`` (B,) in the concatenation of their surface nodes; for the edge
+    search, the used bodies' first nodes ``node_off`` (B,) in the concatenation of all their nodes, their surface
+    nodes ``nodes`` (S,) and triangles ``tris`` (T, 3) in that numbering, their edges ``edges`` (E, 2) (each body's
+    own node numbering), ``edge_b`` (E,) (rows of ``used``), ``edge_of`` (E,) (the index among its body's edges)
+    and ``edge_tris`` (E, 2) (rows of ``tris``, -1: none). No used bodies (``used`` empty) when a body in a pair has
+    no surface."""
 
     used: np.ndarray
     rank: np.ndarray
     s_of: np.ndarray
     node_b: np.ndarray
     starts: np.ndarray
+    node_off: np.ndarray | None = None
+    nodes: np.ndarray | None = None
+    tris: np.ndarray | None = None
+    edges: np.ndarray | None = None
+    edge_b: np.ndarray | None = None
+    edge_of: np.ndarray | None = None
+    edge_tris: np.ndarray | None = None
 
     @classmethod
     def of(cls, surfaces: list[SoftSurface], pairs: list[tuple[int, int]]) -> "SoftLayout":
@@ -221,7 +232,22 @@ class SoftLayout:
         if not s_of.all():
             used = used[:0]
         starts = np.concatenate([[0], np.cumsum(s_of)[:-1]]).astype(np.int64)
-        return cls(used, rank, s_of, np.repeat(np.arange(B), s_of), starts)
+        sfs = [surfaces[k] for k in used.tolist()]
+        n_of = np.array([sf.incidence.shape[0] for sf in sfs], dtype=np.int64)
+        node_off = np.concatenate([[0], np.cumsum(n_of)[:-1]]).astype(np.int64)
+        t_off = np.concatenate([[0], np.cumsum([len(sf.triangles) for sf in sfs])[:-1]]).astype(np.int64)
+        tris = (np.concatenate([sf.triangles + o for sf, o in zip(sfs, node_off)]) if sfs
+                else np.zeros((0, 3), np.int64))
+        nodes = np.concatenate([sf.nodes + o for sf, o in zip(sfs, node_off)]) if sfs else np.zeros(0, np.int64)
+        edge_sets = [sf.edges if sf.edges is not None else np.zeros((0, 2), np.int64) for sf in sfs]
+        edges = np.concatenate(edge_sets) if sfs else np.zeros((0, 2), np.int64)
+        edge_b = np.repeat(np.arange(B), [len(e) for e in edge_sets]).astype(np.int64)
+        edge_of = np.concatenate([np.arange(len(e)) for e in edge_sets]).astype(np.int64) if sfs else edge_b
+        edge_tris = (np.concatenate([np.where(sf.edge_tris >= 0, sf.edge_tris + o, -1) if sf.edge_tris is not None
+                                     else np.zeros((0, 2), np.int64) for sf, o in zip(sfs, t_off)])
+                     if sfs else np.zeros((0, 2), np.int64))
+        return cls(used, rank, s_of, np.repeat(np.arange(B), s_of), starts, node_off, nodes, tris, edges, edge_b,
+                   edge_of, edge_tris)
 
 
 def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
@@ -482,27 +508,78 @@ def _gap_table(explained: SoftHits) -> tuple[np.ndarray, np.ndarray]:
     return explained.key[order], explained.distance[order]
 
 
-def edges_near_partners(edges: np.ndarray, x: np.ndarray, body: int, partners: np.ndarray, lo: np.ndarray,
-                        hi: np.ndarray, slack: np.ndarray, keys: np.ndarray, node_bits: int = NODE_BITS) -> np.ndarray:
-    """(E,) whether an edge of ``edges`` (E, 2) of body ``body`` at positions x (N, 3) has its box meet the box
-    (lo, hi) (P, 3) of some partner (``partners`` (P,), body indices) grown by slack (P,) [m], with neither end in
-    a node contact with that partner (``keys``: the node contacts' keys sorted, _gap_table's; empty: none):
-    edge_contacts' broad phase for one body (integration.kernels.edges_near_partners, edge by edge; ``node_bits``:
-    the keys' layout, NODE_BITS, which this numpy twin takes as given)."""
-    e0, e1 = x[edges[:, 0]], x[edges[:, 1]]
+def edges_near(edges: np.ndarray, edge_b: np.ndarray, X: np.ndarray, node_off: np.ndarray, lo: np.ndarray,
+               hi: np.ndarray, meet: np.ndarray, between: np.ndarray, keys: np.ndarray, used: np.ndarray,
+               node_bits: int = NODE_BITS) -> np.ndarray:
+    """(E,) whether an edge of ``edges`` (E, 2) (its body's node numbering) of body ``edge_b`` (E,) (rows of the
+    bodies' boxes lo, hi (B, 3)) at positions X (its node offset node_off[body] into X) has its box meet the box of a
+    body q it meets (meet (B, B)) grown by between[p, q] [m], with neither end in a node contact with q (``keys``: the
+    node contacts' keys sorted, _gap_table's; empty: none; the keys name bodies by ``used`` (B,)): edge_contacts'
+    broad phase (integration.kernels.edges_near, edge by edge; ``node_bits``: the keys' layout, NODE_BITS, which
+    this numpy twin takes as given)."""
+    off = node_off[edge_b]
+    e0, e1 = X[edges[:, 0] + off], X[edges[:, 1] + off]
     elo, ehi = np.minimum(e0, e1), np.maximum(e0, e1)
     near = np.zeros(len(edges), dtype=bool)
     table = (keys, np.zeros(len(keys))) if len(keys) else None
-    for r, o in enumerate(partners.tolist()):
-        inside = np.flatnonzero(((elo <= hi[r] + slack[r]) & (ehi >= lo[r] - slack[r])).all(axis=1) & ~near)
+    for q in range(len(lo)):
+        mine = meet[edge_b, q] & ~near
+        if not mine.any():
+            continue
+        g = between[edge_b, q][:, None]
+        inside = np.flatnonzero(mine & ((elo <= hi[q] + g) & (ehi >= lo[q] - g)).all(axis=1))
         if len(inside) and table is not None:
-            # not where an end has a node contact with o already (edge_contacts' final filter drops those pairs with
-            # o): in a stack or a pile, most edges near a neighbour lie in the faces that touch it
-            free = np.isinf(_node_gaps(table, edges[inside], np.full((len(inside), 1), body),
-                                       np.full((len(inside), 1), o)))
+            # not where an end has a node contact with q already (edge_narrow drops those pairs with q): in a stack
+            # or a pile, most edges near a neighbour lie in the faces that touch it
+            free = np.isinf(_node_gaps(table, edges[inside], used[edge_b[inside]][:, None], used[q]))
             inside = inside[free.all(axis=1)]
         near[inside] = True
     return near
+
+
+def edge_candidates(mid: np.ndarray, body: np.ndarray, rank: np.ndarray, meet: np.ndarray, slack: np.ndarray,
+                    radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate pairs (i, j) of edges with midpoints mid (E, 3) of bodies ``body`` (E,) (rows of rank (B, B)):
+    for each searched pair of bodies (p, q) (rank[p, q] even: listed as (p, q); p == q: self-contact, i < j) that
+    meet (meet (B, B)), the midpoints within radius + slack[p, q] [m] of each other; ordered by the pair's rank, then
+    i, then j (integration.kernels.edge_candidates over one grid of all midpoints; here a k-d tree per body)."""
+    out_i, out_j, out_r = [], [], []
+    trees: dict[int, cKDTree] = {}
+    where = {int(p): np.flatnonzero(body == p) for p in np.unique(body).tolist()}
+
+    def tree(p):
+        if p not in trees:
+            trees[p] = cKDTree(mid[where[p]])
+        return trees[p]
+
+    for p, q in zip(*np.nonzero((rank >= 0) & (rank % 2 == 0) & meet)):
+        p, q = int(p), int(q)
+        if p not in where or q not in where:
+            continue
+        if p == q:
+            got = tree(p).query_pairs(radius + slack[p, q], output_type="ndarray")
+            fi, fj = got[:, 0], got[:, 1]
+        else:
+            got = tree(p).sparse_distance_matrix(tree(q), radius + slack[p, q], output_type="ndarray")
+            fi, fj = got["i"], got["j"]
+        out_i.append(where[p][fi.astype(np.int64)])
+        out_j.append(where[q][fj.astype(np.int64)])
+        out_r.append(np.full(len(fi), rank[p, q]))
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i, j, r = np.concatenate(out_i), np.concatenate(out_j), np.concatenate(out_r)
+    order = np.lexsort((j, i, r))
+    return i[order], j[order]
+
+
+def _edge_normals(X: np.ndarray, tris: np.ndarray, edge_tris: np.ndarray) -> np.ndarray:
+    """segments.edge_normals of the edges bounding ``edge_tris`` (E, 2) (rows of tris (T, 3), -1: none) at X, from
+    those triangles only."""
+    P = X.take(tris.take(np.maximum(edge_tris, 0), axis=0), axis=0)  # (E, 2, 3, 3)
+    n = cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0])
+    n /= np.maximum(np.sqrt(np.einsum("eki,eki->ek", n, n)), 1e-300)[:, :, None]
+    s = n[:, 0] + np.where(edge_tris[:, 1:] >= 0, n[:, 1], 0.0)
+    return s / np.maximum(np.sqrt(np.einsum("ij,ij->i", s, s)), 1e-300)[:, None]
 
 
 def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0: np.ndarray, V1: np.ndarray,
@@ -576,111 +653,71 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     product makes more than ~87 degrees with both edges' outward normals), within reach (the margin plus what the
     two points close along the normal within the step h [s], as soft_contacts) and less than ``depth`` [m]
     crossed, and none of the four ends in a node contact with the other
-    body (``explained``: soft_contacts' hits; where one is, the two surfaces touch by faces and nodes there). Node against face both ways round and this cover every way two closed surfaces can meet.
+    body (``explained``: soft_contacts' hits; where one is, the two surfaces touch by faces and nodes there). Node
+    against face both ways round and this cover every way two closed surfaces can meet.
 
-    Broad phase: the bodies' boxes grown by their reach (``layout``: SoftLayout.of their surfaces and pairs, if
-    kept), then each body's edges whose boxes meet a partner's and whose ends have no node contact with that
-    partner, a k-d tree over their midpoints per body, queried pair by pair (one tree over all bodies' edges
-    listed each body's own neighbouring edges first: a stack of twelve cubes paid 3x as much); narrow phase
-    vectorised over the candidate pairs (:func:`edge_narrow`). With the compiled kernels, the per-body broad phase
-    and the narrow phase edge by edge and pair by pair (kernels.edges_near_partners, kernels.edge_narrow)."""
+    All bodies at once: their boxes grown by their reach (``layout``: SoftLayout.of their surfaces and pairs, if
+    kept), the pairs of bodies whose boxes meet, the edges whose boxes meet such a partner's and whose ends have no
+    node contact with it (:func:`edges_near`), the pairs of those edges whose midpoints lie within reach
+    (:func:`edge_candidates`), pair by pair of bodies in the order given, and the narrow phase on them
+    (:func:`edge_narrow`). With the compiled kernels each of the three edge by edge or pair by pair, the candidates
+    from one uniform grid over all midpoints (kernels.edges_near, edge_candidates, edge_narrow).
+    :func:`edge_contacts_reference` is the same search with every pair of edges a candidate (the tests')."""
     if not pairs:
         return EdgeHits.empty()
     layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
-    if not len(layout.used):
+    if not len(layout.used) or not len(layout.edges):
         return EdgeHits.empty()
     explained = None if explained is None or not len(explained) else _gap_table(explained)
     keys = np.zeros(0, np.int64) if explained is None else explained[0]  # the node contacts' keys, sorted
-    # every body's box grown by what it may close within the step (one pass over all of them; a crossing already
-    # made lies in both boxes)
-    data = [bodies[k] for k in layout.used.tolist()]
-    xs = np.concatenate([x.take(sf.nodes, axis=0) for x, _, sf, _ in data])
-    vs = np.concatenate([v.take(sf.nodes, axis=0) for _, v, sf, _ in data])
+    used = layout.used
+    data = [bodies[k] for k in used.tolist()]
+    X = np.concatenate([x for x, _, _, _ in data])
+    V = np.concatenate([v for _, v, _, _ in data])
+    xs, vs = X[layout.nodes], V[layout.nodes]
+    # every body's box grown by what it may close within the step (a crossing already made lies in both boxes),
     # motions relative to each body's mean (soft_contacts' rule: a pile falling together closes nothing)
-    mean_v = np.add.reduceat(vs, layout.starts) / layout.s_of[:, None]
+    starts = layout.starts
+    mean_v = np.add.reduceat(vs, starts) / layout.s_of[:, None]
     rel = vs - np.repeat(mean_v, layout.s_of, axis=0)
-    own = SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", rel, rel), layout.starts))
-    grow = (margin + own)[:, None]
-    blo = np.minimum.reduceat(xs, layout.starts) - grow
-    bhi = np.maximum.reduceat(xs, layout.starts) + grow
-    row = {k: r for r, k in enumerate(layout.used.tolist())}
-    P_ = np.array([(row[a], row[b]) for a, b in pairs], dtype=np.int64)
-    between = SOFT_SLACK * h * np.linalg.norm(mean_v[P_[:, 0]] - mean_v[P_[:, 1]], axis=1)[:, None]  # per pair
-    apart = ((blo[P_[:, 0]] - between > bhi[P_[:, 1]]) | (blo[P_[:, 1]] - between > bhi[P_[:, 0]])).any(axis=1)
-    if apart.all():
+    own = SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", rel, rel), starts))
+    blo = np.minimum.reduceat(xs, starts) - (margin + own)[:, None]
+    bhi = np.maximum.reduceat(xs, starts) + (margin + own)[:, None]
+    between = SOFT_SLACK * h * np.sqrt(((mean_v[:, None] - mean_v[None]) ** 2).sum(axis=2))  # (B, B)
+    gap = between[:, :, None]
+    apart = ((blo[:, None] - gap > bhi[None]) | (blo[None] - gap > bhi[:, None])).any(axis=2)
+    meet = (layout.rank >= 0) & ~apart
+    if not meet.any():
         return EdgeHits.empty()
-    meeting = [pr for pr, off in zip(pairs, apart.tolist()) if not off]
-    pair_travel = {pr: float(b) for pr, b, off in zip(pairs, between[:, 0].tolist(), apart.tolist()) if not off}
-    lo = {k: blo[row[k]] for pr in meeting for k in pr}
-    hi = {k: bhi[row[k]] for pr in meeting for k in pr}
-    mean_of = {k: mean_v[row[k]] for pr in meeting for k in pr}
-    slack_with = {}  # per body and partner: the means' travel
-    for (a, b), t in pair_travel.items():
-        slack_with[(a, b)] = slack_with[(b, a)] = t
-    partners: dict[int, list[int]] = {}
-    for a, b in meeting:
-        partners.setdefault(a, []).append(b)
-        partners.setdefault(b, []).append(a)
-    body_of, edge_of, ends, P0, P1, V0, V1, N, R0, R1 = [], [], [], [], [], [], [], [], [], []
-    for k, others in sorted(partners.items()):  # each body's edges inside a partner's grown box
-        x, v, sf, _ = bodies[k]
-        e0, e1 = x.take(sf.edges[:, 0], axis=0), x.take(sf.edges[:, 1], axis=0)
-        part = sorted(set(others))
-        box_lo, box_hi = np.array([lo[o] for o in part]), np.array([hi[o] for o in part])
-        slack = np.array([slack_with[(k, o)] for o in part])
-        near = (kernels.edges_near_partners if kernels.ENABLED else edges_near_partners)(
-            sf.edges, x, k, np.array(part, dtype=np.int64), box_lo, box_hi, slack, keys, NODE_BITS)
-        e = np.flatnonzero(near)
-        if not len(e):
-            continue
-        body_of.append(np.full(len(e), k))
-        edge_of.append(e)
-        ends.append(sf.edges[e])
-        P0.append(e0[e])
-        P1.append(e1[e])
-        V0.append(v[sf.edges[e, 0]] - mean_of[k])  # about the body's mean (the means' own travel: per pair)
-        V1.append(v[sf.edges[e, 1]] - mean_of[k])
-        N.append(edge_normals(x, sf.triangles, sf.edge_tris[e]))
-        rest = bodies[k][3]
-        R0.append(rest[sf.edges[e, 0]])
-        R1.append(rest[sf.edges[e, 1]])
-    if not body_of:
+    near = (kernels.edges_near if kernels.ENABLED else edges_near)(
+        layout.edges, layout.edge_b, X, layout.node_off, blo, bhi, meet, between, keys, used, NODE_BITS)
+    e = np.flatnonzero(near)
+    if not len(e):
         return EdgeHits.empty()
-    body_of, edge_of, ends = np.concatenate(body_of), np.concatenate(edge_of), np.concatenate(ends)
-    table = np.zeros((max(mean_of) + 1, 3))  # the bodies' mean velocities, by body
-    for k, m in mean_of.items():
-        table[k] = m
-    P0, P1, V0, V1, N, R0, R1 = (np.concatenate(z) for z in (P0, P1, V0, V1, N, R0, R1))
+    ends, eb = layout.edges[e], layout.edge_b[e]
+    g0, g1 = ends[:, 0] + layout.node_off[eb], ends[:, 1] + layout.node_off[eb]
+    P0, P1 = X[g0], X[g1]
+    V0, V1 = V[g0] - mean_v[eb], V[g1] - mean_v[eb]  # about the body's mean (the means' own travel: per pair)
+    R = np.concatenate([r for _, _, _, r in data])
+    R0, R1 = R[g0], R[g1]
+    N = _edge_normals(X, layout.tris, layout.edge_tris[e])
     mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     reach = margin + depth
-    radius = 2.0 * (half.max() + travel.max()) + reach  # and, per meeting pair, the means' travel
-    # the candidate pairs, meeting pair by meeting pair: one k-d tree per body over its edges' midpoints (one
-    # tree over all edges would list every body's own neighbouring edges first, most of the pairs in a pile)
-    starts = np.flatnonzero(np.r_[True, body_of[1:] != body_of[:-1]])
-    span = {int(body_of[s0]): (int(s0), int(s1)) for s0, s1 in zip(starts, np.r_[starts[1:], len(body_of)])}
-    trees: dict[int, cKDTree] = {}
-
-    def tree(k: int) -> cKDTree:
-        if k not in trees:
-            trees[k] = cKDTree(mid[span[k][0]:span[k][1]])
-        return trees[k]
-
-    found_i, found_j = [], []
-    for a, b in meeting:
-        if a not in span or b not in span:
-            continue
-        if a == b:
-            got = tree(a).query_pairs(radius, output_type="ndarray")
-            fi, fj = got[:, 0], got[:, 1]
-        else:
-            got = tree(a).sparse_distance_matrix(tree(b), radius + slack_with[(a, b)], output_type="ndarray")
-            fi, fj = got["i"], got["j"]
-        found_i.append(fi.astype(np.int64) + span[a][0])
-        found_j.append(fj.astype(np.int64) + span[b][0])
-    if not found_i:
+    radius = 2.0 * (half.max() + travel.max()) + reach  # and, per pair of bodies, the means' travel
+    if kernels.ENABLED:
+        cell = max(radius + float(between[meet].max()), float(np.ptp(mid, axis=0).max()) / (2 ** 21 - 2), 1e-9)
+        i, j = kernels.edge_candidates(mid, eb, layout.rank, meet, between, radius, cell,
+                                       *kernels.centre_grid(mid, cell))
+        order = np.lexsort((j, i, layout.rank[eb[i], eb[j]]))
+        i, j = i[order], j[order]
+    else:
+        i, j = edge_candidates(mid, eb, layout.rank, meet, between, radius)
+    if not len(i):
         return EdgeHits.empty()
-    i, j = np.concatenate(found_i), np.concatenate(found_j)
+    body_of = used[eb]
+    table = np.zeros((int(used.max()) + 1, 3))  # the bodies' mean velocities, by body
+    table[used] = mean_v
     k, s, t, n, d = (kernels.edge_narrow if kernels.ENABLED else edge_narrow)(
         i, j, P0, P1, V0, V1, N, R0, R1, half, travel, body_of, ends, table, keys, NODE_BITS, margin, reach, depth,
         SOFT_SLACK * h, EDGE_SIN, EDGE_END)
@@ -688,5 +725,50 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         return EdgeHits.empty()
     i, j = i[k], j[k]
     a, b = body_of[i], body_of[j]
+    edge_of = layout.edge_of[e]
     key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (edge_of[i] << EDGE_BITS) | edge_of[j]).astype(np.int64)
     return EdgeHits(a, b, np.column_stack([ends[i], ends[j]]), np.column_stack([1 - s, s, -(1 - t), -t]), n, d, key)
+
+
+def edge_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]],
+                            pairs: list[tuple[int, int]], margin: float, h: float, depth: float,
+                            explained: SoftHits | None = None) -> EdgeHits:
+    """:func:`edge_contacts` without its broad phase: every pair of edges of each pair of bodies (each pair once within
+    a body) through the narrow phase (numpy's edge_narrow), pair by pair in the order given, by edge index: the
+    reference the tests hold the broad phase to."""
+    layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs)
+    explained = None if explained is None or not len(explained) else _gap_table(explained)
+    keys = np.zeros(0, np.int64) if explained is None else explained[0]
+    used = layout.used
+    data = [bodies[k] for k in used.tolist()]
+    X = np.concatenate([x for x, _, _, _ in data])
+    V = np.concatenate([v for _, v, _, _ in data])
+    R = np.concatenate([r for _, _, _, r in data])
+    vs = V[layout.nodes]
+    mean_v = np.add.reduceat(vs, layout.starts) / layout.s_of[:, None]
+    ends, eb = layout.edges, layout.edge_b
+    g0, g1 = ends[:, 0] + layout.node_off[eb], ends[:, 1] + layout.node_off[eb]
+    P0, P1, V0, V1 = X[g0], X[g1], V[g0] - mean_v[eb], V[g1] - mean_v[eb]
+    N = _edge_normals(X, layout.tris, layout.edge_tris)
+    half = 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
+    travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
+    table = np.zeros((int(used.max()) + 1, 3))
+    table[used] = mean_v
+    row = {int(k): r for r, k in enumerate(used.tolist())}
+    out = []
+    for a, b in pairs:
+        ea, e_b = np.flatnonzero(eb == row[a]), np.flatnonzero(eb == row[b])
+        i, j = np.repeat(ea, len(e_b)), np.tile(e_b, len(ea))
+        if a == b:
+            i, j = i[i < j], j[i < j]
+        k, s, t, n, d = edge_narrow(i, j, P0, P1, V0, V1, N, R[g0], R[g1], half, travel, used[eb], ends, table, keys,
+                                    NODE_BITS, margin, margin + depth, depth, SOFT_SLACK * h, EDGE_SIN, EDGE_END)
+        i, j = i[k], j[k]
+        key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (layout.edge_of[i] << EDGE_BITS)
+               | layout.edge_of[j]).astype(np.int64)
+        out.append(EdgeHits(np.full(len(k), a), np.full(len(k), b), np.column_stack([ends[i], ends[j]]),
+                            np.column_stack([1 - s, s, -(1 - t), -t]), n, d, key))
+    parts = [hh for hh in out if len(hh)]
+    if not parts:
+        return EdgeHits.empty()
+    return EdgeHits(*(np.concatenate([getattr(hh, f.name) for hh in parts]) for f in fields(EdgeHits)))

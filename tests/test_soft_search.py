@@ -70,31 +70,34 @@ def test_bodies_joined_only_by_edge_edge_rows_solve_together():
     assert len({label[0], label[1], label[4]}) == 3
 
 
-def test_compiled_edge_search_finds_what_numpys_finds(monkeypatch):
-    """softcontact.edge_contacts with the compiled broad and narrow phases (kernels.edges_near_partners,
-    kernels.edge_narrow) and with numpy's (softcontact.edges_near_partners, softcontact.edge_narrow): the same edge
-    crossings (to round-off in the weights, normals and distances) in random piles of overlapping, turned bodies,
-    with and without the node contacts that explain edges."""
-    from integration.softcontact import edge_contacts
+def test_edge_search_finds_what_every_pair_of_edges_finds(monkeypatch):
+    """softcontact.edge_contacts with the compiled broad and narrow phases (kernels.edges_near, edge_candidates,
+    edge_narrow), with numpy's (softcontact.edges_near, edge_candidates, edge_narrow) and with no broad phase at all
+    (softcontact.edge_contacts_reference: every pair of edges through numpy's narrow phase): the same edge crossings
+    in the same order (to round-off in the weights, normals and distances) in random piles of overlapping, turned,
+    moving bodies with and without self-contact, with and without the node contacts that explain edges."""
+    from integration.softcontact import edge_contacts, edge_contacts_reference
 
-    if not kernels.ENABLED:
-        pytest.skip("the compiled kernels are off here")
     rng = np.random.default_rng(11)
+    modes = (True, False) if kernels.ENABLED else (False,)
     found = 0
-    for _ in range(12):
+    for _ in range(30):
         bodies, pairs = _pile(rng, 0.04, 6, turned=True)
+        pairs = [pairs[k] for k in rng.permutation(len(pairs))]
         hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
         for explained in (None, hits):
-            out = {}
-            for compiled in (True, False):
+            out = {"reference": edge_contacts_reference(bodies, pairs, 0.005, 0.01, 0.005, explained)}
+            for compiled in modes:
                 monkeypatch.setattr(kernels, "ENABLED", compiled)
                 out[compiled] = edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, explained)
-            found += len(out[False])
-            for f in ("a", "b", "nodes", "key"):
-                np.testing.assert_array_equal(getattr(out[True], f), getattr(out[False], f), err_msg=f)
-            for f in ("weights", "normal", "distance"):
-                np.testing.assert_allclose(getattr(out[True], f), getattr(out[False], f), rtol=0, atol=1e-13,
-                                           err_msg=f)
+            found += len(out["reference"])
+            for which in out:
+                for f in ("a", "b", "nodes", "key"):
+                    np.testing.assert_array_equal(getattr(out[which], f), getattr(out["reference"], f),
+                                                  err_msg=f"{which} {f}")
+                for f in ("weights", "normal", "distance"):
+                    np.testing.assert_allclose(getattr(out[which], f), getattr(out["reference"], f), rtol=0,
+                                               atol=1e-13, err_msg=f"{which} {f}")
     assert found > 50  # crossings were found: the comparison is not between two empty sets
 
 
@@ -105,8 +108,8 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
 
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
-    names = ("centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near_partners",
-             "edge_narrow")
+    names = ("centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near",
+             "edge_candidates", "edge_narrow")
     called = set()
     for name in names:
         def wrapped(*args, _f=getattr(kernels, name), _name=name):
