@@ -14,7 +14,8 @@ for the contact search, where numpy would spread a little arithmetic over dozens
   the active-set loop (contact.py), contact by contact, bit for bit numpy's;
 - ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible);
 - ``law_slopes``: the convex problem's line search, the contact cost's slopes along a step (convex.py);
-- ``centre_grid``, ``soft_candidates``, ``soft_deep_candidates``: the soft-soft search's broad phase (its two passes)
+- ``triangle_spheres``, ``centre_grid``, ``soft_candidates``, ``soft_deep_candidates``: the soft-soft search's
+  triangle bounds and broad phase (its two passes)
   over one uniform grid of all bodies' triangle centres (numpy: a k-d tree per body), node by node;
 - ``soft_nearest``: the soft-soft search's narrow phase (softcontact.soft_contacts), candidate pair by pair;
 - ``edges_near``, ``edge_candidates``, ``edge_narrow``: the edge search's broad phase, which edges may meet another
@@ -40,7 +41,8 @@ __all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_star
            "edge_candidates", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
            "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances",
            "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter", "scatter_rows",
-           "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames"]
+           "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames",
+           "triangle_spheres"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -1023,6 +1025,37 @@ def _room(a: np.ndarray, n: int) -> np.ndarray:
 
 
 @_jit
+def triangle_spheres(X: np.ndarray, V: np.ndarray, tris: np.ndarray, tri_b: np.ndarray, mean_v: np.ndarray,
+                     slack_h: float, centre: np.ndarray, radius: np.ndarray, travel: np.ndarray) -> float:
+    """softcontact.soft_contacts' triangle bounds, triangle by triangle: each triangle's (tris (T, 3) over X (N, 3))
+    centre (T, 3) (its corners' mean), bounding radius (T,) about it and largest corner travel slack_h |V - mean_v
+    of its body tri_b| (T,), in place; returns the centres' largest extent along an axis [m]."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        m = mean_v[tri_b[t]]
+        r2 = 0.0
+        v2 = 0.0
+        for j in range(3):
+            centre[t, j] = (X[a, j] + X[b, j] + X[c, j]) / 3.0
+            lo[j] = min(lo[j], centre[t, j])
+            hi[j] = max(hi[j], centre[t, j])
+        for n in (a, b, c):
+            d0, d1, d2 = X[n, 0] - centre[t, 0], X[n, 1] - centre[t, 1], X[n, 2] - centre[t, 2]
+            r2 = max(r2, d0 * d0 + d1 * d1 + d2 * d2)
+            u0, u1, u2 = V[n, 0] - m[0], V[n, 1] - m[1], V[n, 2] - m[2]
+            v2 = max(v2, u0 * u0 + u1 * u1 + u2 * u2)
+        radius[t] = math.sqrt(r2)
+        travel[t] = slack_h * math.sqrt(v2)
+    extent = 0.0
+    for j in range(3):
+        if hi[j] >= lo[j]:
+            extent = max(extent, hi[j] - lo[j])
+    return extent
+
+
+@_jit
 def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, between: np.ndarray,
                     meet: np.ndarray, grow: np.ndarray, plo: np.ndarray, phi: np.ndarray, centre: np.ndarray,
                     radius: np.ndarray, travel_b: np.ndarray, tri_b: np.ndarray, tb_max: np.ndarray, margin: float,
@@ -1035,7 +1068,7 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
     grow[p, q], and the centres lie within both margin + depth + radius + the node's travel against q + the
     triangle's, and margin + that travel + tb_max[q] + 1.1 radius (the node's own reach; the k-d tree query's
     conditions). Also the pairs (node, body q != p) to search as deep as depth where the first pass leaves the node
-    unsettled: the node inside q's box grown by the margin. Returns (node, triangle, deep node, deep body)."""
+    unsettled: the node inside q's box. Returns (node, triangle, deep node, deep body)."""
     S, B = xs.shape[0], meet.shape[0]
     r_max = 0.0
     for t in range(radius.shape[0]):
@@ -1067,9 +1100,8 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
                 qs[n_q] = q
                 n_q += 1
                 ta_max = max(ta_max, travel_a[i] + between[p, q])
-                if q != p and (x0 >= plo[q, 0] - margin and x1 >= plo[q, 1] - margin and x2 >= plo[q, 2] - margin
-                               and x0 <= phi[q, 0] + margin and x1 <= phi[q, 1] + margin
-                               and x2 <= phi[q, 2] + margin):
+                if q != p and (x0 >= plo[q, 0] and x1 >= plo[q, 1] and x2 >= plo[q, 2]
+                               and x0 <= phi[q, 0] and x1 <= phi[q, 1] and x2 <= phi[q, 2]):
                     deep_i, deep_q = _room(deep_i, n_deep), _room(deep_q, n_deep)
                     deep_i[n_deep] = i
                     deep_q[n_deep] = q

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from . import kernels
 from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, read_only, run_starts, vertex_normals
 from .distance import cross
-from .segments import closest_between_segments, edge_normals, surface_edges
+from .segments import closest_between_segments, surface_edges
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
 # that a node above the shared edge of two triangles is held by one of them
@@ -196,12 +196,13 @@ class SoftLayout:
     """What the soft search needs of its bodies' surfaces and pairs, fixed while they are: the ``used`` bodies (B,)
     (those in some pair, ascending), ``rank`` (B, B) the output order of each searched direction (p's nodes against
     q's triangles; -1: not searched), their surface node counts ``s_of`` (B,), each surface node's body ``node_b``
-    and each body's first surface node ``starts`` (B,) in the concatenation of their surface nodes; for the edge
-    search, the used bodies' first nodes ``node_off`` (B,) in the concatenation of all their nodes, their surface
-    nodes ``nodes`` (S,) and triangles ``tris`` (T, 3) in that numbering, their edges ``edges`` (E, 2) (each body's
-    own node numbering), ``edge_b`` (E,) (rows of ``used``), ``edge_of`` (E,) (the index among its body's edges)
-    and ``edge_tris`` (E, 2) (rows of ``tris``, -1: none). No used bodies (``used`` empty) when a body in a pair has
-    no surface."""
+    and each body's first surface node ``starts`` (B,) in the concatenation of their surface nodes; the used bodies'
+    first nodes ``node_off`` (B,) in the concatenation of all their nodes, their surface nodes ``nodes`` (S,) and
+    triangles ``tris`` (T, 3) in that numbering (each body's first ``t_off`` (B,), their bodies ``tri_b`` (T,),
+    longest rest edges ``rest_edge`` (T,) and node-triangle ``incidence`` (all nodes, T)); for the edge search,
+    their edges ``edges`` (E, 2) (each body's own node numbering), ``edge_b`` (E,) (rows of ``used``), ``edge_of``
+    (E,) (the index among its body's edges) and ``edge_tris`` (E, 2) (rows of ``tris``, -1: none). No used bodies
+    (``used`` empty) when a body in a pair has no surface."""
 
     used: np.ndarray
     rank: np.ndarray
@@ -211,6 +212,10 @@ class SoftLayout:
     node_off: np.ndarray | None = None
     nodes: np.ndarray | None = None
     tris: np.ndarray | None = None
+    t_off: np.ndarray | None = None
+    tri_b: np.ndarray | None = None
+    rest_edge: np.ndarray | None = None
+    incidence: sp.csr_matrix | None = None
     edges: np.ndarray | None = None
     edge_b: np.ndarray | None = None
     edge_of: np.ndarray | None = None
@@ -246,8 +251,11 @@ class SoftLayout:
         edge_tris = (np.concatenate([np.where(sf.edge_tris >= 0, sf.edge_tris + o, -1) if sf.edge_tris is not None
                                      else np.zeros((0, 2), np.int64) for sf, o in zip(sfs, t_off)])
                      if sfs else np.zeros((0, 2), np.int64))
-        return cls(used, rank, s_of, np.repeat(np.arange(B), s_of), starts, node_off, nodes, tris, edges, edge_b,
-                   edge_of, edge_tris)
+        t_of = np.array([len(sf.triangles) for sf in sfs], dtype=np.int64)
+        rest_edge = np.concatenate([sf.rest_edge for sf in sfs]) if sfs else np.zeros(0)
+        incidence = node_incidence(tris, int(n_of.sum()))
+        return cls(used, rank, s_of, np.repeat(np.arange(B), s_of), starts, node_off, nodes, tris, t_off,
+                   np.repeat(np.arange(B), t_of), rest_edge, incidence, edges, edge_b, edge_of, edge_tris)
 
 
 def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
@@ -285,15 +293,10 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not len(reached):
         return SoftHits.empty()
     # all bodies' arrays, one numbering (node ids offset by the bodies before)
-    n_of = np.array([len(x) for x, _, _, _ in data])
-    off = np.concatenate([[0], np.cumsum(n_of)[:-1]])
+    off, nodes, tris, t_off, tri_b = layout.node_off, layout.nodes, layout.tris, layout.t_off, layout.tri_b
     X = np.concatenate([x for x, _, _, _ in data])
     V = np.concatenate([v for _, v, _, _ in data])
-    nodes = np.concatenate([sf.nodes + o for (_, _, sf, _), o in zip(data, off)])
-    tris = np.concatenate([sf.triangles + o for (_, _, sf, _), o in zip(data, off)])
-    t_of = np.array([len(sf.triangles) for _, _, sf, _ in data])
-    t_off = np.concatenate([[0], np.cumsum(t_of)[:-1]])
-    tri_b = np.repeat(np.arange(B), t_of)
+    t_of = np.diff(np.append(t_off, len(tris)))
     # broad phase: per body q, the nodes of the bodies searched against it that lie in its grown box, against a
     # k-d tree of its triangles' bounding spheres (bodies with no such nodes cost nothing more), in two passes.
     # The first reaches a node's own margin and closing only (rho: the triangles within rho of it, all of them);
@@ -302,7 +305,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # are searched again as deep as a node may lie inside (depth): in a pile, the few that are. Compiled: one
     # uniform grid over all bodies' triangle centres, node by node (kernels.soft_candidates), the same pairs.
     R = np.concatenate([r for _, _, _, r in data])
-    rest_edge = np.concatenate([sf.rest_edge for _, _, sf, _ in data])
+    rest_edge = layout.rest_edge
     vnormals = None
 
     def query(q: int, sel: np.ndarray, first: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -326,9 +329,13 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     def nearest(i: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per node and other body, the nearest facing triangle whose prism holds it."""
         nonlocal vnormals
-        if vnormals is None:
-            vnormals = vertex_normals(X, tris)
         if kernels.ENABLED:  # the lines below, candidate by candidate (integration.kernels)
+            if vnormals is None:  # the surface normals at the nodes in question only
+                vnormals = np.zeros((len(X), 3))
+            at = np.unique(nodes[i])
+            found = np.empty((len(at), 3))
+            kernels.node_normals_at(X, tris, layout.incidence.indptr, layout.incidence.indices, at, found)
+            vnormals[at] = found
             m = len(i)
             w, nrm, d, facing = np.empty((m, 3)), np.empty((m, 3)), np.empty(m), np.empty(m, dtype=bool)
             k = kernels.soft_nearest(xs, X, tris, nodes, node_b, tri_b, R, rest_edge, vnormals, i, t, margin,
@@ -336,6 +343,8 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
             i, t = i[k], t[k]
             pb, qb = node_b[i], tri_b[t]
             return i, t, pb, qb, pb == qb, w[k], nrm[k], d[k], facing[k]
+        if vnormals is None:
+            vnormals = vertex_normals(X, tris, layout.incidence)
         pb, qb = node_b[i], tri_b[t]
         same = pb == qb
         if same.any():  # self-contact: not against the node's own surroundings
@@ -361,14 +370,18 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         return tuple(a[first] for a in (i, t, pb, qb, same, w, nrm, d, facing))
 
     # every triangle's bounding sphere and largest travel about its body's mean (one pass over all bodies)
-    P = X[tris]  # (T, 3, 3)
-    centre = P.mean(axis=1)
-    radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
-    travel_b = SOFT_SLACK * h * np.sqrt(((V[tris] - mean_v[tri_b][:, None]) ** 2).sum(axis=2).max(axis=1))
+    if kernels.ENABLED:
+        centre, radius, travel_b = np.empty((len(tris), 3)), np.empty(len(tris)), np.empty(len(tris))
+        extent = kernels.triangle_spheres(X, V, tris, tri_b, mean_v, SOFT_SLACK * h, centre, radius, travel_b)
+    else:
+        P = X[tris]  # (T, 3, 3)
+        centre = P.mean(axis=1)
+        radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
+        travel_b = SOFT_SLACK * h * np.sqrt(((V[tris] - mean_v[tri_b][:, None]) ** 2).sum(axis=2).max(axis=1))
     tb_max = np.maximum.reduceat(travel_b, t_off)  # per body, its triangles' largest travel about its mean
     if kernels.ENABLED:  # both passes node by node over one grid of all triangles' centres (integration.kernels)
         cell = margin + 1.1 * float(radius.max()) + float(tb_max.max())  # a resting node's first-pass reach
-        cell = max(cell, float(np.ptp(centre, axis=0).max()) / (2 ** 21 - 2), 1e-9)  # 21 bits a key per axis
+        cell = max(cell, extent / (2 ** 21 - 2), 1e-9)  # 21 bits a key per axis
         grid = (cell,) + kernels.centre_grid(centre, cell)
         first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
             xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max, margin,
@@ -387,7 +400,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
             i, t = query(q, sel, True)
             first_i.append(i)
             first_t.append(t)
-            inbox = sel[(node_b[sel] != q) & ((xs[sel] >= plo[q] - margin) & (xs[sel] <= phi[q] + margin)).all(axis=1)]
+            inbox = sel[(node_b[sel] != q) & ((xs[sel] >= plo[q]) & (xs[sel] <= phi[q])).all(axis=1)]
             deep_i.append(inbox)
             deep_q.append(np.full(len(inbox), q))
         if not first_i:
@@ -398,8 +411,10 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     # farther than rho is no contact: outside the box the node is not inside the body, and beyond its reach)
     settled = np.abs(d) <= margin + travel_a[i] + between[pb, qb] + tb_max[qb]
     i, t, pb, qb, same, w, nrm, d, facing = (a[settled] for a in (i, t, pb, qb, same, w, nrm, d, facing))
-    if len(deep_i):
-        deep = ~np.isin(deep_i * (B + 1) + deep_q, i * (B + 1) + qb)
+    if len(deep_i):  # not those the first pass settled against that body
+        settled_at = np.zeros((len(xs), B), dtype=bool)
+        settled_at[i, qb] = True
+        deep = ~settled_at[deep_i, deep_q]
         deep_i, deep_q = deep_i[deep], deep_q[deep]
     if len(deep_i):
         if kernels.ENABLED:
