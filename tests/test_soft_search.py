@@ -108,7 +108,7 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
 
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
-    names = ("centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near",
+    names = ("triangle_spheres", "centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near",
              "edge_candidates", "edge_narrow")
     called = set()
     for name in names:
