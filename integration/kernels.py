@@ -14,8 +14,9 @@ for the contact search, where numpy would spread a little arithmetic over dozens
   the active-set loop (contact.py), contact by contact, bit for bit numpy's;
 - ``face_eligible``: which face contacts may carry an impulse after a solve (contact._FaceSet.eligible);
 - ``law_slopes``: the convex problem's line search, the contact cost's slopes along a step (convex.py);
-- ``triangle_spheres``, ``centre_grid``, ``soft_candidates``, ``soft_deep_candidates``: the soft-soft search's
-  triangle bounds and broad phase (its two passes)
+- ``triangle_spheres``, ``centre_grid``, ``soft_candidates``, ``first_pass_among``, ``soft_deep_candidates``: the
+  soft-soft search's triangle bounds and broad phase (its two passes; the first among candidates kept from an
+  earlier step)
   over one uniform grid of all bodies' triangle centres (numpy: a k-d tree per body), node by node;
 - ``soft_nearest``: the soft-soft search's narrow phase (softcontact.soft_contacts), candidate pair by pair;
 - ``edges_near``, ``edge_candidates``, ``edge_narrow``: the edge search's broad phase, which edges may meet another
@@ -39,10 +40,10 @@ from softbody.kernels import AVAILABLE, _inline, _jit
 
 __all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal",
            "edge_candidates", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
-           "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays", "primitive_distances",
-           "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter", "scatter_rows",
-           "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest", "tangent_frames",
-           "triangle_spheres"]
+           "first_pass_among", "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays",
+           "primitive_distances", "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter",
+           "scatter_rows", "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest",
+           "tangent_frames", "triangle_spheres"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9
@@ -1129,6 +1130,53 @@ def soft_candidates(xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray, be
         for r in range(n_q):
             searched[qs[r]] = False
     return out_i[:n_out], out_t[:n_out], deep_i[:n_deep], deep_q[:n_deep]
+
+
+@_jit
+def first_pass_among(cand_i: np.ndarray, cand_t: np.ndarray, xs: np.ndarray, node_b: np.ndarray, travel_a: np.ndarray,
+                     between: np.ndarray, meet: np.ndarray, grow: np.ndarray, plo: np.ndarray, phi: np.ndarray,
+                     centre: np.ndarray, radius: np.ndarray, travel_b: np.ndarray, tri_b: np.ndarray,
+                     tb_max: np.ndarray, margin: float, depth: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """soft_candidates' first pass among candidate pairs (cand_i, cand_t) found earlier with wider reaches
+    (softcontact.FirstPass): those that meet its conditions now (in their order), and its deep pass's pairs (node,
+    body), found as it finds them (node by node, bodies in order). The arguments are soft_candidates'."""
+    m = cand_i.shape[0]
+    keep = np.empty(m, dtype=np.bool_)
+    for k in range(m):
+        i, t = cand_i[k], cand_t[k]
+        p, q = node_b[i], tri_b[t]
+        ok = meet[p, q]
+        if ok:
+            g = grow[p, q]
+            for j in range(3):
+                if not (xs[i, j] >= plo[q, j] - g and xs[i, j] <= phi[q, j] + g):
+                    ok = False
+                    break
+        if ok:
+            ta = travel_a[i] + between[p, q]
+            v = math.sqrt((xs[i, 0] - centre[t, 0]) ** 2 + (xs[i, 1] - centre[t, 1]) ** 2
+                          + (xs[i, 2] - centre[t, 2]) ** 2)
+            ok = v <= margin + depth + radius[t] + ta + travel_b[t] and v <= (margin + ta + tb_max[q]) + 1.1 * radius[t]
+        keep[k] = ok
+    S, B = xs.shape[0], meet.shape[0]
+    deep_i = np.empty(S, dtype=np.int64)
+    deep_q = np.empty(S, dtype=np.int64)
+    n_deep = 0
+    for i in range(S):
+        p = node_b[i]
+        x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
+        for q in range(B):
+            if q == p or not meet[p, q]:
+                continue
+            if (x0 >= plo[q, 0] and x1 >= plo[q, 1] and x2 >= plo[q, 2]
+                    and x0 <= phi[q, 0] and x1 <= phi[q, 1] and x2 <= phi[q, 2]):
+                deep_i, deep_q = _room(deep_i, n_deep), _room(deep_q, n_deep)
+                deep_i[n_deep] = i
+                deep_q[n_deep] = q
+                n_deep += 1
+    idx = np.flatnonzero(keep)
+    return cand_i[idx], cand_t[idx], deep_i[:n_deep], deep_q[:n_deep]
 
 
 @_jit

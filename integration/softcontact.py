@@ -258,14 +258,47 @@ class SoftLayout:
                    np.repeat(np.arange(B), t_of), rest_edge, incidence, edges, edge_b, edge_of, edge_tris)
 
 
+class FirstPass:
+    """The compiled node-face search's first-pass candidates kept from step to step (soft_contacts' ``kept``, the
+    caller's to hold): found with every reach widened by SKIN and the state they were found in (the surface nodes'
+    positions, their travels, the bodies' means' travels, the triangles' largest travels), they hold every candidate a
+    later step's search would find while the nodes have moved by D and the travels grown by dT with 4.2 D + dT <=
+    SKIN (a candidate's node and triangle centre close by at most 2 D, the triangle's radius grows by at most 2 D,
+    times 1.1), and are filtered by that step's exact conditions: the same contacts as a search of that step, without
+    its grid (a resting pile searches it once). Made anew, for the layout it was found for only."""
+
+    #: the reach added to the first pass's when its candidates are found [m]
+    SKIN = 1e-3
+
+    def __init__(self) -> None:
+        self.layout = None
+        self.found = 0  # grid searches made
+        self.served = 0  # steps served from the kept candidates
+
+    def serves(self, layout, xs: np.ndarray, travel_a: np.ndarray, between: np.ndarray, tb_max: np.ndarray) -> bool:
+        """Whether the kept candidates hold every candidate of a search of ``layout`` in this state."""
+        if self.layout is not layout or self.xs.shape != xs.shape:
+            return False
+        moved = float(np.sqrt(np.einsum("ij,ij->i", xs - self.xs, xs - self.xs).max(initial=0.0)))
+        grown = sum(float(np.max(now - then, initial=0.0)) for now, then in
+                    ((travel_a, self.travel_a), (between, self.between), (tb_max, self.tb_max)))
+        return 4.2 * moved + grown <= self.SKIN
+
+    def keep(self, layout, xs, travel_a, between, tb_max, i: np.ndarray, t: np.ndarray) -> None:
+        self.layout, self.xs, self.travel_a, self.between, self.tb_max = layout, xs.copy(), travel_a, between, tb_max
+        self.i, self.t = i, t
+
+
 def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
-                  margin: float, h: float, depth: float, layout: SoftLayout | None = None) -> SoftHits:
+                  margin: float, h: float, depth: float, layout: SoftLayout | None = None,
+                  kept: FirstPass | None = None) -> SoftHits:
     """Contacts between the soft bodies ``bodies`` (positions (N, 3), velocities (N, 3), surface, rest
     positions (N, 3)) for the index ``pairs`` (a, b) (a == b: self-contact), both directions of each pair of
     distinct bodies, in one pass over all of them (one query per body that other nodes reach, one narrow phase
     for all; compiled: one grid over all triangles, see the module doc). The same contacts, in the same order, as
     :func:`pair_contacts_reference` (a search per pair and direction, kept for the tests). ``layout``:
-    SoftLayout.of their surfaces and pairs, if kept from an earlier step (the caller's to renew when they change)."""
+    SoftLayout.of their surfaces and pairs, if kept from an earlier step (the caller's to renew when they change);
+    ``kept``: the compiled first pass's candidates from step to step (FirstPass; None: searched anew)."""
     if not pairs:
         return SoftHits.empty()
     layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs) if layout is None else layout
@@ -379,13 +412,39 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
         travel_b = SOFT_SLACK * h * np.sqrt(((V[tris] - mean_v[tri_b][:, None]) ** 2).sum(axis=2).max(axis=1))
     tb_max = np.maximum.reduceat(travel_b, t_off)  # per body, its triangles' largest travel about its mean
+    grid = None
     if kernels.ENABLED:  # both passes node by node over one grid of all triangles' centres (integration.kernels)
-        cell = margin + 1.1 * float(radius.max()) + float(tb_max.max())  # a resting node's first-pass reach
-        cell = max(cell, extent / (2 ** 21 - 2), 1e-9)  # 21 bits a key per axis
-        grid = (cell,) + kernels.centre_grid(centre, cell)
-        first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
-            xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max, margin,
-            depth, *grid)
+        def made_grid(widen: float) -> tuple:
+            cell = margin + widen + 1.1 * float(radius.max()) + float(tb_max.max())  # a resting node's first-pass reach
+            cell = max(cell, extent / (2 ** 21 - 2), 1e-9)  # 21 bits a key per axis
+            return (cell,) + kernels.centre_grid(centre, cell)
+
+        if kept is not None and kept.serves(layout, xs, travel_a, between, tb_max):
+            kept.served += 1
+            # this step's candidates among them, and the deep pass's nodes, as soft_candidates finds them
+            first_i, first_t, deep_i, deep_q = kernels.first_pass_among(
+                kept.i, kept.t, xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b,
+                tb_max, margin, depth)
+        else:
+            widen = kept.SKIN if kept is not None else 0.0
+            if widen:  # every reach widened: the candidates of later steps too (FirstPass)
+                wide = (rank >= 0) & ~((plo[:, None] > phi[None] + grow[:, :, None] + widen)
+                                       | (phi[:, None] < plo[None] - grow[:, :, None] - widen)).any(axis=2)
+                grid = made_grid(widen)
+                first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
+                    xs, node_b, travel_a, between, wide, grow + widen, plo, phi, centre, radius, travel_b, tri_b,
+                    tb_max, margin + widen, depth, *grid)
+                kept.found += 1
+                kept.keep(layout, xs, travel_a, between, tb_max, first_i, first_t)
+                grid = None  # (its cells are the wider reach's)
+                first_i, first_t, _, _ = kernels.first_pass_among(  # this step's among them
+                    first_i, first_t, xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b,
+                    tri_b, tb_max, margin, depth)
+            else:
+                grid = made_grid(0.0)
+                first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
+                    xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max,
+                    margin, depth, *grid)
         if not len(first_i) and not len(deep_i):
             return SoftHits.empty()
     else:
@@ -418,6 +477,7 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         deep_i, deep_q = deep_i[deep], deep_q[deep]
     if len(deep_i):
         if kernels.ENABLED:
+            grid = made_grid(0.0) if grid is None else grid
             again = kernels.soft_deep_candidates(xs, node_b, travel_a, between, deep_i, deep_q, centre, radius,
                                                  travel_b, tri_b, margin, depth, *grid)
         else:

@@ -50,8 +50,9 @@ def cubes(steps: int = 12) -> None:
 
 def soft_search() -> None:
     """Two soft cubes overlapping (3 mm, one turned, the other moving) and each with self-contact, through the soft
-    search (softcontact.soft_contacts and edge_contacts: both passes of the node-face search, the edge search)."""
-    from .softcontact import SoftSurface, edge_contacts, soft_contacts
+    search (softcontact.soft_contacts and edge_contacts: both passes of the node-face search, searched and from kept
+    candidates, the edge search)."""
+    from .softcontact import FirstPass, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 
     bodies = []
     for k, kind in enumerate(("tet4", "tet10")):
@@ -60,7 +61,9 @@ def soft_search() -> None:
         x = m.nodes @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + (0.0, 0.0, 0.037 * k)
         bodies.append((x, np.full(x.shape, 0.1 * k), SoftSurface.of(m.nodes, m.surface_triangles()), m.nodes))
     pairs = [(0, 1), (0, 0), (1, 1)]
-    hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
+    layout, kept = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs), FirstPass()
+    for _ in range(2):  # found, then served from the kept candidates
+        hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025, layout, kept)
     edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, hits)
 
 

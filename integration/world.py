@@ -54,7 +54,7 @@ from .intersection import intersection_depth
 from .constraints import applied_impulses as constraint_impulses, constraint_rows
 from .convex import JointRows
 from .joints import Motor, Motors, applied_impulses, at_free_motion, joint_rows
-from .softcontact import EdgeHits, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
+from .softcontact import EdgeHits, FirstPass, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 from .entries import SoftEntry, SteppedEntry
 from .state import WorldState
 from .step import StepRecord, StepReport
@@ -203,6 +203,7 @@ class World:
         self._restack_due = False  # members added or their grouping changed since the last step
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
         self._soft_layout = None  # (that key, softcontact.SoftLayout of the pairs) for the soft search
+        self._first_pass = FirstPass()  # the soft search's first-pass candidates, kept while they serve
         self._pairs_version = 0  # counts the changes of what the bodies ignore
         self.report = StepReport()  # what the last step found and solved (integration.step)
         self.soft_contact = bool(soft_contact)
@@ -824,7 +825,7 @@ class World:
         if self._soft_layout is None or self._soft_layout[0] != key:
             self._soft_layout = (key, SoftLayout.of([sf for _, _, sf, _ in data], pairs))
         depth = SOFT_DEPTH * self.contact_margin
-        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, depth, self._soft_layout[1])
+        hits = soft_contacts(data, pairs, self.contact_margin, self.dt, depth, self._soft_layout[1], self._first_pass)
         edges = edge_contacts(data, pairs, self.contact_margin, self.dt, EDGE_DEPTH * self.contact_margin, hits,
                               self._soft_layout[1])
         # in the members' numbering

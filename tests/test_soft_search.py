@@ -108,8 +108,8 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
 
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
-    names = ("triangle_spheres", "centre_grid", "soft_candidates", "soft_deep_candidates", "soft_nearest", "edges_near",
-             "edge_candidates", "edge_narrow")
+    names = ("triangle_spheres", "centre_grid", "soft_candidates", "first_pass_among", "soft_deep_candidates",
+             "soft_nearest", "edges_near", "edge_candidates", "edge_narrow")
     called = set()
     for name in names:
         def wrapped(*args, _f=getattr(kernels, name), _name=name):
@@ -118,3 +118,45 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
         monkeypatch.setattr(kernels, name, wrapped)
     warmup.soft_search()
     assert called == set(names)
+
+
+def test_first_pass_kept_from_step_to_step_finds_what_a_search_of_each_step_finds(monkeypatch):
+    """softcontact.FirstPass: a pile whose bodies move a little from step to step (some steps within the skin, some
+    beyond it, and one body sped up) searched with the first pass's candidates kept, and searched afresh every step:
+    the same contacts at every step, the kept candidates serving some steps and found anew at others."""
+    from integration.softcontact import FirstPass, SoftLayout
+
+    if not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    rng = np.random.default_rng(8)
+    kept = FirstPass()
+    found = 0
+    bodies, pairs = _pile(rng, 0.03, 6)
+    bodies = [(x.copy(), 0.01 * v, sf, r) for x, v, sf, r in bodies]
+    layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs)  # kept candidates serve the layout they were for
+    for step in range(40):
+        scale = FirstPass.SKIN * (0.02 if step % 10 else 1.0)  # mostly within the skin, now and then beyond it
+        bodies = [(x + scale * rng.standard_normal(x.shape), v, sf, r) for x, v, sf, r in bodies]
+        if step == 25:  # a body speeds up: its travels grow
+            x, v, sf, r = bodies[0]
+            bodies[0] = (x, 30 * v, sf, r)
+        fresh = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025)
+        again = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025, layout, kept)
+        found += len(fresh)
+        for f in ("a", "node", "b", "triangle", "nodes", "key"):
+            np.testing.assert_array_equal(getattr(again, f), getattr(fresh, f), err_msg=f)
+        for f in ("weights", "normal", "distance"):
+            np.testing.assert_allclose(getattr(again, f), getattr(fresh, f), rtol=0, atol=1e-13, err_msg=f)
+    assert kept.served >= 20 and kept.found >= 4 and found > 100
+    # two cubes 30 mm apart, beyond the first pass's reach at rest: no contact; then one closes on the other at 2 m/s
+    # without having moved: within the step's reach, its nodes are contacts (the kept candidates, found at rest, do not
+    # serve)
+    m = box_mesh((0.04, 0.04, 0.04), (4, 4, 4), "tet4")
+    surface = SoftSurface.of(m.nodes, m.surface_triangles())
+    pair = [(m.nodes.copy(), np.zeros_like(m.nodes), surface, m.nodes.copy()),
+            (m.nodes + (0.07, 0.0, 0.0), np.zeros_like(m.nodes), surface, m.nodes.copy())]
+    layout, kept = SoftLayout.of([surface, surface], [(0, 1)]), FirstPass()
+    assert not len(soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025, layout, kept))
+    pair[0] = (pair[0][0], np.tile([2.0, 0.0, 0.0], (len(m.nodes), 1)), surface, m.nodes.copy())
+    closing = soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025, layout, kept)
+    assert len(closing) and np.array_equal(closing.key, soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025).key)
