@@ -49,6 +49,8 @@ def _edge_depths(xa: np.ndarray, edges_a: np.ndarray, xb: np.ndarray, tris_b: np
     if not len(e) or not len(t):
         return 0.0
     p0, p1, P = p0[e], p1[e], P[t]
+    if kernels.ENABLED:  # the lines below, edge by edge and triangle by triangle (integration.kernels)
+        return kernels.edge_depths(np.ascontiguousarray(p0), np.ascontiguousarray(p1), np.ascontiguousarray(P))
     centre = P.mean(axis=1)
     radius = np.sqrt(((P - centre[:, None]) ** 2).sum(axis=2).max(axis=1))
     mid, half = 0.5 * (p0 + p1), 0.5 * np.sqrt(np.einsum("ij,ij->i", p1 - p0, p1 - p0))
@@ -86,12 +88,8 @@ def _edge_depths(xa: np.ndarray, edges_a: np.ndarray, xb: np.ndarray, tris_b: np
         return 0.0
     q = p0[edge] + at[:, None] * (p1[edge] - p0[edge])
     # their depth: the distance to the nearest triangle of b (they lie inside it)
-    if kernels.ENABLED:
-        dist = np.empty(len(q))
-        kernels.nearest_triangle_distances(np.ascontiguousarray(q), np.ascontiguousarray(P), dist)
-    else:
-        near = closest_on_triangles(q[:, None], P[None, :, 0], P[None, :, 1], P[None, :, 2])
-        dist = np.sqrt(((near - q[:, None]) ** 2).sum(axis=2)).min(axis=1)
+    near = closest_on_triangles(q[:, None], P[None, :, 0], P[None, :, 1], P[None, :, 2])
+    dist = np.sqrt(((near - q[:, None]) ** 2).sum(axis=2)).min(axis=1)
     return float(dist.max())
 
 

@@ -39,7 +39,7 @@ from softbody import compilation
 from softbody.kernels import AVAILABLE, _inline, _jit
 
 __all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal",
-           "edge_candidates", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
+           "edge_candidates", "edge_depths", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
            "first_pass_among", "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays",
            "primitive_distances", "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter",
            "scatter_rows", "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest",
@@ -700,6 +700,96 @@ def nearest_triangle_distances(q: np.ndarray, x: np.ndarray, out: np.ndarray) ->
                                               x[t, 1, 1], x[t, 1, 2], x[t, 2, 0], x[t, 2, 1], x[t, 2, 2])
             best = min(best, math.sqrt((r0 - p0) ** 2 + (r1 - p1) ** 2 + (r2 - p2) ** 2))
         out[k] = best
+
+
+@_jit
+def edge_depths(p0: np.ndarray, p1: np.ndarray, P: np.ndarray) -> float:
+    """intersection._edge_depths after its box test, edge by edge: for edges p0-p1 (E, 3 each) and triangles P
+    (T, 3, 3) (outward) of the other surface, the crossings of each edge with the triangles whose bounding spheres
+    its own meets (Moller-Trumbore), in order along the edge; the points where the stretches inside lie deepest (of a
+    stretch from an entry to the next crossing, an exit: its middle and the point deepest behind both planes; of a
+    stretch to an end: that end and the middle), and the largest of their distances to the nearest triangle [m]."""
+    E, T = p0.shape[0], P.shape[0]
+    centre = np.empty((T, 3))
+    radius = np.empty(T)
+    normal = np.empty((T, 3))
+    for t in range(T):
+        r2 = 0.0
+        for j in range(3):
+            centre[t, j] = (P[t, 0, j] + P[t, 1, j] + P[t, 2, j]) / 3.0
+        for k in range(3):
+            d0, d1, d2 = P[t, k, 0] - centre[t, 0], P[t, k, 1] - centre[t, 1], P[t, k, 2] - centre[t, 2]
+            r2 = max(r2, d0 * d0 + d1 * d1 + d2 * d2)
+        radius[t] = math.sqrt(r2)
+        u0, u1, u2 = P[t, 1, 0] - P[t, 0, 0], P[t, 1, 1] - P[t, 0, 1], P[t, 1, 2] - P[t, 0, 2]
+        v0, v1, v2 = P[t, 2, 0] - P[t, 0, 0], P[t, 2, 1] - P[t, 0, 1], P[t, 2, 2] - P[t, 0, 2]
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        ln = max(math.sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-300)
+        normal[t, 0], normal[t, 1], normal[t, 2] = n0 / ln, n1 / ln, n2 / ln
+    deepest = 0.0
+    s_at = np.empty(8)
+    rate = np.empty(8)
+    points = np.empty(8)
+    for i in range(E):
+        m0, m1, m2 = 0.5 * (p0[i, 0] + p1[i, 0]), 0.5 * (p0[i, 1] + p1[i, 1]), 0.5 * (p0[i, 2] + p1[i, 2])
+        d0, d1, d2 = p1[i, 0] - p0[i, 0], p1[i, 1] - p0[i, 1], p1[i, 2] - p0[i, 2]
+        half = 0.5 * math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        n_hit = 0
+        for t in range(T):
+            g0, g1, g2 = m0 - centre[t, 0], m1 - centre[t, 1], m2 - centre[t, 2]
+            if math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) > half + radius[t]:
+                continue
+            a0, a1, a2 = P[t, 0, 0], P[t, 0, 1], P[t, 0, 2]
+            e10, e11, e12 = P[t, 1, 0] - a0, P[t, 1, 1] - a1, P[t, 1, 2] - a2
+            e20, e21, e22 = P[t, 2, 0] - a0, P[t, 2, 1] - a1, P[t, 2, 2] - a2
+            pv0, pv1, pv2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20
+            det = e10 * pv0 + e11 * pv1 + e12 * pv2
+            if not abs(det) > 1e-300:
+                continue
+            inv = 1.0 / det
+            tv0, tv1, tv2 = p0[i, 0] - a0, p0[i, 1] - a1, p0[i, 2] - a2
+            u = (tv0 * pv0 + tv1 * pv1 + tv2 * pv2) * inv
+            qv0, qv1, qv2 = tv1 * e12 - tv2 * e11, tv2 * e10 - tv0 * e12, tv0 * e11 - tv1 * e10
+            v = (d0 * qv0 + d1 * qv1 + d2 * qv2) * inv
+            s = (e20 * qv0 + e21 * qv1 + e22 * qv2) * inv
+            if not (u >= 0 and v >= 0 and u + v <= 1 and s >= 0 and s <= 1):
+                continue
+            if n_hit == s_at.shape[0]:
+                s_at, rate = np.concatenate((s_at, np.empty(n_hit))), np.concatenate((rate, np.empty(n_hit)))
+            s_at[n_hit] = s
+            rate[n_hit] = -(d0 * normal[t, 0] + d1 * normal[t, 1] + d2 * normal[t, 2])
+            n_hit += 1
+        if n_hit == 0:
+            continue
+        order = np.argsort(s_at[:n_hit], kind="mergesort")
+        ss, rr = s_at[:n_hit][order], rate[:n_hit][order]
+        if points.shape[0] < 2 * n_hit + 4:
+            points = np.empty(2 * n_hit + 4)
+        n_pt = 0
+        for k in range(n_hit - 1):  # a stretch from an entry to an exit
+            if rr[k] > 0 and rr[k + 1] < 0:
+                r1, r2 = rr[k], -rr[k + 1]
+                points[n_pt] = (r1 * ss[k] + r2 * ss[k + 1]) / max(r1 + r2, 1e-300)
+                points[n_pt + 1] = 0.5 * (ss[k] + ss[k + 1])
+                n_pt += 2
+        if rr[n_hit - 1] > 0:  # the last crossing an entry: the stretch to the end
+            points[n_pt] = 1.0
+            points[n_pt + 1] = 0.5 * (1.0 + ss[n_hit - 1])
+            n_pt += 2
+        if rr[0] < 0:  # the first an exit: the stretch from the start
+            points[n_pt] = 0.0
+            points[n_pt + 1] = 0.5 * ss[0]
+            n_pt += 2
+        for k in range(n_pt):
+            a = points[k]
+            q0, q1, q2 = p0[i, 0] + a * d0, p0[i, 1] + a * d1, p0[i, 2] + a * d2
+            best = np.inf
+            for t in range(T):
+                c0, c1, c2 = _closest_on_triangle(q0, q1, q2, P[t, 0, 0], P[t, 0, 1], P[t, 0, 2], P[t, 1, 0],
+                                                  P[t, 1, 1], P[t, 1, 2], P[t, 2, 0], P[t, 2, 1], P[t, 2, 2])
+                best = min(best, math.sqrt((c0 - q0) ** 2 + (c1 - q1) ** 2 + (c2 - q2) ** 2))
+            deepest = max(deepest, best)
+    return deepest
 
 
 @_jit
