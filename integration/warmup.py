@@ -51,7 +51,8 @@ def cubes(steps: int = 12) -> None:
 def soft_search() -> None:
     """Two soft cubes overlapping (3 mm, one turned, the other moving) and each with self-contact, through the soft
     search (softcontact.soft_contacts and edge_contacts: both passes of the node-face search, searched and from kept
-    candidates, the edge search)."""
+    candidates, the edge search) and the check after the step (intersection.intersection_depth)."""
+    from .intersection import intersection_depth
     from .softcontact import FirstPass, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 
     bodies = []
@@ -65,6 +66,8 @@ def soft_search() -> None:
     for _ in range(2):  # found, then served from the kept candidates
         hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025, layout, kept)
     edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, hits)
+    (xa, _, sa, _), (xb, _, sb, _) = bodies  # and the check after the step
+    intersection_depth(xa, sa.triangles, sa.edges, xb, sb.triangles, sb.edges)
 
 
 def run() -> None:

@@ -109,7 +109,7 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
     names = ("triangle_spheres", "centre_grid", "soft_candidates", "first_pass_among", "soft_deep_candidates",
-             "soft_nearest", "edges_near", "edge_candidates", "edge_narrow")
+             "soft_nearest", "edges_near", "edge_candidates", "edge_narrow", "edge_depths")
     called = set()
     for name in names:
         def wrapped(*args, _f=getattr(kernels, name), _name=name):
