@@ -398,8 +398,12 @@ class GroupPattern:
         """Whether the block pairs (k, 2) (global nodes) all lie in this pattern."""
         if not len(pairs):
             return True
-        N = self.pattern.n_nodes
-        key = pairs[:, 0] * N + pairs[:, 1]
+        return self.holds_keys(pairs[:, 0] * self.pattern.n_nodes + pairs[:, 1])
+
+    def holds_keys(self, key: np.ndarray) -> bool:
+        """Whether the blocks of keys row * N + col (k,) (any order, repeats allowed) all lie in this pattern."""
+        if not len(key):
+            return True
         at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
         return bool(np.all(self.keys[at] == key))
 
@@ -428,6 +432,17 @@ class GroupPatterns:
         self._asked: dict[tuple, int] = {}  # key -> the solve it was last asked for in
         self.solves = 0
         self.analyses = 0
+
+    def kept(self, bodies: tuple[FemBody, ...], keys: np.ndarray) -> GroupPattern | None:
+        """The kept pattern of ``bodies`` if it holds the blocks of ``keys`` (row * N + col, any order, repeats allowed:
+        every block the rows join, a part's own ones too), else None (then :meth:`get`, with the blocks beyond the
+        parts' own patterns)."""
+        key = tuple(bodies)
+        held = self._held.get(key)
+        if held is None or held.pattern.n_nodes != sum(b.n_nodes for b in bodies) or not held.holds_keys(keys):
+            return None
+        self._asked[key] = self.solves
+        return held
 
     def get(self, bodies: tuple[FemBody, ...], extra: np.ndarray) -> GroupPattern:
         key = tuple(bodies)
@@ -855,7 +870,13 @@ class _Newton:
         parts, rows = self.parts, self.rows
         V = np.concatenate([np.where(p.held, p.value, p.guess) for p in parts]) if parts else np.zeros((0, 3))
         du = np.zeros(self.n) if du_guess is None else np.array(du_guess, dtype=float)
-        self.group = self.owner.patterns.get(tuple(p.body for p in parts), self._extra_pairs()) if parts else None
+        self.group = None
+        if parts:
+            bodies = tuple(p.body for p in parts)
+            if kernels.ENABLED and len(rows) and self.gnodes.shape[1] > 1:  # the kept pattern, if it holds every block
+                self.group = self.owner.patterns.kept(bodies, kernels.slot_pair_keys(self.gnodes, self.w, self.N))
+            if self.group is None:
+                self.group = self.owner.patterns.get(bodies, self._extra_pairs())
         self.b = self._loads()
         free = ~self.held
         # diag(A)^-1/2, the stopping rule's scaling (SAP's)
