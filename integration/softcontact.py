@@ -783,9 +783,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if kernels.ENABLED:
         cell = max(radius + float(between[meet].max()), float(np.ptp(mid, axis=0).max()) / (2 ** 21 - 2), 1e-9)
         i, j = kernels.edge_candidates(mid, eb, layout.rank, meet, between, radius, cell,
-                                       *kernels.centre_grid(mid, cell))
-        order = np.lexsort((j, i, layout.rank[eb[i], eb[j]]))
-        i, j = i[order], j[order]
+                                       *kernels.centre_grid(mid, cell))  # unordered: the crossings found are sorted
     else:
         i, j = edge_candidates(mid, eb, layout.rank, meet, between, radius)
     if not len(i):
@@ -799,6 +797,9 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     if not len(k):
         return EdgeHits.empty()
     i, j = i[k], j[k]
+    if kernels.ENABLED:  # in edge_candidates' order: by pair of bodies, edge and edge (the narrow phase keeps order)
+        order = np.lexsort((j, i, layout.rank[eb[i], eb[j]]))
+        i, j, s, t, n, d = i[order], j[order], s[order], t[order], n[order], d[order]
     a, b = body_of[i], body_of[j]
     edge_of = layout.edge_of[e]
     key = ((1 << 62) | ((a * 1024 + b) << (2 * EDGE_BITS)) | (edge_of[i] << EDGE_BITS) | edge_of[j]).astype(np.int64)
