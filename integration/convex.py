@@ -60,10 +60,11 @@ MAX_ITER = 60
 REUSE_ITERATIONS = 8
 #: ... to this residual, relative to the right-hand side's (an inexact Newton direction: the line search follows it)
 REUSE_TOL = 1e-6
-#: ... in systems of at least this many soft unknowns with rigid unknowns (each solve of the iterations then costs
-#: a Schur complement's triangular solves, one per rigid unknown: a smaller system is factorised anew at less cost;
-#: the Panda's grasp of a 117-node cube, 351 unknowns: held 7.8-8.2 ms a step factorised, 8.9-9.0 reused), and of at least
-#: REUSE_MIN_SOFT without (a settling pile's islands of 1000-1400: 67 ms a step in the tray factorised, 45-50 reused)
+#: ... in systems of at least this many soft unknowns with rigid unknowns (each solve of the iterations then costs a
+#: Schur complement's triangular solves, one per rigid unknown: a smaller system is factorised anew at less cost; the
+#: Panda's grasp of a 117-node cube, 351 unknowns: held 7.8-8.2 ms a step factorised, 8.9-9.0 reused), and of at
+#: least REUSE_MIN_SOFT without (a settling pile's islands of 1000-1400: 67 ms a step in the tray factorised, 45-50
+#: reused)
 REUSE_MIN = 3000
 REUSE_MIN_SOFT = 300
 #: the line search stops where the cost's slope along the step is this small relative to its slope at the start
