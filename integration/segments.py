@@ -30,12 +30,13 @@ def surface_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def edge_normals(x: np.ndarray, triangles: np.ndarray, edge_tris: np.ndarray) -> np.ndarray:
-    """Outward unit normals (E, 3) of edges bounding ``edge_tris`` (E, 2) of outward triangles (T, 3) at node
-    positions x (N, 3): the normalised sum of the (one or two) triangles' unit normals."""
-    P = x.take(triangles, axis=0)
-    n = cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-    n /= np.maximum(np.sqrt(np.einsum("ij,ij->i", n, n)), 1e-300)[:, None]
-    s = n[edge_tris[:, 0]] + np.where(edge_tris[:, 1:] >= 0, n[np.maximum(edge_tris[:, 1], 0)], 0.0)
+    """Outward unit normals (E, 3) of edges bounding ``edge_tris`` (E, 2) of outward triangles (T, 3) (-1: none) at
+    node positions x (N, 3): the normalised sum of the (one or two) triangles' unit normals, from those triangles
+    only."""
+    P = x.take(triangles.take(np.maximum(edge_tris, 0), axis=0), axis=0)  # (E, 2, 3, 3)
+    n = cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0])
+    n /= np.maximum(np.sqrt(np.einsum("eki,eki->ek", n, n)), 1e-300)[:, :, None]
+    s = n[:, 0] + np.where(edge_tris[:, 1:] >= 0, n[:, 1], 0.0)
     return s / np.maximum(np.sqrt(np.einsum("ij,ij->i", s, s)), 1e-300)[:, None]
 
 

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from . import kernels
 from .collision import FACING, SOFT_SLACK, barycentric, node_incidence, read_only, run_starts, vertex_normals
 from .distance import cross
-from .segments import closest_between_segments, surface_edges
+from .segments import closest_between_segments, edge_normals, surface_edges
 
 # a node's projection may fall this far outside a triangle (in barycentric weight) and still count on it, so
 # that a node above the shared edge of two triangles is held by one of them
@@ -319,9 +319,13 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     between = SOFT_SLACK * h * np.sqrt(((mean_v[:, None] - mean_v[None]) ** 2).sum(axis=2))  # (B, B)
     grow = margin + depth + own[:, None] + own[None] + between  # (B, B): p's nodes against q's triangles
     plo, phi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)  # the nodes' boxes
-    # directions (p, q) that can meet: searched, and p's nodes' box within q's box grown for p ((B, B), p by q)
-    meet = (rank >= 0) & ~((plo[:, None] > phi[None] + grow[:, :, None])
-                           | (phi[:, None] < plo[None] - grow[:, :, None])).any(axis=2)
+
+    def meeting(g: np.ndarray) -> np.ndarray:
+        """(B, B), p by q: the directions that can meet, searched and p's nodes' box within q's grown by g (B, B)."""
+        return (rank >= 0) & ~((plo[:, None] > phi[None] + g[:, :, None])
+                               | (phi[:, None] < plo[None] - g[:, :, None])).any(axis=2)
+
+    meet = meeting(grow)
     reached = np.flatnonzero(meet.any(axis=0))
     if not len(reached):
         return SoftHits.empty()
@@ -425,26 +429,22 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
             first_i, first_t, deep_i, deep_q = kernels.first_pass_among(
                 kept.i, kept.t, xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b,
                 tb_max, margin, depth)
+        elif kept is not None:  # every reach widened: the candidates of later steps too (FirstPass)
+            widen = kept.SKIN
+            grid = made_grid(widen)
+            first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
+                xs, node_b, travel_a, between, meeting(grow + widen), grow + widen, plo, phi, centre, radius,
+                travel_b, tri_b, tb_max, margin + widen, depth, *grid)
+            kept.found += 1
+            kept.keep(layout, xs, travel_a, between, tb_max, first_i, first_t)
+            first_i, first_t, _, _ = kernels.first_pass_among(  # this step's among them
+                first_i, first_t, xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b,
+                tri_b, tb_max, margin, depth)
         else:
-            widen = kept.SKIN if kept is not None else 0.0
-            if widen:  # every reach widened: the candidates of later steps too (FirstPass)
-                wide = (rank >= 0) & ~((plo[:, None] > phi[None] + grow[:, :, None] + widen)
-                                       | (phi[:, None] < plo[None] - grow[:, :, None] - widen)).any(axis=2)
-                grid = made_grid(widen)
-                first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
-                    xs, node_b, travel_a, between, wide, grow + widen, plo, phi, centre, radius, travel_b, tri_b,
-                    tb_max, margin + widen, depth, *grid)
-                kept.found += 1
-                kept.keep(layout, xs, travel_a, between, tb_max, first_i, first_t)
-                grid = None  # (its cells are the wider reach's)
-                first_i, first_t, _, _ = kernels.first_pass_among(  # this step's among them
-                    first_i, first_t, xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b,
-                    tri_b, tb_max, margin, depth)
-            else:
-                grid = made_grid(0.0)
-                first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
-                    xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max,
-                    margin, depth, *grid)
+            grid = made_grid(0.0)
+            first_i, first_t, deep_i, deep_q = kernels.soft_candidates(
+                xs, node_b, travel_a, between, meet, grow, plo, phi, centre, radius, travel_b, tri_b, tb_max,
+                margin, depth, *grid)
         if not len(first_i) and not len(deep_i):
             return SoftHits.empty()
     else:
@@ -647,16 +647,6 @@ def edge_candidates(mid: np.ndarray, body: np.ndarray, rank: np.ndarray, meet: n
     return i[order], j[order]
 
 
-def _edge_normals(X: np.ndarray, tris: np.ndarray, edge_tris: np.ndarray) -> np.ndarray:
-    """segments.edge_normals of the edges bounding ``edge_tris`` (E, 2) (rows of tris (T, 3), -1: none) at X, from
-    those triangles only."""
-    P = X.take(tris.take(np.maximum(edge_tris, 0), axis=0), axis=0)  # (E, 2, 3, 3)
-    n = cross(P[:, :, 1] - P[:, :, 0], P[:, :, 2] - P[:, :, 0])
-    n /= np.maximum(np.sqrt(np.einsum("eki,eki->ek", n, n)), 1e-300)[:, :, None]
-    s = n[:, 0] + np.where(edge_tris[:, 1:] >= 0, n[:, 1], 0.0)
-    return s / np.maximum(np.sqrt(np.einsum("ij,ij->i", s, s)), 1e-300)[:, None]
-
-
 def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0: np.ndarray, V1: np.ndarray,
                 N: np.ndarray, R0: np.ndarray, R1: np.ndarray, half: np.ndarray, travel: np.ndarray,
                 body_of: np.ndarray, ends: np.ndarray, mean_v: np.ndarray, keys: np.ndarray, node_bits: int,
@@ -775,7 +765,7 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     V0, V1 = V[g0] - mean_v[eb], V[g1] - mean_v[eb]  # about the body's mean (the means' own travel: per pair)
     R = np.concatenate([r for _, _, _, r in data])
     R0, R1 = R[g0], R[g1]
-    N = _edge_normals(X, layout.tris, layout.edge_tris[e])
+    N = edge_normals(X, layout.tris, layout.edge_tris[e])
     mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     reach = margin + depth
@@ -825,7 +815,7 @@ def edge_contacts_reference(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurfa
     ends, eb = layout.edges, layout.edge_b
     g0, g1 = ends[:, 0] + layout.node_off[eb], ends[:, 1] + layout.node_off[eb]
     P0, P1, V0, V1 = X[g0], X[g1], V[g0] - mean_v[eb], V[g1] - mean_v[eb]
-    N = _edge_normals(X, layout.tris, layout.edge_tris)
+    N = edge_normals(X, layout.tris, layout.edge_tris)
     half = 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
     travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     table = np.zeros((int(used.max()) + 1, 3))
