@@ -101,3 +101,47 @@ def test_the_islands_minima_are_the_minimum_of_the_whole_problem():
     assert np.abs(split.du - whole.du).max() < 1e-7 * np.abs(whole.du).max()
     assert np.abs(split.gamma - whole.gamma).max() < 1e-6 * np.abs(whole.gamma).max()
     assert np.array_equal(split.velocities[0][parts[0].held], parts[0].value[parts[0].held])
+
+
+def test_a_pattern_no_island_asks_for_is_let_go():
+    """GroupPatterns.forget_idle: the islands' patterns stay while asked for, and go IDLE solves after the last ask."""
+    rng = np.random.default_rng(6)
+    _, parts, rows, M = _problem(rng)
+    solver = ContactSolver()
+    solver._solve_islands(parts, rows, M, H, None, None)
+    patterns = solver.convex.patterns
+    assert len(patterns._held) == 3
+    for _ in range(patterns.IDLE - 1):  # (the solve above counted one)
+        patterns.forget_idle()
+    assert len(patterns._held) == 3
+    patterns.forget_idle()
+    assert not patterns._held
+
+
+def test_a_world_of_islands_continues_from_its_saved_state_to_the_bit():
+    """Two stacked pairs of cubes far apart (one stack, two islands of its members): saved while settling, the run
+    continued, restored and continued again gives the same positions to the bit; the islands' patterns are saved
+    by their members' handles."""
+    from integration.world import World
+
+    def cube(center):
+        return sb.FemBody(sb.box_mesh((0.1, 0.1, 0.1), (2, 2, 2), "tet10", center=center),
+                          sb.LinearElastic(5e5, 0.33, 1000.0))
+
+    world = World(dt=0.01)
+    world.add_plane()
+    cubes = [cube((0.0, 0.0, 0.051)), cube((0.5, 0.0, 0.051)), cube((0.0, 0.0, 0.16)), cube((0.5, 0.0, 0.16))]
+    for b in cubes:
+        world.add_soft(b, friction=0.5)
+
+    def run(steps):
+        for _ in range(steps):
+            world.step()
+        return np.concatenate([b.positions for b in cubes])
+
+    run(25)
+    state = world.save_state()
+    assert sorted(state.patterns) == [((0,), (2,)), ((1,), (3,))]  # each island's pattern, by its members' handles
+    first = run(15)
+    world.restore_state(state)
+    assert np.array_equal(run(15), first)

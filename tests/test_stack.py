@@ -191,6 +191,29 @@ def test_bodies_in_soft_contact_are_stacked_apart_from_the_others():
         assert np.abs(a.positions - b.positions).max() < 1e-4
 
 
+def test_separate_contact_groups_step_as_one_stack_and_solve_as_islands():
+    """Two cubes dropped on two others far apart: two coupled contact groups, stepped as one stack (one step system
+    and one rigid search for the four) and solved as two islands (integration/islands.py: each its own pattern), with
+    the motion of the cubes stepped alone; the fifth cube, touching only the plane, in a stack of its own."""
+    def build(stack):
+        world = World(dt=0.01, stack=stack)
+        world.add_plane()
+        cubes = ([_cube((0.0, 0.0, 0.051)), _cube((0.5, 0.0, 0.051)), _cube((1.0, 0.0, 0.051))]
+                 + [_cube((0.0, 0.0, 0.16)), _cube((0.5, 0.0, 0.16))])
+        for b in cubes:
+            world.add_soft(b, friction=0.5)
+        return world, cubes
+    (ws, bs), (wa, ba) = _run(True, 30, build), _run(False, 30, build)
+    groups = sorted(sorted(next(k for k, b in enumerate(bs) if b is m) for m in getattr(s, "members", [s]))
+                    for s in ws.sim.bodies)
+    assert groups == [[0, 1, 3, 4], [2]]
+    held = ws.contact_solver.convex.patterns._held
+    islands = [sorted(bs.index(b) for b in key) for key in held]  # the islands' patterns (and, for the first
+    assert [0, 3] in islands and [1, 4] in islands and [0, 1, 3, 4] not in islands  # contact's step, the fifth's)
+    for a, b in zip(ba, bs):
+        assert np.abs(a.positions - b.positions).max() < 1e-4
+
+
 def test_contact_force_per_body_survives_a_restack_between_steps():
     world = World(dt=0.01)
     plane = world.add_plane()
