@@ -707,9 +707,49 @@ def edge_narrow(i: np.ndarray, j: np.ndarray, P0: np.ndarray, P1: np.ndarray, V0
     return idx[ok], s[ok], t[ok], n[ok], d[ok]
 
 
+class EdgePass:
+    """The edge search's candidate pairs kept from step to step (edge_contacts' ``kept``, the caller's to hold): found
+    with every reach widened by SKIN and pruned to the pairs that can become contacts within it (their segments no
+    farther apart than a contact's reach plus SKIN, no end in a node contact with the other body), with the state
+    they were found in (the surface nodes' positions and travels, the bodies' means' travels, the node contacts'
+    keys). They hold every pair a later step's search would keep while the node contacts found then are still
+    there (so the ends excluded then are excluded now) and the nodes have moved by D and the travels grown by dT
+    (per node) and dB (between bodies' means) with 2 D + 2 dT + dB <= SKIN (two segments' distance changes by at
+    most 2 D, a contact's reach by 2 dT + dB); each step filters them by its own broad phase's edges and narrow
+    phase: the same contacts as a fresh search (a resting pile searches its grid once). Made anew, for the layout
+    it was found for only."""
+
+    #: the reach added to the search's when the candidates are found [m]
+    SKIN = 1e-3
+
+    def __init__(self) -> None:
+        self.layout = None
+        self.found = 0  # searches made
+        self.served = 0  # steps served from the kept candidates
+
+    def serves(self, layout, xs: np.ndarray, travel: np.ndarray, between: np.ndarray, keys: np.ndarray) -> bool:
+        """Whether the kept pairs hold every pair a search of ``layout`` in this state keeps (``keys``: the node
+        contacts' keys now, sorted)."""
+        if self.layout is not layout or self.xs.shape != xs.shape:
+            return False
+        if len(self.keys):  # every node contact of then still there
+            at = np.minimum(np.searchsorted(keys, self.keys), max(len(keys) - 1, 0))
+            if not len(keys) or not np.array_equal(keys[at], self.keys):
+                return False
+        moved = float(np.sqrt(np.einsum("ij,ij->i", xs - self.xs, xs - self.xs).max(initial=0.0)))
+        grown = (2.0 * float(np.max(travel - self.travel, initial=0.0))
+                 + float(np.max(between - self.between, initial=0.0)))
+        return 2.0 * moved + grown <= self.SKIN
+
+    def keep(self, layout, xs, travel, between, keys, e: np.ndarray, i: np.ndarray, j: np.ndarray) -> None:
+        """Keep the pairs (e[i], e[j]) of layout.edges (e (k,) sorted, i, j (m,) into it) found in this state."""
+        self.layout, self.xs, self.travel, self.between, self.keys = layout, xs.copy(), travel, between, keys.copy()
+        self.e, self.i, self.j = e, i, j
+
+
 def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.ndarray]], pairs: list[tuple[int, int]],
                   margin: float, h: float, depth: float, explained: SoftHits | None = None,
-                  layout: SoftLayout | None = None) -> EdgeHits:
+                  layout: SoftLayout | None = None, kept: EdgePass | None = None) -> EdgeHits:
     """Edge-against-edge contacts between soft bodies ``bodies`` (positions (N, 3), velocities (N, 3),
     surface, rest positions) for the index ``pairs`` (a, b) (a == b: self-contact, as soft_contacts: not between
     edges whose rest positions lie within one rest edge length of each other, the edge's own surroundings, and
@@ -726,7 +766,8 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     node contact with it (:func:`edges_near`), the pairs of those edges whose midpoints lie within reach
     (:func:`edge_candidates`), pair by pair of bodies in the order given, and the narrow phase on them
     (:func:`edge_narrow`). With the compiled kernels each of the three edge by edge or pair by pair, the candidates
-    from one uniform grid over all midpoints (kernels.edges_near, edge_candidates, edge_narrow).
+    from one uniform grid over all midpoints (kernels.edges_near, edge_candidates, edge_narrow). ``kept``: the
+    candidate pairs from step to step (EdgePass; None: searched anew), the same contacts.
     :func:`edge_contacts_reference` is the same search with every pair of edges a candidate (the tests')."""
     if not pairs:
         return EdgeHits.empty()
@@ -745,49 +786,91 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
     starts = layout.starts
     mean_v = np.add.reduceat(vs, starts) / layout.s_of[:, None]
     rel = vs - np.repeat(mean_v, layout.s_of, axis=0)
-    own = SOFT_SLACK * h * np.sqrt(np.maximum.reduceat(np.einsum("ij,ij->i", rel, rel), starts))
-    blo = np.minimum.reduceat(xs, starts) - (margin + own)[:, None]
-    bhi = np.maximum.reduceat(xs, starts) + (margin + own)[:, None]
+    travel_n = SOFT_SLACK * h * np.sqrt(np.einsum("ij,ij->i", rel, rel))  # per surface node
+    own = np.maximum.reduceat(travel_n, starts)
     between = SOFT_SLACK * h * np.sqrt(((mean_v[:, None] - mean_v[None]) ** 2).sum(axis=2))  # (B, B)
-    gap = between[:, :, None]
-    apart = ((blo[:, None] - gap > bhi[None]) | (blo[None] - gap > bhi[:, None])).any(axis=2)
-    meet = (layout.rank >= 0) & ~apart
+    lo, hi = np.minimum.reduceat(xs, starts), np.maximum.reduceat(xs, starts)
+
+    def meeting(widen: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(the pairs of bodies whose boxes meet (B, B), the boxes' corners (B, 3) each), every reach widened."""
+        blo, bhi = lo - (margin + own + widen)[:, None], hi + (margin + own + widen)[:, None]
+        gap = between[:, :, None]
+        apart = ((blo[:, None] - gap > bhi[None]) | (blo[None] - gap > bhi[:, None])).any(axis=2)
+        return (layout.rank >= 0) & ~apart, blo, bhi
+
+    meet, blo, bhi = meeting(0.0)
     if not meet.any():
         return EdgeHits.empty()
-    near = (kernels.edges_near if kernels.ENABLED else edges_near)(
-        layout.edges, layout.edge_b, X, layout.node_off, blo, bhi, meet, between, keys, used, NODE_BITS)
-    e = np.flatnonzero(near)
-    if not len(e):
-        return EdgeHits.empty()
-    ends, eb = layout.edges[e], layout.edge_b[e]
-    g0, g1 = ends[:, 0] + layout.node_off[eb], ends[:, 1] + layout.node_off[eb]
-    P0, P1 = X[g0], X[g1]
-    V0, V1 = V[g0] - mean_v[eb], V[g1] - mean_v[eb]  # about the body's mean (the means' own travel: per pair)
+    table = np.zeros((int(used.max()) + 1, 3))  # the bodies' mean velocities, by body
+    table[used] = mean_v
     R = np.concatenate([r for _, _, _, r in data])
-    R0, R1 = R[g0], R[g1]
-    N = edge_normals(X, layout.tris, layout.edge_tris[e])
-    mid, half = 0.5 * (P0 + P1), 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
-    travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
     reach = margin + depth
-    radius = 2.0 * (half.max() + travel.max()) + reach  # and, per pair of bodies, the means' travel
-    if kernels.ENABLED:
-        cell = max(radius + float(between[meet].max()), float(np.ptp(mid, axis=0).max()) / (2 ** 21 - 2), 1e-9)
-        i, j = kernels.edge_candidates(mid, eb, layout.rank, meet, between, radius, cell,
-                                       *kernels.centre_grid(mid, cell))  # unordered: the crossings found are sorted
+
+    def edge_data(e: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The edges e's (ends, bodies (rows of used), P0, P1, V0, V1 (about the body's mean), R0, R1, outward
+        normals, half lengths, travels)."""
+        ends, eb = layout.edges[e], layout.edge_b[e]
+        g0, g1 = ends[:, 0] + layout.node_off[eb], ends[:, 1] + layout.node_off[eb]
+        P0, P1 = X[g0], X[g1]
+        V0, V1 = V[g0] - mean_v[eb], V[g1] - mean_v[eb]  # about the body's mean (the means' own travel: per pair)
+        N = edge_normals(X, layout.tris, layout.edge_tris[e])
+        half = 0.5 * np.sqrt(np.einsum("ij,ij->i", P1 - P0, P1 - P0))
+        travel = SOFT_SLACK * h * np.sqrt(np.maximum(np.einsum("ij,ij->i", V0, V0), np.einsum("ij,ij->i", V1, V1)))
+        return ends, eb, P0, P1, V0, V1, R[g0], R[g1], N, half, travel
+
+    near_of = kernels.edges_near if kernels.ENABLED else edges_near
+    if kept is not None and kept.serves(layout, xs, travel_n, between, keys):
+        kept.served += 1
+        e, i, j = kept.e, kept.i, kept.j
     else:
-        i, j = edge_candidates(mid, eb, layout.rank, meet, between, radius)
+        widen = 0.0 if kept is None else kept.SKIN
+        wide_meet, wlo, whi = meeting(widen) if kept is not None else (meet, blo, bhi)
+        e = np.flatnonzero(near_of(layout.edges, layout.edge_b, X, layout.node_off, wlo, whi, wide_meet, between,
+                                   keys, used, NODE_BITS))
+        if not len(e):
+            return EdgeHits.empty()
+        ends, eb, P0, P1, V0, V1, R0, R1, N, half, travel = edge_data(e)
+        mid = 0.5 * (P0 + P1)
+        radius = 2.0 * (half.max() + travel.max()) + reach + widen  # and, per pair of bodies, the means' travel
+        if kernels.ENABLED:
+            cell = max(radius + float(between[wide_meet].max()), float(np.ptp(mid, axis=0).max()) / (2 ** 21 - 2),
+                       1e-9)
+            i, j = kernels.edge_candidates(mid, eb, layout.rank, wide_meet, between, radius, cell,
+                                           *kernels.centre_grid(mid, cell))  # unordered: the crossings found are sorted
+        else:
+            i, j = edge_candidates(mid, eb, layout.rank, wide_meet, between, radius)
+        if kept is not None:  # only the pairs that can become contacts while the candidates serve
+            s, t = closest_between_segments(P0[i], P1[i], P0[j], P1[j])
+            gap = (P0[i] + s[:, None] * (P1[i] - P0[i])) - (P0[j] + t[:, None] * (P1[j] - P0[j]))
+            a, b = used[eb[i]], used[eb[j]]
+            bound = np.maximum(depth, margin + travel[i] + travel[j] + between[eb[i], eb[j]]) + widen
+            free = (np.isinf(_node_gaps((keys, np.zeros(len(keys))) if len(keys) else None, ends[i], a[:, None],
+                                        b[:, None])).all(axis=1)
+                    & np.isinf(_node_gaps((keys, np.zeros(len(keys))) if len(keys) else None, ends[j], b[:, None],
+                                          a[:, None])).all(axis=1))
+            ok = free & (np.einsum("ij,ij->i", gap, gap) <= bound * bound)
+            ge, back = np.unique(np.concatenate([e[i[ok]], e[j[ok]]]), return_inverse=True)
+            i, j, e = back[:ok.sum()], back[ok.sum():], ge
+            kept.found += 1
+            kept.keep(layout, xs, travel_n, between, keys, e, i, j)
+    if kept is not None:  # this step's broad phase among the kept edges: those near a body now, as a search finds
+        if not len(e):
+            return EdgeHits.empty()
+        near = near_of(layout.edges[e], layout.edge_b[e], X, layout.node_off, blo, bhi, meet, between, keys, used,
+                       NODE_BITS)
+        ok = near[i] & near[j]
+        i, j = i[ok], j[ok]
+        ends, eb, P0, P1, V0, V1, R0, R1, N, half, travel = edge_data(e)
     if not len(i):
         return EdgeHits.empty()
     body_of = used[eb]
-    table = np.zeros((int(used.max()) + 1, 3))  # the bodies' mean velocities, by body
-    table[used] = mean_v
     k, s, t, n, d = (kernels.edge_narrow if kernels.ENABLED else edge_narrow)(
         i, j, P0, P1, V0, V1, N, R0, R1, half, travel, body_of, ends, table, keys, NODE_BITS, margin, reach, depth,
         SOFT_SLACK * h, EDGE_SIN, EDGE_END)
     if not len(k):
         return EdgeHits.empty()
     i, j = i[k], j[k]
-    if kernels.ENABLED:  # in edge_candidates' order: by pair of bodies, edge and edge (the narrow phase keeps order)
+    if kernels.ENABLED or kept is not None:  # by pair of bodies, edge and edge (the narrow phase keeps order)
         order = np.lexsort((j, i, layout.rank[eb[i], eb[j]]))
         i, j, s, t, n, d = i[order], j[order], s[order], t[order], n[order], d[order]
     a, b = body_of[i], body_of[j]

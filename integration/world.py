@@ -54,7 +54,7 @@ from .intersection import intersection_depth
 from .constraints import applied_impulses as constraint_impulses, constraint_rows
 from .convex import JointRows
 from .joints import Motor, Motors, applied_impulses, at_free_motion, joint_rows
-from .softcontact import EdgeHits, FirstPass, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
+from .softcontact import EdgeHits, EdgePass, FirstPass, SoftHits, SoftLayout, SoftSurface, edge_contacts, soft_contacts
 from .entries import SoftEntry, SteppedEntry
 from .state import WorldState
 from .step import StepRecord, StepReport
@@ -204,6 +204,7 @@ class World:
         self._pairs_memo = None  # (key, pairs, skipped pairs) of _soft_pairs
         self._soft_layout = None  # (that key, softcontact.SoftLayout of the pairs) for the soft search
         self._first_pass = FirstPass()  # the soft search's first-pass candidates, kept while they serve
+        self._edge_pass = EdgePass()  # the edge search's candidate pairs, kept while they serve
         self._pairs_version = 0  # counts the changes of what the bodies ignore
         self.report = StepReport()  # what the last step found and solved (integration.step)
         self.soft_contact = bool(soft_contact)
@@ -827,7 +828,7 @@ class World:
         depth = SOFT_DEPTH * self.contact_margin
         hits = soft_contacts(data, pairs, self.contact_margin, self.dt, depth, self._soft_layout[1], self._first_pass)
         edges = edge_contacts(data, pairs, self.contact_margin, self.dt, EDGE_DEPTH * self.contact_margin, hits,
-                              self._soft_layout[1])
+                              self._soft_layout[1], self._edge_pass)
         # in the members' numbering
         record.member_pairs = np.concatenate([np.column_stack([hits.a, hits.b]), np.column_stack([edges.a, edges.b])])
         if (len(hits) or len(edges)) and len(self.sim.bodies) < len(self._members):  # to the stepped bodies' numbering

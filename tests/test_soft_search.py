@@ -120,6 +120,48 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
     assert called == set(names)
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("nodes", [True, False])
+def test_edge_pairs_kept_from_step_to_step_find_what_a_search_of_each_step_finds(compiled, nodes, monkeypatch):
+    """softcontact.EdgePass: a pile of turned bodies moving a little from step to step, now and then a body moved
+    beyond the skin or heading for the others (its reach grown beyond the skin), with node contacts coming and going
+    (``nodes``; else none) searched for edge crossings with the candidate pairs kept, and searched afresh every step:
+    the same crossings at every step, the kept pairs serving some steps and found anew at others."""
+    from integration.softcontact import EdgePass, SoftLayout, edge_contacts
+
+    if compiled and not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    monkeypatch.setattr(kernels, "ENABLED", compiled)
+    rng = np.random.default_rng(21)
+    kept = EdgePass()
+    found = 0
+    bodies, pairs = _pile(rng, 0.03, 6, turned=True)
+    bodies = [(x.copy(), 0.01 * v, sf, r) for x, v, sf, r in bodies]
+    layout = SoftLayout.of([sf for _, _, sf, _ in bodies], pairs)
+    centre = np.mean([x.mean(axis=0) for x, _, _, _ in bodies], axis=0)
+    for step in range(60):
+        scale = EdgePass.SKIN * 0.02  # within the skin
+        bodies = [(x + scale * rng.standard_normal(x.shape), v, sf, r) for x, v, sf, r in bodies]
+        k = step % len(bodies)
+        x, v, sf, r = bodies[k]
+        towards = (centre - x.mean(axis=0)) / np.linalg.norm(centre - x.mean(axis=0))
+        if step % 10 == 9:  # a body moves 3 mm towards the others: beyond the skin
+            bodies[k] = (x + 0.003 * towards, v, sf, r)
+        if step % 10 == 4:  # a body heads for the others at 0.2 m/s without moving: its reach grows beyond the skin
+            bodies[k] = (x, v + 0.2 * towards, sf, r)
+        hits = soft_contacts(bodies, pairs, 0.005, 0.01, 0.025) if nodes else None
+        if nodes and step % 7 == 3:  # node contacts gone: the edges they excluded are candidates again
+            hits = hits.select(np.arange(len(hits)) % 2 == 0)
+        fresh = edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, hits)
+        again = edge_contacts(bodies, pairs, 0.005, 0.01, 0.005, hits, layout, kept)
+        found += len(fresh)
+        for f in ("a", "b", "nodes", "key"):
+            np.testing.assert_array_equal(getattr(again, f), getattr(fresh, f), err_msg=f)
+        for f in ("weights", "normal", "distance"):
+            np.testing.assert_allclose(getattr(again, f), getattr(fresh, f), rtol=0, atol=1e-13, err_msg=f)
+    assert kept.served >= 15 and kept.found >= 4 and found > 100
+
+
 def test_first_pass_kept_from_step_to_step_finds_what_a_search_of_each_step_finds(monkeypatch):
     """softcontact.FirstPass: a pile whose bodies move a little from step to step (some steps within the skin, some
     beyond it, and one body sped up) searched with the first pass's candidates kept, and searched afresh every step:
