@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from softbody.integrator import Constraints, LinearSystem
 
@@ -35,7 +34,7 @@ from . import kernels
 from .collision import barycentric, closest_on_triangles
 from .convex import ConvexSolver, JointRows, Rows as ConvexRows, SoftPart
 from .coupling import CoupledPart, CoupledSolver, Rows
-from .islands import Islands
+from .islands import Islands, components
 from .distance import cross
 
 
@@ -579,13 +578,9 @@ def _groups(count: int, pairs: PairContacts | None) -> np.ndarray:
     label = np.arange(count)
     if pairs is None or not len(pairs):
         return label
-    ends = pairs.parts[:, [0, -1]]  # the first slot is body a's, the last body b's (an edge-edge row's second slot is
-    # a's too)
-    graph = sp.csr_matrix((np.ones(len(ends)), (ends[:, 0], ends[:, 1])), shape=(count, count))
-    _, component = connected_components(graph, directed=False)
-    low = np.full(count, count)
-    np.minimum.at(low, component, label)  # each group labelled by its first body
-    return low[component]
+    # the first slot is body a's, the last body b's (an edge-edge row's second slot is a's too); each group labelled by
+    # its first body
+    return components(count, pairs.parts[:, 0], pairs.parts[:, -1])
 
 
 def _add_extras(extras: list, parts: dict[int, np.ndarray]) -> None:

@@ -378,6 +378,7 @@ class GroupPattern:
     solver: SpdSolver
     keys: np.ndarray  # the pattern's blocks as sorted row * N + col
     factor: Factor = field(default_factory=Factor)
+    held_keys: np.ndarray | None = None  # the last keys holds_keys found held
 
     @classmethod
     def of(cls, patterns: list[BlockPattern], extra: np.ndarray, backend: str) -> "GroupPattern":
@@ -402,11 +403,17 @@ class GroupPattern:
         return self.holds_keys(pairs[:, 0] * self.pattern.n_nodes + pairs[:, 1])
 
     def holds_keys(self, key: np.ndarray) -> bool:
-        """Whether the blocks of keys row * N + col (k,) (any order, repeats allowed) all lie in this pattern."""
+        """Whether the blocks of keys row * N + col (k,) (any order, repeats allowed) all lie in this pattern (the last
+        keys found held are kept: a resting pile's rows ask with the same keys step after step)."""
         if not len(key):
             return True
+        if self.held_keys is not None and np.array_equal(self.held_keys, key):
+            return True
         at = np.minimum(np.searchsorted(self.keys, key), len(self.keys) - 1)
-        return bool(np.all(self.keys[at] == key))
+        held = bool(np.all(self.keys[at] == key))
+        if held:
+            self.held_keys = key.copy()
+        return held
 
     def blocks(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The block indices of (rows, cols) (global nodes, every pair in the pattern)."""

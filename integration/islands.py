@@ -10,7 +10,8 @@ stop when it has converged, not when the slowest column has, and a contact leavi
 column only. (All rows on rigid unknowns, and the rigid bodies' own rows, join one island: the rigid unknowns are
 coupled through their mass matrix and joints.)
 
-The islands are found anew every step (scipy's connected components over the rows' bodies); a BodyStack's members
+The islands are found anew every step (:func:`components` over the distinct pairs of bodies the rows join); a
+BodyStack's members
 are units of their own, their blocks of the stack's system the members' own patterns (a stack's matrices are
 block-diagonal by member, softbody.stack).
 """
@@ -19,10 +20,31 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from .convex import Rows, SoftPart, Solution
+
+
+def components(count: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(count,) the connected components of the undirected graph of ``count`` nodes and the edges (a (k,), b (k,)),
+    each node labelled by the smallest node of its component: union-find over the distinct edges (a pile's thousands
+    of rows join a few hundred pairs of bodies at most)."""
+    label = np.arange(count)
+    if not len(a):
+        return label
+    a, b = np.asarray(a, dtype=np.int64), np.asarray(b, dtype=np.int64)
+    parent = list(range(count))
+
+    def root(x: int) -> int:
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    for key in np.unique(np.minimum(a, b) * count + np.maximum(a, b)).tolist():
+        x, y = root(key // count), root(key % count)
+        if x != y:
+            parent[max(x, y)] = min(x, y)
+    return np.array([root(x) for x in range(count)], dtype=np.int64)
 
 
 @dataclass
@@ -88,8 +110,7 @@ class Islands:
             on = np.abs(rows.jacobian).reshape(len(rows), -1).max(axis=1) > 0
             pairs.append(np.column_stack([first[on], np.full(int(on.sum()), U)]))
         pairs = np.concatenate(pairs) if pairs else np.zeros((0, 2), np.int64)
-        graph = sp.csr_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(U + 1, U + 1))
-        _, label = connected_components(graph, directed=False)
+        label = components(U + 1, pairs[:, 0], pairs[:, 1])
         row_label = label[first] if len(rows) else np.zeros(0, np.int64)
         order = np.argsort(label[:U], kind="stable")
         islands, seen = [], set()

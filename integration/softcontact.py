@@ -369,7 +369,9 @@ def soft_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
         if kernels.ENABLED:  # the lines below, candidate by candidate (integration.kernels)
             if vnormals is None:  # the surface normals at the nodes in question only
                 vnormals = np.zeros((len(X), 3))
-            at = np.unique(nodes[i])
+            mark = np.zeros(len(X), dtype=bool)
+            mark[nodes[i]] = True
+            at = np.flatnonzero(mark)
             found = np.empty((len(at), 3))
             kernels.node_normals_at(X, tris, layout.incidence.indptr, layout.incidence.indices, at, found)
             vnormals[at] = found

@@ -338,6 +338,17 @@ def test_group_pattern_equals_the_pattern_of_all_its_blocks_as_elements():
         np.testing.assert_array_equal(group.pattern.block_row[where], p.block_row + o)
         np.testing.assert_array_equal(group.pattern.indices[where], p.indices + o)
     assert group.holds(extra) and group.holds(extra[:, ::-1])
+    # a block beyond the pattern is not held, also right after the same keys but that one were found held (holds_keys
+    # keeps the last keys it found held)
+    outside = np.setdiff1d(np.arange(N * N), group.keys)[:3]
+    asked = np.concatenate([group.keys[::7], group.keys[:5]])
+    assert group.holds_keys(asked) and group.holds_keys(asked)
+    for k in outside:
+        changed = asked.copy()
+        changed[len(changed) // 2] = k
+        assert not group.holds_keys(changed)
+        assert not group.holds_keys(np.append(asked, k))
+    assert group.holds_keys(asked[::-1]) and not group.holds_keys(outside)
 
 
 @pytest.mark.skipif(not HAVE_PARDISO, reason="PARDISO (pypardiso / MKL) not installed: no orderings to choose")
