@@ -650,6 +650,12 @@ class _Newton:
 
     def velocities(self, V: np.ndarray, du: np.ndarray) -> np.ndarray:
         """vc (m, 3) in the rows' frames for soft velocities V (N, 3) and du (n,)."""
+        if kernels.ENABLED and not (self.n and self.rows.jacobian is not None):  # the lines below, row by row
+            out = np.empty((len(self.w), 3))
+            kernels.row_velocities(self.gnodes, self.w, np.ascontiguousarray(V, dtype=float),
+                                   np.ascontiguousarray(self.rows.rigid_velocity, dtype=float),
+                                   np.ascontiguousarray(self.rows.frames, dtype=float), out)
+            return out
         rel = self._point_velocities(V) - self.rows.rigid_velocity
         if self.n and self.rows.jacobian is not None:
             rel -= self.rows.jacobian @ du
@@ -741,7 +747,12 @@ class _Newton:
         """F G F^T (m, 3, 3): the rows' Hessians in world axes (F: the rows' frames), once per G."""
         if getattr(self, "_fgf", None) is None or self._fgf[0] is not G:
             F = self.rows.frames
-            self._fgf = (G, F @ G @ np.swapaxes(F, 1, 2))
+            if kernels.ENABLED:  # the product below, row by row
+                out = np.empty((len(F), 3, 3))
+                kernels.frame_hessians(np.ascontiguousarray(F, dtype=float), np.ascontiguousarray(G, dtype=float), out)
+                self._fgf = (G, out)
+            else:
+                self._fgf = (G, F @ G @ np.swapaxes(F, 1, 2))
         return self._fgf[1]
 
     def _rigid_blocks(self, G: np.ndarray, joint_curvature: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -1610,6 +1610,39 @@ def gather_rows(gnodes: np.ndarray, w: np.ndarray, X: np.ndarray, out: np.ndarra
 
 
 @_jit
+def row_velocities(gnodes: np.ndarray, w: np.ndarray, V: np.ndarray, rigid_velocity: np.ndarray, frames: np.ndarray,
+                   out: np.ndarray) -> None:
+    """The rows' relative velocities in their frames: out (m, 3) = F^T (sum over the row's slots of w V[gnodes] -
+    rigid_velocity) for soft velocities V (N, 3) (convex._Newton.velocities without the rigid unknowns)."""
+    m, S = gnodes.shape
+    for r in range(m):
+        p0, p1, p2 = -rigid_velocity[r, 0], -rigid_velocity[r, 1], -rigid_velocity[r, 2]
+        for s in range(S):
+            ws = w[r, s]
+            if ws != 0.0:
+                n = gnodes[r, s]
+                p0 += ws * V[n, 0]
+                p1 += ws * V[n, 1]
+                p2 += ws * V[n, 2]
+        for j in range(3):
+            out[r, j] = frames[r, 0, j] * p0 + frames[r, 1, j] * p1 + frames[r, 2, j] * p2
+
+
+@_jit
+def frame_hessians(F: np.ndarray, G: np.ndarray, out: np.ndarray) -> None:
+    """out (m, 3, 3) = F G F^T per row, for the rows' frames F (m, 3, 3) and Hessians in them G (m, 3, 3)
+    (convex._Newton._frame_hessians)."""
+    m = F.shape[0]
+    for r in range(m):
+        for i in range(3):
+            a0 = F[r, i, 0] * G[r, 0, 0] + F[r, i, 1] * G[r, 1, 0] + F[r, i, 2] * G[r, 2, 0]
+            a1 = F[r, i, 0] * G[r, 0, 1] + F[r, i, 1] * G[r, 1, 1] + F[r, i, 2] * G[r, 2, 1]
+            a2 = F[r, i, 0] * G[r, 0, 2] + F[r, i, 1] * G[r, 1, 2] + F[r, i, 2] * G[r, 2, 2]
+            for j in range(3):
+                out[r, i, j] = a0 * F[r, j, 0] + a1 * F[r, j, 1] + a2 * F[r, j, 2]
+
+
+@_jit
 def slot_pair_keys(gnodes: np.ndarray, w: np.ndarray, N: int) -> np.ndarray:
     """The node pairs the rows' slots join, as keys i * N + j with i < j (unsorted, repeats kept): the blocks the
     rows add to the Newton matrix off its diagonal (convex._Newton._extra_pairs)."""

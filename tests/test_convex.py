@@ -402,13 +402,22 @@ def test_the_row_kernels_equal_their_numpy_twins(monkeypatch):
     kernels = convex.kernels
     f = rng.normal(size=(len(rows), 7))
     X = rng.normal(size=(newton.N, 5))
-    compiled = (newton._delassus_diagonal(), newton._to_nodes(f), newton._at_rows(X), newton._extra_pairs())
+    V = rng.normal(size=(newton.N, 3))
+    G = rng.normal(size=(len(rows), 3, 3))
+    soft_only = convex._Newton(convex.ConvexSolver(), parts, rows, None, h)  # (the rows' velocities without du)
+
+    def products():
+        newton._fgf = None
+        return (newton._delassus_diagonal(), newton._to_nodes(f), newton._at_rows(X), newton._frame_hessians(G),
+                soft_only.velocities(V, np.zeros(0)), newton._extra_pairs())
+
+    compiled = products()
     monkeypatch.setattr(kernels, "ENABLED", False)
-    reference = (newton._delassus_diagonal(), newton._to_nodes(f), newton._at_rows(X), newton._extra_pairs())
+    reference = products()
     np.testing.assert_allclose(compiled[0], reference[0], rtol=1e-12)
-    for a, b in zip(compiled[1:3], reference[1:3]):
+    for a, b in zip(compiled[1:5], reference[1:5]):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max())
-    assert np.array_equal(compiled[3], reference[3]) and len(reference[3])
+    assert np.array_equal(compiled[5], reference[5]) and len(reference[5])
     # the cone law on random rows in every regime
     vc, R, v_hat, bound, bilateral = _random_rows(rng, 4000)
     mu = np.where(rng.random(4000) < 0.2, 0.0, rng.uniform(0.1, 1.0, 4000))
