@@ -944,6 +944,12 @@ def soft_nearest(xs: np.ndarray, X: np.ndarray, tris: np.ndarray, nodes: np.ndar
     m = cand_i.shape[0]
     ok = np.zeros(m, dtype=np.bool_)
     key = np.empty(m, dtype=np.int64)
+    # per triangle, once (a triangle serves several nodes): its unit normal and the gradients of two barycentric
+    # weights, wa = (x - b) . ga and wb = (x - c) . gb (ga = n x (c - b) / |n|^2 is orthogonal to n: a point and its
+    # projection on the plane have the same weights)
+    T = tris.shape[0]
+    frame = np.empty((T, 9))
+    done = np.zeros(T, dtype=np.bool_)
     for k in range(m):
         i, t = cand_i[k], cand_t[k]
         g = nodes[i]
@@ -960,21 +966,26 @@ def soft_nearest(xs: np.ndarray, X: np.ndarray, tris: np.ndarray, nodes: np.ndar
                 gap2 += e * e
             if not gap2 > (1.01 * rest_edge[t]) ** 2:
                 continue
-        u0, u1, u2 = X[b, 0] - X[a, 0], X[b, 1] - X[a, 1], X[b, 2] - X[a, 2]
-        v0, v1, v2 = X[c, 0] - X[a, 0], X[c, 1] - X[a, 1], X[c, 2] - X[a, 2]
-        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
-        nn = n0 * n0 + n1 * n1 + n2 * n2
-        ln = math.sqrt(nn)
-        e0, e1, e2 = n0 / ln, n1 / ln, n2 / ln
-        dk = (xs[i, 0] - X[a, 0]) * e0 + (xs[i, 1] - X[a, 1]) * e1 + (xs[i, 2] - X[a, 2]) * e2
-        p0, p1, p2 = xs[i, 0] - dk * e0, xs[i, 1] - dk * e1, xs[i, 2] - dk * e2
+        if not done[t]:
+            u0, u1, u2 = X[b, 0] - X[a, 0], X[b, 1] - X[a, 1], X[b, 2] - X[a, 2]
+            v0, v1, v2 = X[c, 0] - X[a, 0], X[c, 1] - X[a, 1], X[c, 2] - X[a, 2]
+            n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+            nn = n0 * n0 + n1 * n1 + n2 * n2
+            ln = math.sqrt(nn)
+            frame[t, 0], frame[t, 1], frame[t, 2] = n0 / ln, n1 / ln, n2 / ln
+            c0, c1, c2 = X[c, 0] - X[b, 0], X[c, 1] - X[b, 1], X[c, 2] - X[b, 2]  # ga = n x (c - b) / nn
+            frame[t, 3], frame[t, 4], frame[t, 5] = ((n1 * c2 - n2 * c1) / nn, (n2 * c0 - n0 * c2) / nn,
+                                                     (n0 * c1 - n1 * c0) / nn)
+            c0, c1, c2 = X[a, 0] - X[c, 0], X[a, 1] - X[c, 1], X[a, 2] - X[c, 2]  # gb = n x (a - c) / nn
+            frame[t, 6], frame[t, 7], frame[t, 8] = ((n1 * c2 - n2 * c1) / nn, (n2 * c0 - n0 * c2) / nn,
+                                                     (n0 * c1 - n1 * c0) / nn)
+            done[t] = True
+        e0, e1, e2 = frame[t, 0], frame[t, 1], frame[t, 2]
+        x0, x1, x2 = xs[i, 0], xs[i, 1], xs[i, 2]
+        dk = (x0 - X[a, 0]) * e0 + (x1 - X[a, 1]) * e1 + (x2 - X[a, 2]) * e2
         # barycentric weights of the projection (collision.barycentric)
-        c0, c1, c2 = X[c, 0] - X[b, 0], X[c, 1] - X[b, 1], X[c, 2] - X[b, 2]
-        q0, q1, q2 = p0 - X[b, 0], p1 - X[b, 1], p2 - X[b, 2]
-        wa = ((c1 * q2 - c2 * q1) * n0 + (c2 * q0 - c0 * q2) * n1 + (c0 * q1 - c1 * q0) * n2) / nn
-        c0, c1, c2 = X[a, 0] - X[c, 0], X[a, 1] - X[c, 1], X[a, 2] - X[c, 2]
-        q0, q1, q2 = p0 - X[c, 0], p1 - X[c, 1], p2 - X[c, 2]
-        wb = ((c1 * q2 - c2 * q1) * n0 + (c2 * q0 - c0 * q2) * n1 + (c0 * q1 - c1 * q0) * n2) / nn
+        wa = (x0 - X[b, 0]) * frame[t, 3] + (x1 - X[b, 1]) * frame[t, 4] + (x2 - X[b, 2]) * frame[t, 5]
+        wb = (x0 - X[c, 0]) * frame[t, 6] + (x1 - X[c, 1]) * frame[t, 7] + (x2 - X[c, 2]) * frame[t, 8]
         wc = 1.0 - wa - wb
         if not (wa >= -prism_tol and wb >= -prism_tol and wc >= -prism_tol):
             continue
