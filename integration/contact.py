@@ -669,15 +669,22 @@ class ContactSolver:
             free = np.zeros(pairs.parts.shape, dtype=bool)
             for i, held in enumerate(held_by):
                 on = pairs.parts == i
-                free |= on & (~np.isin(pairs.nodes, held) if len(held) else True)
+                if len(held):
+                    is_held = np.zeros(steps[i].system.body.n_nodes, dtype=bool)
+                    is_held[held] = True
+                    free |= on & ~is_held[np.where(on, pairs.nodes, 0)]
+                else:
+                    free |= on
             free = free.any(axis=1)
             if not free.all():
                 pairs = pairs.select(free)
         if pairs is not None and len(pairs):  # bodies in soft contact go to the convex problem with all they touch
             group = _groups(len(steps), pairs)
+            in_pair = np.zeros(len(steps), dtype=bool)  # the bodies with a soft contact (their own first slot)
+            in_pair[pairs.parts[:, 0]] = True
             for g in np.unique(group):
                 members = np.flatnonzero(group == g)
-                if any(dense[i] for i in members) or len(members) > 1 or np.isin(pairs.parts[:, 0], members).any():
+                if any(dense[i] for i in members) or len(members) > 1 or in_pair[members].any():
                     dense[members] = True
         results: list = [None] * len(steps)
         simple = [i for i in range(len(steps)) if not dense[i]]
@@ -702,7 +709,9 @@ class ContactSolver:
                 du, joint_impulses = out
             iterations = max(iterations, its)
             if res is not None:
-                mine = np.isin(pairs.parts[:, 0], index)
+                mine = np.zeros(len(steps), dtype=bool)
+                mine[index] = True
+                mine = mine[pairs.parts[:, 0]]
                 pair_results.append((pairs if mine.all() else pairs.select(mine), res))
         self.previous[("soft", 0)] = self._pair_previous
         velocities, nodes, faces, attach = [], [], [], []

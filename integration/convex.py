@@ -111,8 +111,14 @@ class Rows:
         parts = [r for r in parts if r is not None and len(r)]
         slots = max([r.parts.shape[1] for r in parts], default=1)
 
-        def pad(a, fill):
-            return np.pad(a, ((0, 0), (0, slots - a.shape[1])), constant_values=fill)
+        def padded(arrays, fill, dtype):
+            """The (m_k, S_k) arrays one below the other, each padded to ``slots`` columns with ``fill``."""
+            out = np.full((sum(len(a) for a in arrays), slots), fill, dtype=dtype)
+            at = 0
+            for a in arrays:
+                out[at:at + len(a), :a.shape[1]] = a
+                at += len(a)
+            return out
 
         if not parts:
             return cls(np.zeros((0, 1), np.int64), np.zeros((0, 1), np.int64), np.zeros((0, 1)), np.zeros((0, 3, 3)),
@@ -121,8 +127,8 @@ class Rows:
         jac = None
         if n:
             jac = np.concatenate([r.jacobian if r.jacobian is not None else np.zeros((len(r), 3, n)) for r in parts])
-        return cls(np.concatenate([pad(r.parts, -1) for r in parts]), np.concatenate([pad(r.nodes, 0) for r in parts]),
-                   np.concatenate([pad(r.weights, 0.0) for r in parts]), np.concatenate([r.frames for r in parts]),
+        return cls(padded([r.parts for r in parts], -1, np.int64), padded([r.nodes for r in parts], 0, np.int64),
+                   padded([r.weights for r in parts], 0.0, float), np.concatenate([r.frames for r in parts]),
                    np.concatenate([r.rigid_velocity for r in parts]), jac,
                    np.concatenate([r.v_hat for r in parts]), np.concatenate([r.mu for r in parts]),
                    np.concatenate([r.bilateral for r in parts]))
@@ -948,12 +954,13 @@ class _Newton:
         sliding = friction & ~stick
         return bool(np.all(np.abs(self.bound - cone)[sliding] <= scale) and np.all((gt - cone)[friction & stick] <= scale))
 
-    def _evaluate(self, V: np.ndarray, du: np.ndarray, hessian: bool = True):
+    def _evaluate(self, V: np.ndarray, du: np.ndarray, hessian: bool = True, vc: np.ndarray | None = None,
+                  AV: np.ndarray | None = None):
         """(vc, gamma, G, stick, A V, cost, joint) at (V, du) under the current law (self.law); joint: the joint rows'
-        (impulses, curvatures) or None."""
-        vc = self.velocities(V, du)
+        (impulses, curvatures) or None. ``vc``, ``AV``: the rows' velocities and A V there if known."""
+        vc = self.velocities(V, du) if vc is None else vc
         gamma, G, cost_c, stick = self.law(vc, self.R, hessian)
-        AV = self._A_products(V)
+        AV = self._A_products(V) if AV is None else AV
         cost = 0.5 * float(np.vdot(V, AV)) - float(np.vdot(self.b, V)) + float(cost_c.sum())
         if self.n:
             cost += 0.5 * float(du @ self.M @ du)
@@ -990,11 +997,13 @@ class _Newton:
             if it == max_iter:
                 break
             dV, ddu = self._direction(self.group, G, gV, gu, None if joint is None else joint[1])
-            alpha = self._line_search(V, du, dV, ddu, AV, gamma, None if joint is None else joint[0])
+            alpha, AdV, dvc = self._line_search(V, du, dV, ddu, AV, gamma, None if joint is None else joint[0], vc)
             V = V + alpha * dV
             du = du + alpha * ddu
             previous = cost
-            vc, gamma, G, stick, AV, cost, joint = self._evaluate(V, du)
+            # A V and the rows' velocities are affine in (V, du): along the step from the line search's
+            vc, gamma, G, stick, AV, cost, joint = self._evaluate(V, du, vc=None if dvc is None else vc + alpha * dvc,
+                                                                  AV=AV + alpha * AdV)
             still = abs(previous - cost) <= COST_TOL * max(abs(cost), abs(previous), 1e-300)
             if still and (alpha > 0.5 or flat):
                 converged = True  # at round-off: the cost no longer falls
@@ -1003,18 +1012,21 @@ class _Newton:
             flat = still
         return V, du, gamma, vc, stick, it, converged, residual, cost
 
-    def _line_search(self, V, du, dV, ddu, AV, gamma, joint_gamma=None) -> float:
+    def _line_search(self, V, du, dV, ddu, AV, gamma, joint_gamma=None, vc=None
+                     ) -> tuple[float, np.ndarray, np.ndarray | None]:
         """The minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step, to where its slope is
         LINE_TOL of the slope at the start: Newton on dl/dalpha safeguarded by bisection (Castro et al.'s line
-        search)."""
+        search). Returns (alpha, A dV, the rows' velocities' change per unit alpha (None: no rows)); ``vc``: the rows'
+        velocities at (V, du) if known."""
         rows = self.rows
         AdV = self._A_products(dV)
         dAd = float(np.vdot(dV, AdV)) + (float(ddu @ self.M @ ddu) if self.n else 0.0)
         g0 = float(np.vdot(dV, AV - self.b)) + (float(ddu @ self.M @ du) if self.n else 0.0)
+        dvc = None
         if not len(rows) and self.joints is None:
-            return 1.0
+            return 1.0, AdV, dvc
         if len(rows):
-            vc0 = self.velocities(V, du)
+            vc0 = self.velocities(V, du) if vc is None else vc
             # velocities() is affine in (V, du): its constant part, the rigid side's free motion, added back
             dvc = self.velocities(dV, ddu) + np.einsum("mji,mj->mi", rows.frames, rows.rigid_velocity)
             d0 = g0 - float(np.sum(dvc * gamma))
@@ -1051,10 +1063,10 @@ class _Newton:
         lo, hi = 0.0, 1.5
         d_hi, _ = derivatives(hi)
         if d_hi <= 0:
-            return hi
+            return hi, AdV, dvc
         d1, d2 = derivatives(1.0)
         if abs(d1) <= LINE_TOL * abs(d0):
-            return 1.0
+            return 1.0, AdV, dvc
         alpha = 1.0
         if d1 < 0:
             lo = 1.0
@@ -1070,4 +1082,4 @@ class _Newton:
                 lo = alpha
             else:
                 hi = alpha
-        return alpha
+        return alpha, AdV, dvc

@@ -348,6 +348,14 @@ class DirectSystem:
         kernels.frames_apply(frame_of, R, y, False, out)
         return out, reaction
 
+    @property
+    def Q(self) -> np.ndarray | None:
+        """(N, 3, 3) the per-node rotations (made at the first use if given as a function), or None."""
+        if callable(self._Q):
+            with timed(self.timings, "rotations"):
+                self._Q = self._Q()
+        return self._Q
+
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
         return (self.body.pattern.to_bsr(self.A) @ y.reshape(-1)).reshape(-1, 3)
@@ -499,13 +507,14 @@ class IterativeSystem:
 
     def __init__(self, body: FemBody, A: np.ndarray | Callable[[], np.ndarray], b: np.ndarray, x0: np.ndarray,
                  pre: Preconditioner, settings: IterativeSettings, timings: Timings | None = None,
-                 Q: np.ndarray | None = None, terms: tuple[np.ndarray, ...] = (),
+                 Q: np.ndarray | Callable[[], np.ndarray] | None = None, terms: tuple[np.ndarray, ...] = (),
                  A_op: Callable[[np.ndarray], np.ndarray] | sp.spmatrix | None = None,
                  direct: SpdSolver | None = None):
         """A: block data (nnzb, 3, 3) of the system matrix, or a function that assembles it (called
         only if a refactorisation needs it); A_op: the product y (N, 3) -> A y (N, 3), as a function or
         a sparse matrix (default: A's BSR matrix); b (N, 3); x0 (N, 3) the warm start; Q (N, 3, 3)
-        per-node rotations for conjugating the preconditioner; terms: the (N, 3) terms that sum to b,
+        per-node rotations for conjugating the preconditioner, or a function that makes them (called at the first
+        use: a system whose matrix a coupled solve takes whole never needs them); terms: the (N, 3) terms that sum to b,
         for the tolerance (IterativeSettings); direct: the body's double-precision solver, for batches of
         responses (see :meth:`responses`)."""
         self.body, self.b = body, b
@@ -520,11 +529,19 @@ class IterativeSystem:
         self.x0 = x0
         self.pre = pre
         self.settings = settings
-        self.Q = Q  # per-node rotations, for conjugating the preconditioner
+        self._Q = Q  # per-node rotations, for conjugating the preconditioner (or the function that makes them)
         self.stats: dict = {"iterations": 0, "factorizations": 0}
         self.timings = timings
         self.direct = direct
         self._exact: tuple[bytes, DirectSystem] | None = None  # (constraint set, its factorised system)
+
+    @property
+    def Q(self) -> np.ndarray | None:
+        """(N, 3, 3) the per-node rotations (made at the first use if given as a function), or None."""
+        if callable(self._Q):
+            with timed(self.timings, "rotations"):
+                self._Q = self._Q()
+        return self._Q
 
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
@@ -811,8 +828,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         b = sum(terms[1:], terms[0])
     if pre is None:
         return DirectSystem(body, A, b, solver, timings=timings, rotations=R)
-    with timed(timings, "rotations"):
-        Q = body.node_frames(R) if body.warping else None
+    Q = (lambda: body.node_frames(R)) if body.warping else None  # made if the system's own solve needs them
     # warm start: the velocity extrapolated linearly from the last two steps' (a better guess than v
     # alone when the motion is smooth: on the tet10 (9,9,2) sheet-on-sphere run, 3.3 instead of 3.6 PCG
     # iterations and a third of the refactorisations per step)
