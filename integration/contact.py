@@ -883,13 +883,15 @@ class ContactSolver:
         for i, (st, (_, _, c, f)) in enumerate(zip(steps, prepared)):
             system, sup = st.system, st.supports
             body = system.body
-            A = system.assemble() if hasattr(system, "assemble") else system.A
+            operator = getattr(system, "operator", None)  # A not assembled: applied by the operator, made if needed
+            A = system.assemble if operator is not None else (
+                system.assemble() if hasattr(system, "assemble") else system.A)
             held = np.zeros((body.n_nodes, 3), dtype=bool)
             value = np.zeros((body.n_nodes, 3))
             if len(sup):
                 held[sup.nodes] = sup.mask
                 value[sup.nodes] = np.where(sup.mask, sup.value, 0.0)
-            parts.append(SoftPart(body, A, system.b, held, value, body.velocities))
+            parts.append(SoftPart(body, A, system.b, held, value, body.velocities, operator))
             if c is not None and len(c):
                 add(i, "node", c, self._contact_rows(c, i, c.node[:, None], np.ones((len(c), 1)), h, n), None)
             else:

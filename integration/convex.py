@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -136,16 +137,39 @@ class Rows:
 
 @dataclass
 class SoftPart:
-    """One soft body of the problem: its step system's matrix A (block data (nnzb, 3, 3) on body.pattern) and load b
-    (N, 3), the supported components ``held`` (N, 3) bool with their velocities ``value`` (N, 3) (identity frames),
-    and the starting guess (N, 3) [m/s]."""
+    """One soft body of the problem: its step system's matrix A (block data (nnzb, 3, 3) on body.pattern, or a function
+    that assembles it) and load b (N, 3), the supported components ``held`` (N, 3) bool with their velocities
+    ``value`` (N, 3) (identity frames), and the starting guess (N, 3) [m/s]. ``operator``: A applied without
+    assembling it (softbody.integrator.WarpedOperator: y (N, 3) -> A y, its ``diagonal()`` blocks, a stack member's
+    own), None: from the blocks; ``diagonal``: A's diagonal blocks (N, 3, 3) if known."""
 
     body: FemBody
-    A: np.ndarray
+    A: np.ndarray | Callable[[], np.ndarray]
     b: np.ndarray
     held: np.ndarray
     value: np.ndarray
     guess: np.ndarray
+    operator: Callable[[np.ndarray], np.ndarray] | None = None
+    diagonal: np.ndarray | None = None
+
+    def blocks(self) -> np.ndarray:
+        """A's block data (nnzb, 3, 3), assembled at the first call if need be (a factorisation's values)."""
+        if callable(self.A):
+            self.A = self.A()
+        return self.A
+
+    def diagonal_blocks(self) -> np.ndarray:
+        """(N, 3, 3) A's diagonal blocks."""
+        if self.diagonal is None:
+            self.diagonal = (self.operator.diagonal() if self.operator is not None and callable(self.A)
+                             else self.blocks()[self.body.pattern.diag])
+        return self.diagonal
+
+    def apply(self, v: np.ndarray) -> np.ndarray:
+        """A v (N, 3) for v (N, 3): by the operator while A is not assembled, else by its blocks."""
+        if self.operator is not None and callable(self.A):
+            return self.operator(v)
+        return self.body.pattern.product(self.A, v)
 
 
 @dataclass
@@ -589,7 +613,7 @@ class _Newton:
         if not m:
             return out
         if kernels.ENABLED:  # the lines below, row by row (integration.kernels)
-            D = np.concatenate([p.A[p.body.pattern.diag] for p in self.parts])
+            D = np.concatenate([p.diagonal_blocks() for p in self.parts])
             kernels.delassus_diagonal(self.gnodes, self.w, np.ascontiguousarray(rows.frames, dtype=float), D,
                                       np.ascontiguousarray(self.held), out)
         else:
@@ -610,7 +634,7 @@ class _Newton:
         for p in np.unique(part).tolist():
             on = part == p
             local = touched[on] - self.offsets[p]
-            D[on] = self.parts[p].A[self.parts[p].body.pattern.diag[local]]
+            D[on] = self.parts[p].diagonal_blocks()[local]
             free[on] = ~self.parts[p].held[local]
         both = free[:, :, None] & free[:, None, :]
         Dinv = np.linalg.inv(np.where(both, D, 0.0) + (~free)[:, :, None] * np.eye(3)) * both
@@ -683,7 +707,7 @@ class _Newton:
         return [V[o:o2] for o, o2 in zip(self.offsets[:-1], self.offsets[1:])]
 
     def _A_products(self, V: np.ndarray) -> np.ndarray:
-        return np.concatenate([p.body.pattern.product(p.A, v) for p, v in zip(self.parts, self._split(V))]) \
+        return np.concatenate([p.apply(v) for p, v in zip(self.parts, self._split(V))]) \
             if self.parts else np.zeros((0, 3))
 
     def _loads(self) -> np.ndarray:
@@ -730,7 +754,7 @@ class _Newton:
         if getattr(self, "_blocks", None) is None or self._blocks[0] is not group:  # fixed within the solve
             base = np.zeros((pat.nnzb, 9))
             for p, where in zip(self.parts, group.maps):
-                base[where] += p.A.reshape(-1, 9)
+                base[where] += p.blocks().reshape(-1, 9)
             blocks = None
             if len(self.rows):  # the rows' slot pairs onto the pattern's blocks, as a sparse (nnzb, m) matrix
                 r, a, b, ww = self._slot_pairs()
@@ -905,7 +929,7 @@ class _Newton:
         self.b = self._loads()
         free = ~self.held
         # diag(A)^-1/2, the stopping rule's scaling (SAP's)
-        dA = (np.concatenate([p.A[p.body.pattern.diag][:, [0, 1, 2], [0, 1, 2]] for p in parts]) if parts
+        dA = (np.concatenate([p.diagonal_blocks()[:, [0, 1, 2], [0, 1, 2]] for p in parts]) if parts
               else np.zeros((0, 3)))
         self.scale_s = np.where(free, 1.0 / np.sqrt(np.maximum(dA, 1e-300)), 0.0)
         self.scale_r = 1.0 / np.sqrt(np.maximum(np.diag(self.M), 1e-300)) if self.n else np.zeros(0)

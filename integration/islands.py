@@ -85,10 +85,18 @@ class Islands:
                 starts.append(np.array([0, p.body.n_nodes]))
             else:
                 off, ip = p.body.offsets, p.body.pattern.indptr
+                free = p.operator is not None and callable(p.A) and hasattr(p.operator, "member")  # not assembled
+                diagonal = p.diagonal_blocks() if free else None
                 for k, member in enumerate(members):
                     a, b = int(off[k]), int(off[k + 1])
-                    units.append(SoftPart(member, p.A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b],
-                                          p.guess[a:b]))
+                    if free:  # the member's own operator; its blocks of the stack's, if a factorisation asks for them
+                        units.append(SoftPart(member, lambda p=p, lo=int(ip[a]), hi=int(ip[b]): p.blocks()[lo:hi],
+                                              p.b[a:b], p.held[a:b], p.value[a:b], p.guess[a:b],
+                                              p.operator.member(k), diagonal[a:b]))
+                    else:
+                        A = p.blocks()
+                        units.append(SoftPart(member, A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b],
+                                              p.guess[a:b]))
                 starts.append(np.asarray(off))
             part_units.append(len(units))
         part_units = np.asarray(part_units)

@@ -40,10 +40,10 @@ from softbody.kernels import AVAILABLE, _inline, _jit
 
 __all__ = ["ENABLED", "centre_grid", "cone_law", "contact_finish", "contact_start", "delassus_diagonal",
            "edge_candidates", "edge_depths", "edge_narrow", "edges_near", "face_contacts_possible", "face_eligible",
-           "first_pass_among", "friction_update", "gather_rows", "law_slopes", "node_normals_at", "part_arrays",
-           "primitive_distances", "primitive_link_contacts", "primitive_node_contacts", "round_face_prefilter",
-           "scatter_rows", "slot_pair_keys", "soft_candidates", "soft_deep_candidates", "soft_nearest",
-           "tangent_frames", "triangle_spheres"]
+           "first_pass_among", "frame_hessians", "friction_update", "gather_rows", "law_slopes", "node_normals_at",
+           "part_arrays", "primitive_distances", "primitive_link_contacts", "primitive_node_contacts",
+           "round_face_prefilter", "row_velocities", "scatter_rows", "slot_pair_keys", "soft_candidates",
+           "soft_deep_candidates", "soft_nearest", "tangent_frames", "triangle_spheres"]
 
 #: the prefilter's thresholds are wider than the decisions' by this (relative): round-off never drops a contact
 SLACK = 1e-9

@@ -24,7 +24,7 @@ from .material import LinearElastic, Regions, isotropic_elasticity
 from .mesh import Mesh
 from .rotation import polar_rotation_components
 from .warping import (deformation_gradient_operator, isotropic_blocks, isotropic_matrix, rest_load_operator,
-                      rotated_gradient_operator, stress_map, warped_product)
+                      rotated_gradient_operator, stress_map, warped_diagonal, warped_product)
 
 Motion = Callable[[float], np.ndarray]
 
@@ -892,6 +892,23 @@ class FemBody:
                 out += one
             else:
                 out += warped_product(gp, self.mesh.elements, stress, self._scatter, y)
+        return out
+
+    def warped_diagonal(self, g: np.ndarray | tuple) -> np.ndarray:
+        """The diagonal blocks (N, 3, 3) of K' [N/m] with g = ``rotated_gradients(R)``, K' never formed (what a solve that
+        applies K' by ``warped_product`` needs of its diagonal: scalings, Delassus estimates)."""
+        parts = g if isinstance(g, tuple) else (g,)
+        if len(parts) != (1 if self._bulk_part is None else 2):
+            raise InvalidInputError(f"warped_diagonal needs g from rotated_gradients, got {len(parts)} part(s)")
+        out = np.zeros((self.n_nodes, 3, 3))
+        for part, gp in enumerate(parts):
+            _, _, lame = self._matrix_free_data(part)
+            if kernels.ENABLED:  # the same sums element by element (softbody.kernels)
+                one = np.empty((self.n_nodes, 3, 3))
+                kernels.warped_diagonal(np.ascontiguousarray(gp, dtype=float), self._elements_c, *lame, one)
+                out += one
+            else:
+                out += warped_diagonal(gp, *lame, self._scatter)
         return out
 
     @property

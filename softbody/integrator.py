@@ -348,14 +348,6 @@ class DirectSystem:
         kernels.frames_apply(frame_of, R, y, False, out)
         return out, reaction
 
-    @property
-    def Q(self) -> np.ndarray | None:
-        """(N, 3, 3) the per-node rotations (made at the first use if given as a function), or None."""
-        if callable(self._Q):
-            with timed(self.timings, "rotations"):
-                self._Q = self._Q()
-        return self._Q
-
     def apply(self, y: np.ndarray) -> np.ndarray:
         """A y for y (N, 3)."""
         return (self.body.pattern.to_bsr(self.A) @ y.reshape(-1)).reshape(-1, 3)
@@ -536,6 +528,17 @@ class IterativeSystem:
         self._exact: tuple[bytes, DirectSystem] | None = None  # (constraint set, its factorised system)
 
     @property
+    def operator(self) -> WarpedOperator | None:
+        """The matrix-free A (WarpedOperator) while A is not assembled, else None."""
+        return self._product if self.matrix_free and callable(self._A) and isinstance(self._product,
+                                                                                    WarpedOperator) else None
+
+    def diagonal(self) -> np.ndarray:
+        """(N, 3, 3) the diagonal blocks of A (from the assembled A, or matrix-free)."""
+        op = self.operator
+        return op.diagonal() if op is not None else self.assemble()[self.body.pattern.diag]
+
+    @property
     def Q(self) -> np.ndarray | None:
         """(N, 3, 3) the per-node rotations (made at the first use if given as a function), or None."""
         if callable(self._Q):
@@ -639,6 +642,7 @@ class IterativeSystem:
         homogeneous solve starts from zero and leaves the warm start of the step's next solve alone. A
         ``loose`` one stops at IterativeSettings.loose_tol (an active set's trial solve, confirmed by a full
         one once the set stands)."""
+        self.pre.solved = True
         T, mask, value = cons.dense(self.body.n_nodes)
         load = np.zeros_like(self.b) if homogeneous else self.b
         b = to_local(T, load if extra_rhs is None else load + extra_rhs)
@@ -764,6 +768,34 @@ def assembled_system(body: FemBody, A: np.ndarray, b: np.ndarray, solver: SpdSol
     return IterativeSystem(body, A, b, x0, pre, settings, timings, Q, terms, None, solver)
 
 
+@dataclass
+class WarpedOperator:
+    """A = c_m M + c_k K' of a warped body applied without assembling K' (K' y by FemBody.warped_product from the
+    rotated gradients g of the step's rotations): y (N, 3) -> A y (N, 3). Its diagonal blocks come the same way
+    (FemBody.warped_diagonal), and a stack's member's operator is the member's own with its elements' gradients."""
+
+    body: FemBody
+    g: np.ndarray | tuple
+    c_m: float
+    c_k: float
+
+    def __call__(self, y: np.ndarray) -> np.ndarray:
+        return self.c_m * self.body.mass_product(y) + self.c_k * self.body.warped_product(self.g, y)
+
+    def diagonal(self) -> np.ndarray:
+        """(N, 3, 3) the diagonal blocks of A."""
+        D = self.c_k * self.body.warped_diagonal(self.g)
+        D[:, [0, 1, 2], [0, 1, 2]] += self.c_m * self.body.M_data[self.body.pattern.diag][:, None]
+        return D
+
+    def member(self, i: int) -> "WarpedOperator":
+        """The operator of member i of a stack (softbody.stack.BodyStack: its elements are rows element_offsets[i]:
+        element_offsets[i + 1] of the stack's)."""
+        rows = slice(int(self.body.element_offsets[i]), int(self.body.element_offsets[i + 1]))
+        g = tuple(x[rows] for x in self.g) if isinstance(self.g, tuple) else self.g[rows]
+        return WarpedOperator(self.body.members[i], g, self.c_m, self.c_k)
+
+
 def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, method: str = "direct",
                 settings: IterativeSettings | None = None, timings: Timings | None = None,
                 pre: Preconditioner | None = None) -> LinearSystem:
@@ -791,12 +823,16 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         pre = new_preconditioner(body, solver.backend)
     operator = settings.operator
     if operator == "auto":
-        # matrix-free saves the assembly only if no refactorisation is due (stale: it needs A anyway)
-        operator = ("matrix-free" if body.prefers_matrix_free and pre is not None and not pre.stale
+        # matrix-free saves the assembly only if no refactorisation is due (stale: it needs A anyway); none is due for
+        # a body whose last system was not solved by its own PCG (a coupled solve took it whole, and takes this one
+        # so too: it applies A, and assembles it only to factorise)
+        due = pre is not None and pre.stale and pre.solved is not False
+        operator = ("matrix-free" if body.prefers_matrix_free and pre is not None and not due
                     and pre.products <= settings.matrix_free_max_products else "assembled")
     matrix_free = pre is not None and operator == "matrix-free"
     if pre is not None:
         pre.products = 1  # K' u for the forces; IterativeSystem.solve counts the rest
+        pre.solved = False  # until IterativeSystem.solve runs
     u = x - np.add.reduce(x, axis=0) / len(x)  # any point works (K' annihilates translations); the mean limits
     # round-off (np.mean's arithmetic, without its wrapper)
     if matrix_free:  # K' y element by element; A assembled only if a refactorisation asks for it
@@ -806,7 +842,7 @@ def step_system(body: FemBody, h: float, f_ext: np.ndarray, solver: SpdSolver, m
         with timed(timings, "forces"):
             Ku = body.warped_product(g, u)
         A = lambda: body.system_blocks(body.warped_stiffness_upper(R)[0], c_m, c_k)  # noqa: E731
-        A_op = lambda y: c_m * body.mass_product(y) + c_k * body.warped_product(g, y)  # noqa: E731
+        A_op = WarpedOperator(body, g, c_m, c_k)
     else:
         with timed(timings, "assembly"):
             K, load = body.warped_stiffness_upper(R)

@@ -256,6 +256,31 @@ def warped_product(g: np.ndarray, elements: np.ndarray, lam: float, mu: float, y
 
 
 @_jit
+def warped_diagonal(g: np.ndarray, elements: np.ndarray, lam: float, mu: float, out: np.ndarray) -> None:
+    """The diagonal blocks of K' into out (N, 3, 3), zeroed first, element by element: per node slot a and quadrature
+    point p, with g_a the rotated weighted gradient there (g (E, k, 3q), FemBody.rotated_gradients), the block
+    (lam + mu) g_a g_a^T + mu |g_a|^2 I (warped_product's K' y for y at node a alone): softbody.warping
+    .warped_diagonal, node by node."""
+    E, k, q3 = g.shape
+    out[:] = 0.0
+    lm = lam + mu
+    for e in range(E):
+        for a in range(k):
+            node = elements[e, a]
+            for p in range(q3 // 3):
+                g0, g1, g2 = g[e, a, 3 * p], g[e, a, 3 * p + 1], g[e, a, 3 * p + 2]
+                gg = mu * (g0 * g0 + g1 * g1 + g2 * g2)
+                out[node, 0, 0] += lm * g0 * g0 + gg
+                out[node, 1, 1] += lm * g1 * g1 + gg
+                out[node, 2, 2] += lm * g2 * g2 + gg
+                out[node, 0, 1] += lm * g0 * g1
+                out[node, 0, 2] += lm * g0 * g2
+                out[node, 1, 2] += lm * g1 * g2
+    for n in range(out.shape[0]):
+        out[n, 1, 0], out[n, 2, 0], out[n, 2, 1] = out[n, 0, 1], out[n, 0, 2], out[n, 1, 2]
+
+
+@_jit
 def rotate_blocks(A: np.ndarray, block_row: np.ndarray, indices: np.ndarray, where: np.ndarray, R: np.ndarray,
                   out: np.ndarray) -> None:
     """T^T A T for block data A (nnzb, 3, 3) into out (a copy of A where neither node turns): block k of row node

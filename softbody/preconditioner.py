@@ -99,6 +99,8 @@ class Preconditioner:
     column_nodes: int = 0  # nodes whose P^-1 columns were solved for, over all factorisations
     previous_velocities: np.ndarray | None = None  # at the start of the last step, for the PCG's warm start
     products: int = 0  # products with A in the current (after it: the last) step, for IterativeSettings.operator
+    solved: bool | None = None  # whether the last step's system was solved by its own PCG (None: no system yet; False:
+    # a coupled solve took its matrix whole), for IterativeSettings.operator
     spent: float = 0.0  # PCG iterations' worth spent since the factorisation that a fresh one saves (see above)
     fewest: int | None = None  # the fewest iterations of a full solve since the factorisation
     last_iterations: int | None = None  # of the last full solve
@@ -114,7 +116,7 @@ class Preconditioner:
 
     # the fields that a saved state holds (the rest, _last, is a gather made again from these)
     _STATE = ("T", "Q", "stale", "factorizations", "iterations", "eliminated", "column_nodes", "previous_velocities",
-              "products", "spent", "fewest", "last_iterations", "_slot", "_Y")
+              "products", "solved", "spent", "fewest", "last_iterations", "_slot", "_Y")
 
     def save_state(self) -> dict:
         """Everything the next steps read of this preconditioner, copied: its frames, counters, warm start, cached

@@ -126,3 +126,14 @@ def warped_product(g: np.ndarray, elements: np.ndarray, stress: np.ndarray, scat
     H = np.swapaxes(Y, 1, 2) @ g  # (E, 3, 3q)
     sigma = sliced_matmul(H.reshape(E, -1), stress).reshape(E, -1, 3)  # (E, 3q, 3)
     return scatter @ (g @ sigma).reshape(-1, 3)
+
+
+def warped_diagonal(g: np.ndarray, lam: float, mu: float, scatter: sp.csr_matrix) -> np.ndarray:
+    """The diagonal blocks (N, 3, 3) of K' = sum_e R_e K_e R_e^T without forming K': g (E, k, 3q) the rotated weighted
+    gradients (as warped_product), lam, mu the Lame parameters, scatter the 0/1 (N, E k) sum of element-node values into
+    nodes. At a node slot a, K' y for y at that node alone is sum_q [(lam + mu) g_qa g_qa^T + mu |g_qa|^2 I] y."""
+    E, k, q3 = g.shape
+    g4 = g.reshape(E, k, q3 // 3, 3)
+    S = np.einsum("ekpi,ekpj->ekij", g4, g4)  # (E, k, 3, 3)
+    blocks = (lam + mu) * S + mu * np.trace(S, axis1=2, axis2=3)[:, :, None, None] * np.eye(3)
+    return np.asarray(scatter @ blocks.reshape(E * k, 9)).reshape(-1, 3, 3)

@@ -2,6 +2,8 @@
 the bodies they are, and the islands' minima together the minimum of the whole problem."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 import softbody as sb
@@ -15,8 +17,8 @@ from softbody.stack import BodyStack
 H = 0.01
 
 
-def _cube(center):
-    mesh = sb.box_mesh((0.04, 0.04, 0.04), (1, 1, 1), "tet4", center=center)
+def _cube(center, kind="tet4"):
+    mesh = sb.box_mesh((0.04, 0.04, 0.04), (1, 1, 1), kind, center=center)
     return sb.FemBody(mesh, sb.LinearElastic(2e4, 0.3, 800.0), damping=(0.1, 0.001))
 
 
@@ -28,11 +30,11 @@ def _part(body, rng):
                            body.velocities.copy())
 
 
-def _problem(rng):
+def _problem(rng, kind="tet4"):
     """Four cubes stepped as one BodyStack and a free rigid body (6 unknowns): rows join members 0 and 1 (node
     against face), member 2 and the rigid body, and hold member 3 against a fixed surface; member 0 is held at a
     node. Three islands: {0, 1}, {2, rigid}, {3}."""
-    members = [_cube((0.1 * k, 0.0, 0.02)) for k in range(4)]
+    members = [_cube((0.1 * k, 0.0, 0.02), kind) for k in range(4)]
     stack = BodyStack(members)
     part = _part(stack, rng)
     part.held[0] = True
@@ -165,3 +167,55 @@ def test_components_are_scipys_connected_components():
             same = want[:, None] == want[None]
             np.testing.assert_array_equal(label[:, None] == label[None], same)
             np.testing.assert_array_equal(label, [np.flatnonzero(same[x])[0] for x in range(count)])
+
+
+def test_a_stack_applied_without_assembling_its_matrix_solves_as_assembled():
+    """A stack's system given as its matrix-free operator (softbody.integrator.WarpedOperator: A y by the rotated
+    gradients, its diagonal blocks likewise, the blocks assembled only for a factorisation) and as assembled blocks:
+    island by island (each member its own operator, a slice of the stack's gradients) and whole, the same velocities
+    and impulses to Newton's tolerance; a solve served by the kept factorisations (conjugate gradients) never
+    assembles it."""
+    from softbody.integrator import WarpedOperator
+
+    rng = np.random.default_rng(6)
+    _, parts, rows, M = _problem(rng, "tet10")
+    p = parts[0]
+    stack = p.body
+    axes = rng.normal(size=(stack.mesh.n_elements, 3))
+    R = np.array([_rotation(a, 0.2 * np.linalg.norm(a)) for a in axes])  # each element turned up to ~0.5 rad
+    c_m, c_k = 1.0 + H * stack.damping[0], H * stack.damping[1] + H * H
+    blocks = stack.system_blocks(stack.warped_stiffness_upper(R)[0], c_m, c_k)
+
+    def assembled(guess=p.guess):
+        return convex.SoftPart(stack, blocks, p.b, p.held, p.value, guess)
+
+    def matrix_free(guess=p.guess):
+        return convex.SoftPart(stack, lambda: stack.system_blocks(stack.warped_stiffness_upper(R)[0], c_m, c_k),
+                               p.b, p.held, p.value, guess, WarpedOperator(stack, stack.rotated_gradients(R), c_m, c_k))
+
+    units = Islands.of([matrix_free()], rows, True).units
+    assert all(isinstance(u.operator, WarpedOperator) and u.operator.body is m for u, m in zip(units, stack.members))
+    tight = dict(rel_tol=1e-12, lag_tol=1e-12, lag_rounds=200, reuse_min=0, reuse_min_soft=0)
+    frictionless = dataclasses.replace(rows, mu=np.zeros(len(rows)))  # (no lagged rounds: the kept factor serves)
+    out = {}
+    for name, make in (("assembled", assembled), ("matrix-free", matrix_free)):
+        solver = ContactSolver()
+        solver.convex = convex.ConvexSolver(**tight)
+        first = solver._solve_islands([assembled()], frictionless, M, H, None, None)  # patterns, factorisations kept
+        part = make(first.velocities[0])
+        again = solver._solve_islands([part], frictionless, M, H, None, first.du)  # from its solution: served by them
+        out[name] = (first, again, convex.ConvexSolver(**tight).solve([make()], rows, M, H))
+        if name == "matrix-free":
+            assert callable(part.A) and again.factorizations == 0  # never assembled
+    for k in range(3):
+        a, f = out["assembled"][k], out["matrix-free"][k]
+        assert a.converged and f.converged
+        assert np.abs(f.velocities[0] - a.velocities[0]).max() < 1e-8 * np.abs(a.velocities[0]).max()
+        assert np.abs(f.gamma - a.gamma).max() < 1e-7 * np.abs(a.gamma).max()
+
+
+def _rotation(axis, angle):
+    """The rotation by ``angle`` about ``axis`` (3,) (Rodrigues)."""
+    k = axis / np.linalg.norm(axis)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K

@@ -267,10 +267,27 @@ def test_auto_operator_is_matrix_free_for_tet10_until_the_products_grow():
     assert not system("tet4", auto, products=1)[1].matrix_free and not system("hex8", auto, products=1)[1].matrix_free
     assert system("hex8", IterativeSettings(operator="matrix-free"), products=100)[1].matrix_free
     assert not system("tet10", IterativeSettings(operator="assembled"), products=1)[1].matrix_free
-    # a refactorisation due (stale) -> assembled
-    body, _ = system("tet10", auto, products=1)
+    # a refactorisation due (stale) for a system its PCG solves -> assembled
+    body, current = system("tet10", auto, products=1)
+    current.solve(fixed)
     pre_of(body).stale = True
     assert not step(body, auto).matrix_free
+    # ... unless the last step's system was not solved by its PCG (a coupled solve took it whole): none is due for it;
+    # its A is applied matrix-free, its diagonal blocks are the assembled A's, and it is assembled if asked for
+    body, taken = system("tet10", auto, products=1)
+    pre_of(body).stale = True
+    again = step(body, auto)  # (taken not solved)
+    op = again.operator
+    assert again.matrix_free and op is not None
+    y = np.random.default_rng(0).normal(size=(body.n_nodes, 3))
+    D, Ay = op.diagonal(), op(y)
+    A = again.assemble()
+    np.testing.assert_allclose(D, A[body.pattern.diag], rtol=1e-12, atol=1e-12 * np.abs(A).max())
+    np.testing.assert_allclose(Ay, body.pattern.product(A, y), rtol=1e-10, atol=1e-10 * np.abs(A).max())
+    assert again.operator is None  # assembled: the blocks serve
+    again.solve(fixed)
+    pre_of(body).stale = True
+    assert not step(body, auto).matrix_free  # solved by its PCG again, and stale: assembled
     # the count: 1 (forces) + 1 (initial residual) + the iterations of the one solve
     body, _ = system("tet10", auto, products=1)
     body.positions = body.positions + 1e-3 * np.random.default_rng(0).standard_normal(body.positions.shape)

@@ -277,3 +277,25 @@ def test_system_blocks_and_the_force_product_taken_from_them(kind):
     via_A = ((body.pattern.to_bsr(A) @ u.ravel()).reshape(-1, 3) - c_m * body.mass_product(u)) / c_k
     assert c_m * body.mass_scale <= 1e4 * c_k * np.abs(K_up[body.diagonal_upper][:, [0, 4, 8]]).max()
     np.testing.assert_allclose(via_A, Ku, rtol=0, atol=1e-11 * np.abs(Ku).max())
+
+
+@pytest.mark.parametrize("kind, volumetric", [("tet10", "full"), ("hex8", "full"), ("hex8", "mean"), ("tet4", "full")])
+def test_warped_diagonal_is_the_diagonal_of_the_assembled_warped_stiffness(kind, volumetric, monkeypatch):
+    """FemBody.warped_diagonal (from the rotated gradients, compiled and numpy) equals the diagonal blocks of
+    sum_e R_e K_e R_e^T assembled from the element matrices (warped_stiffness), for a bent, rotated state and for
+    R = None; a B-bar body's (a split stiffness: its bulk part's gradients too) alike."""
+    from softbody import kernels
+
+    mesh = distorted_box(kind, cells=(2, 2, 2), size=SIZE, seed=7)
+    body = softbody.FemBody(mesh, MAT, warping=True, volumetric=volumetric)
+    rng = np.random.default_rng(8)
+    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
+    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, 0.7).T
+    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    R = body.rotations(x)
+    for rot in (R, None):
+        want = body.pattern.assemble(body.warped_stiffness(rot))[body.pattern.diag]
+        g = body.rotated_gradients(rot)
+        for compiled in ((True, False) if kernels.ENABLED else (False,)):
+            monkeypatch.setattr(kernels, "ENABLED", compiled)
+            np.testing.assert_allclose(body.warped_diagonal(g), want, rtol=0, atol=1e-12 * np.abs(want).max())
