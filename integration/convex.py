@@ -135,6 +135,21 @@ class Rows:
                    np.concatenate([r.bilateral for r in parts]))
 
 
+class MemberBlocks:
+    """A stack member's blocks of the stack part's A (block rows of its nodes: blocks lo:hi of ``stack``'s block data),
+    assembled with the stack's at the first call; ``ready`` once the stack's are (a product by them is cheaper)."""
+
+    def __init__(self, stack: "SoftPart", lo: int, hi: int):
+        self.stack, self.lo, self.hi = stack, lo, hi
+
+    @property
+    def ready(self) -> bool:
+        return not callable(self.stack.A)
+
+    def __call__(self) -> np.ndarray:
+        return self.stack.blocks()[self.lo:self.hi]
+
+
 @dataclass
 class SoftPart:
     """One soft body of the problem: its step system's matrix A (block data (nnzb, 3, 3) on body.pattern, or a function
@@ -166,10 +181,11 @@ class SoftPart:
         return self.diagonal
 
     def apply(self, v: np.ndarray) -> np.ndarray:
-        """A v (N, 3) for v (N, 3): by the operator while A is not assembled, else by its blocks."""
-        if self.operator is not None and callable(self.A):
+        """A v (N, 3) for v (N, 3): by the operator while A is not assembled (nor the stack's it is a slice of), else by
+        its blocks."""
+        if self.operator is not None and callable(self.A) and not getattr(self.A, "ready", False):
             return self.operator(v)
-        return self.body.pattern.product(self.A, v)
+        return self.body.pattern.product(self.blocks(), v)
 
 
 @dataclass

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .convex import Rows, SoftPart, Solution
+from .convex import MemberBlocks, Rows, SoftPart, Solution
 
 
 def components(count: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -90,9 +90,8 @@ class Islands:
                 for k, member in enumerate(members):
                     a, b = int(off[k]), int(off[k + 1])
                     if free:  # the member's own operator; its blocks of the stack's, if a factorisation asks for them
-                        units.append(SoftPart(member, lambda p=p, lo=int(ip[a]), hi=int(ip[b]): p.blocks()[lo:hi],
-                                              p.b[a:b], p.held[a:b], p.value[a:b], p.guess[a:b],
-                                              p.operator.member(k), diagonal[a:b]))
+                        units.append(SoftPart(member, MemberBlocks(p, int(ip[a]), int(ip[b])), p.b[a:b], p.held[a:b],
+                                              p.value[a:b], p.guess[a:b], p.operator.member(k), diagonal[a:b]))
                     else:
                         A = p.blocks()
                         units.append(SoftPart(member, A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b],
