@@ -57,47 +57,60 @@ class Island:
     rigid: bool
 
 
+def _units_of(p: SoftPart) -> list[SoftPart]:
+    """The units of part p: itself, or a stack's members each as a SoftPart of its rows (its own operator and the
+    stack's blocks' slice if the stack's A is applied matrix-free, else its blocks)."""
+    members = getattr(p.body, "members", None)
+    if members is None:
+        return [p]
+    off, ip = p.body.offsets, p.body.pattern.indptr
+    free = p.operator is not None and callable(p.A) and hasattr(p.operator, "member")  # not assembled
+    diagonal = p.diagonal_blocks() if free else None
+    A = None if free else p.blocks()
+    out = []
+    for k, member in enumerate(members):
+        a, b = int(off[k]), int(off[k + 1])
+        if free:  # the member's own operator; its blocks of the stack's, if a factorisation asks for them
+            out.append(SoftPart(member, MemberBlocks(p, int(ip[a]), int(ip[b])), p.b[a:b], p.held[a:b],
+                                p.value[a:b], p.guess[a:b], p.operator.member(k), diagonal[a:b]))
+        else:
+            out.append(SoftPart(member, A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b], p.guess[a:b]))
+    return out
+
+
 @dataclass
 class Islands:
     """The problem of soft ``parts`` and ``rows`` as islands.
 
-    units: the parts with a stack's members apart (SoftPart views of the stack's system: its block data, load,
-    supports and guess restricted to the member); part_units (P + 1,): part p's units are units[part_units[p]:
-    part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its node in that unit;
+    parts: the problem's parts; units: the parts with a stack's members apart (SoftPart views of the stack's system:
+    its block data or operator, load, supports and guess restricted to the member); part_units (P + 1,): part p's units
+    are units[part_units[p]:part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its node in that unit;
     islands: the islands, those with units or rows, in the order of their first unit (the rigid island last if it
     has none)."""
 
-    units: list[SoftPart]
+    parts: list[SoftPart]
     part_units: np.ndarray
     unit: np.ndarray
     node: np.ndarray
     islands: list[Island]
 
+    @property
+    def units(self) -> list[SoftPart]:
+        """The units (a part, or a stack part's members each as a SoftPart of its rows), made at the first use (a
+        problem of one island is solved whole: it needs none)."""
+        if "_units" not in self.__dict__:
+            self._units = [u for p in self.parts for u in _units_of(p)]
+        return self._units
+
     @classmethod
     def of(cls, parts: list[SoftPart], rows: Rows, rigid: bool) -> "Islands":
         """The islands of soft ``parts`` joined by ``rows``; ``rigid``: there are rigid unknowns (the rows on them,
         and they themselves, one island)."""
-        units, part_units, starts = [], [0], []
+        part_units, starts = [0], []
         for p in parts:
             members = getattr(p.body, "members", None)
-            if members is None:
-                units.append(p)
-                starts.append(np.array([0, p.body.n_nodes]))
-            else:
-                off, ip = p.body.offsets, p.body.pattern.indptr
-                free = p.operator is not None and callable(p.A) and hasattr(p.operator, "member")  # not assembled
-                diagonal = p.diagonal_blocks() if free else None
-                for k, member in enumerate(members):
-                    a, b = int(off[k]), int(off[k + 1])
-                    if free:  # the member's own operator; its blocks of the stack's, if a factorisation asks for them
-                        units.append(SoftPart(member, MemberBlocks(p, int(ip[a]), int(ip[b])), p.b[a:b], p.held[a:b],
-                                              p.value[a:b], p.guess[a:b], p.operator.member(k), diagonal[a:b]))
-                    else:
-                        A = p.blocks()
-                        units.append(SoftPart(member, A[ip[a]:ip[b]], p.b[a:b], p.held[a:b], p.value[a:b],
-                                              p.guess[a:b]))
-                starts.append(np.asarray(off))
-            part_units.append(len(units))
+            starts.append(np.array([0, p.body.n_nodes]) if members is None else np.asarray(p.body.offsets))
+            part_units.append(part_units[-1] + (1 if members is None else len(members)))
         part_units = np.asarray(part_units)
         unit = np.full(rows.parts.shape, -1, dtype=np.int64)
         node = np.zeros(rows.nodes.shape, dtype=np.int64)
@@ -109,7 +122,7 @@ class Islands:
             k = np.searchsorted(st, rows.nodes[on], side="right") - 1
             unit[on] = part_units[p] + k
             node[on] = rows.nodes[on] - st[k]
-        U = len(units)
+        U = int(part_units[-1])
         # the graph of units (and the rigid unknowns, node U) that rows join; every row's first slot is used
         first = unit[:, 0]
         pairs = [np.column_stack([first[unit[:, s] >= 0], unit[unit[:, s] >= 0, s]]) for s in range(1, unit.shape[1])]
@@ -130,7 +143,7 @@ class Islands:
                                   bool(rigid and c == label[U])))
         if rigid and int(label[U]) not in seen:  # the rigid bodies alone (their joints)
             islands.append(Island(np.zeros(0, np.int64), np.zeros(0, np.int64), True))
-        return cls(units, part_units, unit, node, islands)
+        return cls(parts, part_units, unit, node, islands)
 
     def __len__(self) -> int:
         return len(self.islands)
