@@ -84,9 +84,9 @@ class Islands:
 
     parts: the problem's parts; units: the parts with a stack's members apart (SoftPart views of the stack's system:
     its block data or operator, load, supports and guess restricted to the member); part_units (P + 1,): part p's units
-    are units[part_units[p]:part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its node in that unit;
-    islands: the islands, those with units or rows, in the order of their first unit (the rigid island last if it
-    has none)."""
+    are units[part_units[p]:part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its
+    node in that unit; islands: the islands, those with units or rows, in the order of their first unit (the rigid
+    island last if it has none)."""
 
     parts: list[SoftPart]
     part_units: np.ndarray

@@ -895,8 +895,8 @@ class FemBody:
         return out
 
     def warped_diagonal(self, g: np.ndarray | tuple) -> np.ndarray:
-        """The diagonal blocks (N, 3, 3) of K' [N/m] with g = ``rotated_gradients(R)``, K' never formed (what a solve that
-        applies K' by ``warped_product`` needs of its diagonal: scalings, Delassus estimates)."""
+        """The diagonal blocks (N, 3, 3) of K' [N/m] with g = ``rotated_gradients(R)``, K' never formed (what a solve
+        that applies K' by ``warped_product`` needs of its diagonal: scalings, Delassus estimates)."""
         parts = g if isinstance(g, tuple) else (g,)
         if len(parts) != (1 if self._bulk_part is None else 2):
             raise InvalidInputError(f"warped_diagonal needs g from rotated_gradients, got {len(parts)} part(s)")
