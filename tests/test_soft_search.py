@@ -101,6 +101,27 @@ def test_edge_search_finds_what_every_pair_of_edges_finds(monkeypatch):
     assert found > 50  # crossings were found: the comparison is not between two empty sets
 
 
+def test_triangle_distances_are_those_of_the_closest_points_on_the_triangles():
+    """kernels.triangle_distances (the kept first pass's pruning) against collision.closest_on_triangles (numpy), for
+    points in every Voronoi region of random triangles, degenerate ones too."""
+    from integration.collision import closest_on_triangles
+
+    if not kernels.ENABLED:
+        pytest.skip("the compiled kernels are off here")
+    rng = np.random.default_rng(9)
+    X = rng.normal(size=(60, 3))
+    X[50:] = X[40:50]  # some triangles with repeated corners
+    tris = rng.integers(0, 60, size=(80, 3))
+    tris[:5, 1] = tris[:5, 0]
+    xs = rng.normal(size=(400, 3))
+    i, t = rng.integers(0, 400, 20000), rng.integers(0, 80, 20000)
+    got = np.empty(len(i))
+    kernels.triangle_distances(xs, X, tris, i, t, got)
+    P = X[tris[t]]
+    want = np.linalg.norm(xs[i] - closest_on_triangles(xs[i], P[:, 0], P[:, 1], P[:, 2]), axis=1)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+
+
 def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
     """integration.warmup.soft_search reaches every compiled kernel of the soft search (the background warm-up
     compiles what it runs; a kernel it missed would compile during a user's step)."""
@@ -109,7 +130,7 @@ def test_the_warm_up_runs_every_soft_search_kernel(monkeypatch):
     if not kernels.ENABLED:
         pytest.skip("the compiled kernels are off here")
     names = ("triangle_spheres", "centre_grid", "soft_candidates", "first_pass_among", "soft_deep_candidates",
-             "soft_nearest", "edges_near", "edge_candidates", "edge_narrow", "edge_depths")
+             "soft_nearest", "triangle_distances", "edges_near", "edge_candidates", "edge_narrow", "edge_depths")
     called = set()
     for name in names:
         def wrapped(*args, _f=getattr(kernels, name), _name=name):
@@ -202,3 +223,16 @@ def test_first_pass_kept_from_step_to_step_finds_what_a_search_of_each_step_find
     pair[0] = (pair[0][0], np.tile([2.0, 0.0, 0.0], (len(m.nodes), 1)), surface, m.nodes.copy())
     closing = soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025, layout, kept)
     assert len(closing) and np.array_equal(closing.key, soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025).key)
+    # the same cubes at rest 0.2 mm beyond the margin: no contact, the kept candidates pruned to what can come within
+    # it while they serve; one moved 0.22 mm closer (within the skin: served) is in contact, as a fresh search finds
+    # (1 cm cubes: their triangles' prism tolerance, 2 PRISM_TOL L = 0.14 mm, is less than the 0.2 mm)
+    m = box_mesh((0.01, 0.01, 0.01), (4, 4, 4), "tet4")
+    surface = SoftSurface.of(m.nodes, m.surface_triangles())
+    pair = [(m.nodes.copy(), np.zeros_like(m.nodes), surface, m.nodes.copy()),
+            (m.nodes + (0.0152, 0.0, 0.0), np.zeros_like(m.nodes), surface, m.nodes.copy())]
+    layout, kept = SoftLayout.of([surface, surface], [(0, 1)]), FirstPass()
+    assert not len(soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025, layout, kept))
+    pair[0] = (m.nodes + (0.00022, 0.0, 0.0), *pair[0][1:])
+    near = soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025, layout, kept)
+    assert kept.served == 1 and len(near) >= 25
+    assert np.array_equal(near.key, soft_contacts(pair, [(0, 1)], 0.005, 0.01, 0.025).key)
