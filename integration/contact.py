@@ -26,7 +26,6 @@ import operator
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from softbody.integrator import Constraints, LinearSystem
 
