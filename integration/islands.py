@@ -78,21 +78,42 @@ def _units_of(p: SoftPart) -> list[SoftPart]:
     return out
 
 
+def _unit_of(parts: np.ndarray, nodes: np.ndarray, starts: list[np.ndarray], part_units: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(unit, node) of slots of ``parts`` and ``nodes`` (any shape): the unit each slot's node belongs to (-1 for an
+    unused slot, part -1) and its node in that unit (part p's units start at part_units[p], its nodes at starts[p])."""
+    unit = np.full(parts.shape, -1, dtype=np.int64)
+    node = np.zeros(nodes.shape, dtype=np.int64)
+    used = parts >= 0
+    for p, st in enumerate(starts):
+        on = used & (parts == p)
+        if not on.any():
+            continue
+        k = np.searchsorted(st, nodes[on], side="right") - 1
+        unit[on] = part_units[p] + k
+        node[on] = nodes[on] - st[k]
+    return unit, node
+
+
 @dataclass
 class Islands:
     """The problem of soft ``parts`` and ``rows`` as islands.
 
     parts: the problem's parts; units: the parts with a stack's members apart (SoftPart views of the stack's system:
     its block data or operator, load, supports and guess restricted to the member); part_units (P + 1,): part p's units
-    are units[part_units[p]:part_units[p + 1]]; unit (m, S), node (m, S): each row slot's unit (-1: unused) and its
-    node in that unit; islands: the islands, those with units or rows, in the order of their first unit (the rigid
-    island last if it has none)."""
+    are units[part_units[p]:part_units[p + 1]]; starts: each part's units' first nodes; islands: the islands, those
+    with units or rows, in the order of their first unit (the rigid island last if it has none)."""
 
     parts: list[SoftPart]
     part_units: np.ndarray
-    unit: np.ndarray
-    node: np.ndarray
+    starts: list[np.ndarray]
     islands: list[Island]
+
+    def slots(self, rows: Rows) -> tuple[np.ndarray, np.ndarray]:
+        """(unit (m, S), node (m, S)): each of ``rows``' slots' unit (-1: unused) and its node in that unit."""
+        if "_slots" not in self.__dict__:
+            self._slots = _unit_of(rows.parts, rows.nodes, self.starts, self.part_units)
+        return self._slots
 
     @property
     def units(self) -> list[SoftPart]:
@@ -112,20 +133,16 @@ class Islands:
             starts.append(np.array([0, p.body.n_nodes]) if members is None else np.asarray(p.body.offsets))
             part_units.append(part_units[-1] + (1 if members is None else len(members)))
         part_units = np.asarray(part_units)
-        unit = np.full(rows.parts.shape, -1, dtype=np.int64)
-        node = np.zeros(rows.nodes.shape, dtype=np.int64)
-        used = rows.parts >= 0
-        for p, st in enumerate(starts):
-            on = used & (rows.parts == p)
-            if not on.any():
-                continue
-            k = np.searchsorted(st, rows.nodes[on], side="right") - 1
-            unit[on] = part_units[p] + k
-            node[on] = rows.nodes[on] - st[k]
+        m = len(rows)
+        # a row joins at most two units: its first slot's (body a's) and its last used slot's (body b's, or a's)
+        last = np.maximum((rows.parts >= 0).sum(axis=1) - 1, 0) if m else np.zeros(0, np.int64)
+        ends = (np.column_stack([rows.parts[:, 0], rows.parts[np.arange(m), last]]),
+                np.column_stack([rows.nodes[:, 0], rows.nodes[np.arange(m), last]]))
+        end_unit = _unit_of(ends[0], ends[1], starts, part_units)[0]
         U = int(part_units[-1])
         # the graph of units (and the rigid unknowns, node U) that rows join; every row's first slot is used
-        first = unit[:, 0]
-        pairs = [np.column_stack([first[unit[:, s] >= 0], unit[unit[:, s] >= 0, s]]) for s in range(1, unit.shape[1])]
+        first = end_unit[:, 0]
+        pairs = [end_unit[end_unit[:, 0] != end_unit[:, 1]]]
         if rigid and rows.jacobian is not None and len(rows):
             on = np.abs(rows.jacobian).reshape(len(rows), -1).max(axis=1) > 0
             pairs.append(np.column_stack([first[on], np.full(int(on.sum()), U)]))
@@ -143,7 +160,7 @@ class Islands:
                                   bool(rigid and c == label[U])))
         if rigid and int(label[U]) not in seen:  # the rigid bodies alone (their joints)
             islands.append(Island(np.zeros(0, np.int64), np.zeros(0, np.int64), True))
-        return cls(parts, part_units, unit, node, islands)
+        return cls(parts, part_units, starts, islands)
 
     def __len__(self) -> int:
         return len(self.islands)
@@ -153,8 +170,8 @@ class Islands:
         local = np.full(len(self.units), -1, dtype=np.int64)
         local[island.units] = np.arange(len(island.units))
         r = island.rows
-        unit = self.unit[r]
-        sub = Rows(np.where(unit >= 0, local[np.maximum(unit, 0)], -1), self.node[r], rows.weights[r],
+        unit, node = (a[r] for a in self.slots(rows))
+        sub = Rows(np.where(unit >= 0, local[np.maximum(unit, 0)], -1), node, rows.weights[r],
                    rows.frames[r], rows.rigid_velocity[r], None if rows.jacobian is None else rows.jacobian[r],
                    rows.v_hat[r], rows.mu[r], rows.bilateral[r])
         return [self.units[u] for u in island.units.tolist()], sub
