@@ -939,9 +939,10 @@ class ContactSolver:
                                    {"converged": sol.converged, "residual": sol.residual})
             keys = c.node
             sliding = active & ~sticking & (c.mu > 0)
+            f, nrm = full_force[sliding], c.normal[sliding]
+            tangential = f - np.einsum("ij,ij->i", f, nrm)[:, None] * nrm  # the sliding rows' friction forces [N]
             state = (set(keys[active].tolist()), set(keys[sticking].tolist()),
-                     {int(k): full_force[j] - (full_force[j] @ c.normal[j]) * c.normal[j]
-                      for j, k in zip(np.flatnonzero(sliding), keys[sliding].tolist())})
+                     dict(zip(keys[sliding].tolist(), tangential)))
             if kind == "soft":
                 pair_result = result
                 self._keep_pair_state(state)
