@@ -820,32 +820,33 @@ class _Newton:
         return Hsr, Hrr
 
     def _direction(self, group: GroupPattern | None, G: np.ndarray, gV: np.ndarray, gu: np.ndarray,
-                   joint_curvature: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """The Newton step (dV (N, 3), ddu (n,)) for the gradients gV (N, 3) (held components zero) and gu (n,): by
-        conjugate gradients preconditioned by the pattern's kept factorisation where it serves (Factor), else by a
-        new factorisation of the soft part and a Schur complement for the rigid unknowns (no soft part, group None:
-        the rigid unknowns' own dense system)."""
+                   joint_curvature: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The Newton step (dV (N, 3), ddu (n,), A dV (N, 3) if the conjugate gradients made it, else None) for the
+        gradients gV (N, 3) (held components zero) and gu (n,): by conjugate gradients preconditioned by the pattern's
+        kept factorisation where it serves (Factor), else by a new factorisation of the soft part and a Schur complement
+        for the rigid unknowns (no soft part, group None: the rigid unknowns' own dense system)."""
         Hsr, Hrr = (self._rigid_blocks(G, joint_curvature) if self.n
                     else (np.zeros((3 * self.N, 0)), np.zeros((0, 0))))
         if group is None:
             try:
-                return np.zeros((0, 3)), np.linalg.solve(Hrr, -gu)
+                return np.zeros((0, 3)), np.linalg.solve(Hrr, -gu), None
             except np.linalg.LinAlgError:
-                return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0]
+                return np.zeros((0, 3)), np.linalg.lstsq(Hrr, -gu, rcond=None)[0], None
         rhs = np.concatenate([-gV.reshape(-1), -gu])
         factor = group.factor
         if 3 * self.N >= (self.owner.reuse_min if self.n else self.owner.reuse_min_soft) and factor.usable(self.held):
-            z = self._reuse(group, G, Hsr, Hrr, rhs)
-            if z is not None:
+            done = self._reuse(group, G, Hsr, Hrr, rhs)
+            if done is not None:
                 factor.reused += 1
-                return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+                z, Az = done
+                return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:], Az
         up, _ = self._system(group, G)
         group.solver.factorize(up)
         factor.values, factor.held = up, self.held.copy()
         factor.made += 1
         self.factorizations += 1
         z = self._schur_solve(group.solver, Hsr, Hrr, rhs[:, None])[:, 0]
-        return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:]
+        return z[:3 * self.N].reshape(-1, 3), z[3 * self.N:], None
 
     def _schur_solve(self, solver: SpdSolver, Hsr: np.ndarray, Hrr: np.ndarray, R: np.ndarray,
                      Y: np.ndarray | None = None, S: np.ndarray | None = None) -> np.ndarray:
@@ -872,11 +873,12 @@ class _Newton:
         return np.concatenate([y - Y @ du, du])
 
     def _reuse(self, group: GroupPattern, G: np.ndarray, Hsr: np.ndarray, Hrr: np.ndarray, rhs: np.ndarray
-               ) -> np.ndarray | None:
+               ) -> tuple[np.ndarray, np.ndarray] | None:
         """The Newton system H z = rhs solved by conjugate gradients preconditioned by the kept factorisation (with the
-        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL. The soft part
-        of H is applied without assembling it, A x + J_s^T G J_s x (its held components' rows are dropped from each
-        product and its iterates vanish there, so their columns add nothing)."""
+        current rigid blocks in a Schur complement), or None if REUSE_ITERATIONS do not reach REUSE_TOL; returns z and
+        A z's soft part (N, 3) (summed from the iterations' products, for the line search). The soft part of H is
+        applied without assembling it, A x + J_s^T G J_s x (its held components' rows are dropped from each product
+        and its iterates vanish there, so their columns add nothing)."""
         n3 = 3 * self.N
         FGF = self._frame_hessians(G)
         free = np.concatenate([~self.held.ravel(), np.ones(self.n, dtype=bool)])
@@ -885,12 +887,12 @@ class _Newton:
             x = z[:n3]
             X = x.reshape(-1, 3)
             out = np.empty_like(z)
-            out[:n3] = (self._A_products(X) + self._to_nodes(np.einsum("mij,mj->mi", FGF, self._at_rows(X)))
-                        ).reshape(-1)
+            AX = self._A_products(X)
+            out[:n3] = (AX + self._to_nodes(np.einsum("mij,mj->mi", FGF, self._at_rows(X)))).reshape(-1)
             if self.n:
                 out[:n3] += Hsr @ z[n3:]
                 out[n3:] = Hsr.T @ x + Hrr @ z[n3:]
-            return np.where(free, out, 0.0)
+            return np.where(free, out, 0.0), AX
 
         Y = S = None
         if self.n:
@@ -905,21 +907,23 @@ class _Newton:
         b = np.where(free, rhs, 0.0)
         target = REUSE_TOL * float(np.linalg.norm(b))
         z = np.zeros_like(b)
+        Az = np.zeros((self.N, 3))  # A z's soft part, along the iterations
         r = b.copy()
         y = precondition(r)
         d = y.copy()
         ry = float(r @ y)
         for it in range(1, REUSE_ITERATIONS + 1):
-            Hd = H(d)
+            Hd, Ad = H(d)
             dHd = float(d @ Hd)
             if not dHd > 0:
                 return None
             a = ry / dHd
             z += a * d
+            Az += a * Ad
             r -= a * Hd
             group.factor.iterations += 1
             if float(np.linalg.norm(r)) <= target:
-                return z
+                return z, Az
             y = precondition(r)
             ry_new = float(r @ y)
             d = y + (ry_new / ry) * d
@@ -1036,8 +1040,9 @@ class _Newton:
                 break
             if it == max_iter:
                 break
-            dV, ddu = self._direction(self.group, G, gV, gu, None if joint is None else joint[1])
-            alpha, AdV, dvc = self._line_search(V, du, dV, ddu, AV, gamma, None if joint is None else joint[0], vc)
+            dV, ddu, AdV = self._direction(self.group, G, gV, gu, None if joint is None else joint[1])
+            alpha, AdV, dvc = self._line_search(V, du, dV, ddu, AV, gamma, None if joint is None else joint[0], vc,
+                                                AdV)
             V = V + alpha * dV
             du = du + alpha * ddu
             previous = cost
@@ -1052,14 +1057,14 @@ class _Newton:
             flat = still
         return V, du, gamma, vc, stick, it, converged, residual, cost
 
-    def _line_search(self, V, du, dV, ddu, AV, gamma, joint_gamma=None, vc=None
+    def _line_search(self, V, du, dV, ddu, AV, gamma, joint_gamma=None, vc=None, AdV=None
                      ) -> tuple[float, np.ndarray, np.ndarray | None]:
         """The minimiser alpha in (0, 1.5] of the (convex, piecewise smooth) cost along the step, to where its slope is
         LINE_TOL of the slope at the start: Newton on dl/dalpha safeguarded by bisection (Castro et al.'s line
-        search). Returns (alpha, A dV, the rows' velocities' change per unit alpha (None: no rows)); ``vc``: the rows'
-        velocities at (V, du) if known."""
+        search). Returns (alpha, A dV, the rows' velocities' change per unit alpha (None: no rows)); ``vc``, ``AdV``:
+        the rows' velocities at (V, du) and A dV if known."""
         rows = self.rows
-        AdV = self._A_products(dV)
+        AdV = self._A_products(dV) if AdV is None else AdV
         dAd = float(np.vdot(dV, AdV)) + (float(ddu @ self.M @ ddu) if self.n else 0.0)
         g0 = float(np.vdot(dV, AV - self.b)) + (float(ddu @ self.M @ du) if self.n else 0.0)
         dvc = None

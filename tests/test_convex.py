@@ -203,6 +203,15 @@ def test_a_kept_factorisation_solves_the_next_steps_alike():
     assert factor.reused > 0 and factor.iterations > 0
     for a, b in zip(first.velocities, second.velocities):
         assert np.abs(a - b).max() < 1e-9
+    # the conjugate gradients' direction comes with A dV summed from their products: A's product of the direction (at
+    # the solution, where the kept factorisation serves, for any right-hand side)
+    newton = convex._Newton(solver, parts, rows, M, h)
+    sol = newton.run()
+    _, _, G, *_ = newton._evaluate(np.concatenate(sol.velocities), sol.du)
+    gV = np.where(~newton.held, rng.normal(size=(newton.N, 3)), 0.0)
+    dV, ddu, AdV = newton._direction(newton.group, G, gV, rng.normal(size=newton.n))
+    assert AdV is not None  # (by the conjugate gradients)
+    np.testing.assert_allclose(AdV, newton._A_products(dV), rtol=1e-10, atol=1e-12 * np.abs(AdV).max())
 
 
 def test_sliding_rows_do_not_lift_off_beyond_glide_tol(monkeypatch):
