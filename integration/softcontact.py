@@ -860,10 +860,9 @@ def edge_contacts(bodies: list[tuple[np.ndarray, np.ndarray, SoftSurface, np.nda
             gap = (P0[i] + s[:, None] * (P1[i] - P0[i])) - (P0[j] + t[:, None] * (P1[j] - P0[j]))
             a, b = used[eb[i]], used[eb[j]]
             bound = np.maximum(depth, margin + travel[i] + travel[j] + between[eb[i], eb[j]]) + widen
-            free = (np.isinf(_node_gaps((keys, np.zeros(len(keys))) if len(keys) else None, ends[i], a[:, None],
-                                        b[:, None])).all(axis=1)
-                    & np.isinf(_node_gaps((keys, np.zeros(len(keys))) if len(keys) else None, ends[j], b[:, None],
-                                          a[:, None])).all(axis=1))
+            gaps = (keys, np.zeros(len(keys))) if len(keys) else None  # (the node contacts as _node_gaps reads them)
+            free = (np.isinf(_node_gaps(gaps, ends[i], a[:, None], b[:, None])).all(axis=1)
+                    & np.isinf(_node_gaps(gaps, ends[j], b[:, None], a[:, None])).all(axis=1))
             ok = free & (np.einsum("ij,ij->i", gap, gap) <= bound * bound)
             ge, back = np.unique(np.concatenate([e[i[ok]], e[j[ok]]]), return_inverse=True)
             i, j, e = back[:ok.sum()], back[ok.sum():], ge

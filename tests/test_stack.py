@@ -70,6 +70,12 @@ def test_stack_refuses_bodies_that_differ():
         BodyStack([_cube((0, 0, 0))])
 
 
+def _groups(world, bodies) -> list[list[int]]:
+    """The stepped bodies of ``world`` as the sorted indices into ``bodies`` of their members (a body alone: itself)."""
+    return sorted(sorted(next(k for k, b in enumerate(bodies) if b is m) for m in getattr(s, "members", [s]))
+                  for s in world.sim.bodies)
+
+
 def _run(world_stack: bool, steps: int, build):
     world, bodies = build(world_stack)
     for _ in range(steps):
@@ -183,8 +189,7 @@ def test_bodies_in_soft_contact_are_stacked_apart_from_the_others():
             world.add_soft(b, friction=0.5)
         return world, cubes
     (ws, bs), (wa, ba) = _run(True, 30, build), _run(False, 30, build)
-    groups = sorted(sorted(next(k for k, b in enumerate(bs) if b is m) for m in getattr(s, "members", [s]))
-                    for s in ws.sim.bodies)
+    groups = _groups(ws, bs)
     assert groups == [[0, 4], [1, 2, 3]]
     assert any(r.active.any() for _, r in ws.pair_results)
     for a, b in zip(ba, bs):
@@ -204,8 +209,7 @@ def test_separate_contact_groups_step_as_one_stack_and_solve_as_islands():
             world.add_soft(b, friction=0.5)
         return world, cubes
     (ws, bs), (wa, ba) = _run(True, 30, build), _run(False, 30, build)
-    groups = sorted(sorted(next(k for k, b in enumerate(bs) if b is m) for m in getattr(s, "members", [s]))
-                    for s in ws.sim.bodies)
+    groups = _groups(ws, bs)
     assert groups == [[0, 1, 3, 4], [2]]
     held = ws.contact_solver.convex.patterns._held
     islands = [sorted(bs.index(b) for b in key) for key in held]  # the islands' patterns (and, for the first

@@ -13,6 +13,15 @@ SIZE = np.array([0.4, 0.3, 0.2])
 AXIS = np.array([1.0, -2.0, 0.7])  # oblique
 
 
+def _bent(mesh, rng, angle: float) -> np.ndarray:
+    """A bent and rotated state of the mesh's nodes (N, 3): jittered by 5% of an element's size (drawn from rng), turned
+    by ``angle`` about AXIS, bent along x, so that the element rotations differ from element to element."""
+    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
+    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, angle).T
+    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    return x
+
+
 def _force_scale(mesh) -> float:
     """Force of a unit strain on one element's face: E * h^2 with h a typical element edge."""
     h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
@@ -176,10 +185,7 @@ def test_assembled_warped_stiffness_and_loads_match_rotated_element_matrices(kin
     mesh = distorted_box(kind, cells=(2, 2, 2), size=SIZE, seed=3)
     body = softbody.FemBody(mesh, MAT, warping=True, hex_rotation=hex_rotation)
     rng = np.random.default_rng(4)
-    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
-    # a bent and rotated state: element rotations differ from element to element
-    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, 0.7).T
-    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    x = _bent(mesh, rng, 0.7)
     R = body.rotations(x)
     assert np.ptp(R, axis=0).max() > 0.05  # the rotations really vary
     K, load = body.warped_stiffness_blocks(R)
@@ -208,9 +214,7 @@ def test_matrix_free_product_matches_rotated_element_matrices(kind):
     mesh = distorted_box(kind, cells=(2, 2, 2), size=SIZE, seed=5)
     body = softbody.FemBody(mesh, MAT, warping=True)
     rng = np.random.default_rng(6)
-    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
-    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, 1.1).T
-    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    x = _bent(mesh, rng, 1.1)
     R = body.rotations(x)
     assert np.ptp(R, axis=0).max() > 0.05
     y = rng.standard_normal(mesh.nodes.shape)
@@ -289,9 +293,7 @@ def test_warped_diagonal_is_the_diagonal_of_the_assembled_warped_stiffness(kind,
     mesh = distorted_box(kind, cells=(2, 2, 2), size=SIZE, seed=7)
     body = softbody.FemBody(mesh, MAT, warping=True, volumetric=volumetric)
     rng = np.random.default_rng(8)
-    h = (mesh.volume() / mesh.n_elements) ** (1 / 3)
-    x = (mesh.nodes + 0.05 * h * rng.standard_normal(mesh.nodes.shape)) @ rotation_matrix(AXIS, 0.7).T
-    x[:, 2] += 0.3 * (x[:, 0] - x[:, 0].mean()) ** 2
+    x = _bent(mesh, rng, 0.7)
     R = body.rotations(x)
     for rot in (R, None):
         want = body.pattern.assemble(body.warped_stiffness(rot))[body.pattern.diag]
